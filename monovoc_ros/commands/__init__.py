@@ -1,0 +1,1 @@
+"""Subcommands of the `monovoc` command line, one module each."""

@@ -1,0 +1,1 @@
+"""The ROS-free core: Gaussian maps, the SCD rasterizer, semantic state, palettes, evaluation."""

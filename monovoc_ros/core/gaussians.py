@@ -1,0 +1,97 @@
+"""The Gaussian map: fixed geometry from the SLAM front-end, held as a struct of arrays.
+
+All values are *activated*: scales in metres (exp of the PLY's log-scales), opacities in (0, 1)
+(sigmoid of the PLY's logits), quaternions normalized in (w, x, y, z) order, colors RGB in [0, 1].
+Arrays are read-only once the map is built, so derived values (3D covariances) can be cached.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from monovoc_ros.core.camera import quat_wxyz_to_matrix
+
+
+def _frozen(a: np.ndarray | None, dtype, shape_tail: tuple, name: str, n: int | None) -> np.ndarray | None:
+    if a is None:
+        return None
+    a = np.ascontiguousarray(a, dtype=dtype)
+    if a.shape[1:] != shape_tail or (n is not None and a.shape[0] != n):
+        want = ("N",) + shape_tail
+        raise ValueError(f"GaussianMap.{name}: expected shape {want} with N={n}, got {a.shape}")
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class GaussianMap:
+    means: np.ndarray  # (N, 3) float32, world frame, metres
+    scales: np.ndarray  # (N, 3) float32, activated (metres)
+    quats: np.ndarray  # (N, 4) float32, (w, x, y, z), normalized
+    opacities: np.ndarray  # (N,) float32, activated, in (0, 1)
+    colors: np.ndarray | None = None  # (N, 3) float32 RGB in [0, 1] (SH degree-0 color)
+    ids: np.ndarray | None = None  # (N,) int64 stable per-Gaussian ids from the SLAM front-end
+    semantics: np.ndarray | None = None  # (N, 3) float32, optional `semantics_*` PLY fields
+    extra: dict = field(default_factory=dict)  # other named per-Gaussian arrays (e.g. f_rest)
+
+    def __post_init__(self) -> None:
+        means = _frozen(self.means, np.float32, (3,), "means", None)
+        n = means.shape[0]
+        quats = np.asarray(self.quats, dtype=np.float32)
+        norms = np.linalg.norm(quats, axis=-1, keepdims=True) if quats.ndim == 2 else None
+        if norms is not None and np.any(~np.isfinite(norms) | (norms <= 0)):
+            raise ValueError("GaussianMap.quats: zero or non-finite quaternion")
+        if norms is not None:
+            quats = quats / norms
+        object.__setattr__(self, "means", means)
+        object.__setattr__(self, "scales", _frozen(self.scales, np.float32, (3,), "scales", n))
+        object.__setattr__(self, "quats", _frozen(quats, np.float32, (4,), "quats", n))
+        object.__setattr__(self, "opacities", _frozen(self.opacities, np.float32, (), "opacities", n))
+        object.__setattr__(self, "colors", _frozen(self.colors, np.float32, (3,), "colors", n))
+        object.__setattr__(self, "ids", _frozen(self.ids, np.int64, (), "ids", n))
+        object.__setattr__(self, "semantics", _frozen(self.semantics, np.float32, (3,), "semantics", n))
+        if self.ids is not None and np.unique(self.ids).size != n:
+            raise ValueError("GaussianMap.ids: ids must be unique")
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    def subset(self, index: np.ndarray) -> GaussianMap:
+        """A map of the selected Gaussians (boolean mask or integer index), in that order."""
+
+        def pick(a):
+            return None if a is None else a[index]
+
+        return GaussianMap(
+            self.means[index],
+            self.scales[index],
+            self.quats[index],
+            self.opacities[index],
+            pick(self.colors),
+            pick(self.ids),
+            pick(self.semantics),
+            {k: v[index] for k, v in self.extra.items()},
+        )
+
+    @cached_property
+    def covariances(self) -> np.ndarray:
+        """World-frame 3D covariances as (N, 6) float32: xx, xy, xz, yy, yz, zz.
+
+        Computed once per map (not per keyframe): Sigma = R S S^T R^T with S = diag(scales).
+        """
+        R = quat_wxyz_to_matrix(self.quats)
+        M = R * self.scales.astype(np.float64)[:, None, :]
+        cov = M @ np.swapaxes(M, 1, 2)
+        out = np.stack(
+            [cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1
+        ).astype(np.float32)
+        out.setflags(write=False)
+        return out
+
+    @property
+    def nbytes(self) -> int:
+        arrays = [self.means, self.scales, self.quats, self.opacities, self.colors, self.ids, self.semantics]
+        return sum(a.nbytes for a in arrays if a is not None) + sum(v.nbytes for v in self.extra.values())

@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# Installs everything monovoc_ros needs into ./.venv (Python 3.11): the pinned wheels, the
+# monovoc_interfaces package (rosidl-generated, built with cmake into the venv prefix), the project
+# itself (editable), and the offline embedding models (exported once to ONNX).
+# Idempotent: each step is skipped when its inputs have not changed since it last succeeded.
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+cd "$root"
+venv="$root/.venv"
+python=${PYTHON:-python3.11}
+command -v "$python" >/dev/null || python=python3
+
+stamp() { sha256sum "$@" | sha256sum | cut -c1-16; }
+
+if [ ! -x "$venv/bin/python" ]; then
+  echo "[install] creating $venv"
+  "$python" -m venv "$venv"
+fi
+export VIRTUAL_ENV="$venv" PATH="$venv/bin:$PATH"
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+
+req_stamp=$(stamp requirements.txt)
+if [ "$(cat "$venv/.req_stamp" 2>/dev/null)" != "$req_stamp" ]; then
+  echo "[install] pip install -r requirements.txt"
+  # The machine's pip config lists local indexes that may be absent: drop those warnings.
+  pip install --quiet --upgrade "pip==26.3" 2>&1 | { grep -v "^WARNING: Location" || true; }
+  pip install --quiet -r requirements.txt 2>&1 | { grep -v "^WARNING: Location" || true; }
+  pip check >/dev/null || { pip check; exit 1; }
+  echo "$req_stamp" > "$venv/.req_stamp"
+fi
+
+if [ -d monovoc_interfaces ]; then
+  if_stamp=$(stamp $(find monovoc_interfaces -type f | sort))
+  if [ "$(cat "$venv/.interfaces_stamp" 2>/dev/null)" != "$if_stamp" ]; then
+    echo "[install] building monovoc_interfaces into $venv"
+    export AMENT_PREFIX_PATH="$venv"
+    build="$root/build/monovoc_interfaces"
+    rm -rf "$build"
+    cmake -S monovoc_interfaces -B "$build" -DCMAKE_INSTALL_PREFIX="$venv" \
+      -DCMAKE_PREFIX_PATH="$venv" -DPython3_EXECUTABLE="$venv/bin/python" \
+      -DBUILD_TESTING=OFF > "$root/build/monovoc_interfaces.cmake.log" 2>&1 \
+      || { cat "$root/build/monovoc_interfaces.cmake.log"; exit 1; }
+    cmake --build "$build" -j2 >> "$root/build/monovoc_interfaces.cmake.log" 2>&1 \
+      || { tail -50 "$root/build/monovoc_interfaces.cmake.log"; exit 1; }
+    cmake --install "$build" >> "$root/build/monovoc_interfaces.cmake.log" 2>&1
+    echo "$if_stamp" > "$venv/.interfaces_stamp"
+  fi
+fi
+
+proj_stamp=$(stamp setup.py setup.cfg package.xml)
+if [ "$(cat "$venv/.project_stamp" 2>/dev/null)" != "$proj_stamp" ]; then
+  echo "[install] pip install -e . (monovoc_ros)"
+  pip install --quiet --no-deps --no-build-isolation -e . 2>&1 | { grep -vE "^WARNING: Location|^ " || true; }
+  echo "$proj_stamp" > "$venv/.project_stamp"
+fi
+
+if "$venv/bin/python" -c "import monovoc_ros.embed.export" 2>/dev/null; then
+  "$venv/bin/python" -m monovoc_ros.embed.export --quiet
+fi
+echo "[install] done: $venv"

@@ -1,0 +1,27 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "monovoc_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(include=["monovoc_ros", "monovoc_ros.*", "msg_adapters", "msg_adapters.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="MonoVoc ROS developers",
+    maintainer_email="monovoc@example.com",
+    description="Open-vocabulary object-level semantic mapping on 3D Gaussian Splatting maps.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "monovoc = monovoc_ros.cli:main",
+        ],
+    },
+)
