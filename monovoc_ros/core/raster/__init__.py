@@ -1,0 +1,102 @@
+"""The SCD rasterizer: per-Gaussian evidence sums (METHOD.md section 3) and plain rendering (section 2).
+
+Three implementations share one definition (projection.py, constants.py) and one signature:
+"numba" (the production CPU kernel), "torch" (vectorized, CPU or CUDA tensors) and "reference" (float64,
+per pixel, tiny scenes only; the oracle the other two are tested against). Implementation modules are
+imported on first use, so importing this package does not pull in numba or torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.raster.inputs import (
+    check_background,
+    check_colors,
+    check_mask,
+    check_valid,
+    check_view,
+)
+
+IMPLEMENTATIONS = ("numba", "torch", "reference")
+_MODULES = {"numba": "numba_impl", "torch": "torch_impl", "reference": "reference"}
+
+__all__ = ["IMPLEMENTATIONS", "Evidence", "Rendering", "accumulate", "render"]
+
+
+@dataclass
+class Evidence:
+    color_sum: np.ndarray  # (N, 3) float64: sum_p w_ip * y_p
+    weight_sum: np.ndarray  # (N,) float64: sum_p w_ip
+    n_visible: int  # Gaussians that survived culling for this camera
+
+
+@dataclass
+class Rendering:
+    image: np.ndarray  # (H, W, 3) float32: sum_i w_ip c_i + T_final b
+    transmittance: np.ndarray  # (H, W) float32: T_final
+    depth: np.ndarray  # (H, W) float32: sum_i w_ip z_i / (1 - T_final) where 1 - T_final > 1e-6, else 0
+
+
+def _module(impl: str, device: str | None):
+    if impl not in IMPLEMENTATIONS:
+        raise ValueError(f"impl must be one of {IMPLEMENTATIONS}, got {impl!r}")
+    if device is not None and impl != "torch":
+        raise ValueError(f"device is only meaningful for impl='torch', got device={device!r} with impl={impl!r}")
+    return importlib.import_module(f"monovoc_ros.core.raster.{_MODULES[impl]}")
+
+
+def _device_kwargs(impl: str, device: str | None) -> dict:
+    return {"device": device} if impl == "torch" else {}
+
+
+def accumulate(
+    gmap: GaussianMap,
+    mask: np.ndarray,
+    intrinsics: Intrinsics,
+    cam_to_world: np.ndarray,
+    *,
+    valid: np.ndarray | None = None,
+    background: Sequence[float] | None = None,
+    impl: str = "numba",
+    device: str | None = None,
+) -> Evidence:
+    """SCD evidence of one keyframe: per Gaussian, sum_p w_ip y_p and sum_p w_ip with y_p = C_p - T_p b.
+
+    `mask` is (H, W, 3) uint8 (color = value / 255) or float in [0, 1]; pixels where `valid` is False add
+    nothing (they still occlude as usual). Returns float64 NumPy arrays whatever the implementation.
+    """
+    module = _module(impl, device)
+    view = check_view(gmap, intrinsics, cam_to_world)
+    mask = check_mask(mask, intrinsics)
+    valid = check_valid(valid, intrinsics)
+    bg = check_background(background)
+    color_sum, weight_sum, n_visible = module.accumulate(gmap, mask, view, valid, bg, **_device_kwargs(impl, device))
+    return Evidence(color_sum, weight_sum, int(n_visible))
+
+
+def render(
+    gmap: GaussianMap,
+    colors: np.ndarray,
+    intrinsics: Intrinsics,
+    cam_to_world: np.ndarray,
+    *,
+    background: Sequence[float] | None = None,
+    impl: str = "numba",
+    device: str | None = None,
+) -> Rendering:
+    """Forward rendering of per-Gaussian `colors` (N, 3) with the same weights as `accumulate`."""
+    module = _module(impl, device)
+    view = check_view(gmap, intrinsics, cam_to_world)
+    colors = check_colors(colors, len(gmap))
+    bg = check_background(background)
+    image, trans, depth = module.render(gmap, colors, view, bg, **_device_kwargs(impl, device))
+    return Rendering(
+        np.asarray(image, dtype=np.float32), np.asarray(trans, dtype=np.float32), np.asarray(depth, dtype=np.float32)
+    )

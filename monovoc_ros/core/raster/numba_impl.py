@@ -1,0 +1,149 @@
+"""The production CPU rasterizer: numba tile kernels (numba_kernels.py) driven per keyframe.
+
+Per call: float64 EWA projection, one global stable radix sort by depth, packing the visible
+Gaussians into 64-byte rows in depth order, binning them into 16x16 tiles with the ellipse cull (a
+stable counting sort, so every tile list is already front to back), compositing the tiles, and a
+per-Gaussian reduction of the per-pair partial sums. All but the sort run on numba's threads.
+
+Thread safety: one process-wide lock serializes calls. Numba's workqueue threading layer aborts when
+two threads enter parallel code at once, two concurrent calls would only fight over the same cores,
+and the lock lets the calls share one workspace of scratch arrays.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.raster import numba_kernels as nk
+from monovoc_ros.core.raster.inputs import View
+from monovoc_ros.core.raster.projection import jacobian_limits, tile_grid
+
+_LOCK = threading.Lock()
+_NO_VALID = np.ones((1, 1), dtype=np.bool_)
+_NO_COLORS = np.zeros((1, 3), dtype=np.float32)
+_ZERO_BG = np.zeros(3, dtype=np.float32)
+
+
+class Workspace:
+    """Scratch arrays kept between calls: at 560k Gaussians, fresh ones would cost more in page faults
+    than the whole projection. Buffers only grow (by at least 25%); use under _LOCK only."""
+
+    def __init__(self) -> None:
+        self._buffers: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+        size = int(np.prod(shape))
+        buf = self._buffers.get(name)
+        if buf is None or buf.size < size or buf.dtype != dtype:
+            grown = 0 if buf is None or buf.dtype != dtype else int(1.25 * buf.size)
+            buf = self._buffers[name] = np.empty(max(size, grown), dtype)
+        return buf[:size].reshape(shape)
+
+    def adopt(self, name: str, array: np.ndarray) -> None:
+        """Keeps an array that a kernel allocated because the named buffer was too small."""
+        current = self._buffers.get(name)
+        if current is None or array.size > current.size:  # a view of the buffer is never larger
+            self._buffers[name] = array
+
+    @property
+    def nbytes(self) -> int:
+        return sum(b.nbytes for b in self._buffers.values())
+
+
+WORKSPACE = Workspace()
+
+
+@dataclass
+class Binned:
+    """A view's visible Gaussians, packed and binned into tiles (mostly views of the workspace)."""
+
+    order: np.ndarray  # (n_visible,) int32 map index of each depth rank
+    rows: np.ndarray  # (n_visible, 16) float32 packed parameters in depth order
+    tile_start: np.ndarray  # (n_tiles + 1,) int64 offsets into tile_list
+    tile_list: np.ndarray  # (n_pairs,) int32 depth ranks, front to back per tile
+    tile_slot: np.ndarray  # (n_pairs,) int64 Gaussian-major slot of each pair
+    gauss_start: np.ndarray  # (n_visible + 1,) int64 first slot of each Gaussian
+    tile_order: np.ndarray  # (n_tiles,) int64 tiles in scheduling order (most pairs first)
+    grid: tuple[int, int]
+
+
+def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: int) -> Binned:
+    """Projection, depth order, packing and tile binning; call under _LOCK."""
+    ws = WORKSPACE
+    k = view.intrinsics
+    n = len(gmap)
+    gx, gy = tile_grid(k.width, k.height)
+    u = ws.get("u", (n,), np.float32)
+    v = ws.get("v", (n,), np.float32)
+    conic = ws.get("conic", (n, 3), np.float32)
+    depth = ws.get("depth", (n,), np.float32)
+    rect = ws.get("rect", (n, 4), np.int32)
+    lims = np.array(jacobian_limits(view), dtype=np.float64)
+    nk.project(
+        gmap.means, gmap.covariances, view.world_to_cam, float(k.fx), float(k.fy), float(k.cx), float(k.cy),
+        lims, k.width, k.height, u, v, conic, depth, rect, workers,
+    )  # fmt: skip
+    order = nk.visible_by_depth(depth, rect)
+    rows = ws.get("rows", (len(order), nk.ROW_WIDTH), np.float32)
+    rects = ws.get("rects", (len(order), 4), np.int32)
+    nk.pack_rows(
+        order, u, v, conic, depth, gmap.opacities, _NO_COLORS if colors is None else colors, colors is not None,
+        rows, rects, rect, workers,
+    )  # fmt: skip
+    tile_start, tile_list, tile_slot, gauss_start = nk.bin_tiles(
+        rows, rects, gx * gy, gx, workers, ws.get("tile_list", (0,), np.int32), ws.get("tile_slot", (0,), np.int64)
+    )
+    ws.adopt("tile_list", tile_list)
+    ws.adopt("tile_slot", tile_slot)
+    # Costly tiles first, so that the last tiles handed out are cheap ones.
+    tile_order = np.argsort(-np.diff(tile_start), kind="stable")
+    return Binned(order, rows, tile_start, tile_list, tile_slot, gauss_start, tile_order, (gx, gy))
+
+
+def accumulate(
+    gmap: GaussianMap, mask: np.ndarray, view: View, valid: np.ndarray | None, background: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, int]:
+    n = len(gmap)
+    color_sum = np.zeros((n, 3))
+    weight_sum = np.zeros(n)
+    if n == 0:
+        return color_sum, weight_sum, 0
+    scale = np.float32(1.0 / 255.0) if mask.dtype == np.uint8 else np.float32(1.0)
+    with _LOCK:
+        workers = numba.get_num_threads()
+        b = bin_view(gmap, view, None, workers)
+        if len(b.order) == 0:
+            return color_sum, weight_sum, 0
+        pair_acc = WORKSPACE.get("pair_acc", (len(b.tile_list), 4), np.float32)
+        nk.accumulate_tiles(
+            b.rows, b.tile_start, b.tile_list, b.tile_slot, b.tile_order, b.grid[0], view.width, view.height, mask,
+            scale, _NO_VALID if valid is None else valid, valid is not None,
+            _ZERO_BG if background is None else background, background is not None, pair_acc, workers,
+        )  # fmt: skip
+        nk.reduce_pairs(pair_acc, b.gauss_start, b.order, color_sum, weight_sum, workers)
+        return color_sum, weight_sum, len(b.order)
+
+
+def render(
+    gmap: GaussianMap, colors: np.ndarray, view: View, background: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    h, w = view.height, view.width
+    image = np.zeros((h, w, 3), np.float32)
+    trans = np.ones((h, w), np.float32)
+    depth = np.zeros((h, w), np.float32)
+    bg = _ZERO_BG if background is None else background
+    if len(gmap) == 0:
+        image[:] = bg
+        return image, trans, depth
+    with _LOCK:
+        workers = numba.get_num_threads()
+        b = bin_view(gmap, view, colors, workers)
+        nk.render_tiles(
+            b.rows, b.tile_start, b.tile_list, b.tile_order, b.grid[0], w, h, bg, image, trans, depth, workers
+        )
+    return image, trans, depth

@@ -1,0 +1,670 @@
+"""Numba kernels of the CPU tile rasterizer (see numba_impl.py for the pipeline and PERF_NOTES.md).
+
+Layout and numeric choices, all for the compositing loop, which is nearly all of the time:
+- A tile's 256 pixels are stored as sixteen 4x4 blocks (block-major, row-major inside a block). A
+  Gaussian visits only the blocks under its alpha >= 1/255 ellipse, as one contiguous run of 16 to
+  64 pixels per block row, which LLVM turns into SIMD code.
+- The pixel loop is float32 with unsigned indices (no negative-index wraparound code) and a
+  polynomial exp built from an integer bit-cast (a libm call would stop vectorization); the
+  per-pair sums are reductions that fast-math reassociation lets LLVM vectorize.
+- A pixel's state is one float: its transmittance T, negated once the pixel has stopped (the
+  termination rule fired), so stopped pixels keep their final T and blend nothing more.
+- Per Gaussian-tile pair the tile kernel writes its partial sums to that pair's own slot (slots
+  are numbered Gaussian-major), and a per-Gaussian reduction adds a Gaussian's consecutive slots in
+  a fixed order: results do not depend on thread count or scheduling, and no per-thread buffers are
+  needed.
+- Parallel loops hand out work (tiles, chunks of Gaussians) through an atomic counter rather than
+  numba's static split: on a shared machine a pre-empted thread then delays only its current item.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from llvmlite import ir
+from numba import njit, prange
+from numba.core import cgutils, types
+from numba.extending import intrinsic
+
+from monovoc_ros.core.raster.constants import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    COV2D_DILATION,
+    DEPTH_MIN_COVERAGE,
+    EIGEN_FLOOR,
+    NEAR_PLANE,
+    RADIUS_SIGMAS,
+    T_MIN,
+    TILE,
+)
+
+# Numba types a float literal as float64, which would promote the whole lane loop: use these.
+_F0 = np.float32(0.0)
+_F1 = np.float32(1.0)
+_FHALF = np.float32(0.5)
+_F_ALPHA_MAX = np.float32(ALPHA_MAX)
+_F_ALPHA_MIN = np.float32(ALPHA_MIN)
+_F_T_MIN = np.float32(T_MIN)
+_F_NEG_HALF = np.float32(-0.5)
+_F_EXP_LO = np.float32(-30.0)  # exp(-30) ~ 1e-13 is far below alpha's threshold; avoids denormals
+_F_LOG2E = np.float32(1.4426950408889634)
+_F_LN2_HI = np.float32(0.693359375)  # Cody-Waite split of ln 2 (Cephes expf)
+_F_LN2_LO = np.float32(-2.12194440e-4)
+_P0 = np.float32(1.9875691500e-4)
+_P1 = np.float32(1.3981999507e-3)
+_P2 = np.float32(8.3334519073e-3)
+_P3 = np.float32(4.1665795894e-2)
+_P4 = np.float32(1.6666665459e-1)
+_P5 = np.float32(5.0000001201e-1)
+_I127 = np.int32(127)
+_I23 = np.int32(23)
+_U16 = np.uint64(16)
+
+# Reassociation lets LLVM vectorize the per-pair sums (exp_nonpositive stays accurate under it: tested).
+_FASTMATH = {"reassoc", "contract", "nsz"}
+_PIXELS = TILE * TILE
+_CHUNK = 4096  # Gaussians per work item of the per-Gaussian parallel loops
+_BLOCKS_PER_ROW = TILE // 4
+# The ellipse used for culling tiles and blocks is padded so that float32 rounding in the pixel loop
+# can never reach a pixel the float64 cull dropped.
+_CULL_THR_REL = 1e-3
+_CULL_THR_ABS = 1e-3
+_CULL_PAD_PX = 1e-2
+
+# Packed per-Gaussian rows (64 bytes, depth order).
+ROW_U, ROW_V, ROW_A, ROW_R, ROW_S, ROW_O, ROW_THR, ROW_EY, ROW_DYR, ROW_Z, ROW_RED, ROW_GREEN, ROW_BLUE = range(13)
+ROW_WIDTH = 16
+
+
+@intrinsic
+def _int32_bits_as_float32(typingctx, bits):
+    if bits != types.int32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.FloatType())
+
+    return types.float32(types.int32), codegen
+
+
+@intrinsic
+def _fetch_add(typingctx, counters, index):
+    """Atomically counters[index] += 1; returns the previous value."""
+    if not (isinstance(counters, types.Array) and counters.dtype == types.int64 and counters.ndim == 1):
+        return None
+
+    def codegen(context, builder, signature, args):
+        arr_type = signature.args[0]
+        arr = context.make_array(arr_type)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, arr_type, arr, [args[1]])
+        return builder.atomic_rmw("add", ptr, ir.Constant(ir.IntType(64), 1), "monotonic")
+
+    return types.int64(counters, types.intp), codegen
+
+
+@njit(cache=True)
+def exp_nonpositive(x):
+    """exp(x) for float32 x <= 0, to ~1 ulp, vectorizable (inputs below -30 return exp(-30))."""
+    x = x if x > _F_EXP_LO else _F_EXP_LO
+    x = x if x < _F0 else _F0
+    # k = round(x / ln 2); truncation toward zero of a negative number is its ceiling.
+    k = np.int32(x * _F_LOG2E - _FHALF)
+    kf = np.float32(k)
+    r = x - kf * _F_LN2_HI
+    r = r - kf * _F_LN2_LO
+    p = (((((_P0 * r + _P1) * r + _P2) * r + _P3) * r + _P4) * r + _P5) * (r * r) + r + _F1
+    # 2^k from its IEEE-754 bits; computed in int64 by numba, narrowed back by LLVM.
+    return p * _int32_bits_as_float32(np.int32((k + _I127) << _I23))
+
+
+# --- projection ---------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, gx, gy, u, v, conic, depth, rect):
+    mx, my, mz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+    x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + R[0, 3]
+    y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + R[1, 3]
+    z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + R[2, 3]
+    rect[i, 0] = 0
+    rect[i, 1] = 0
+    rect[i, 2] = 0
+    rect[i, 3] = 0
+    depth[i] = np.float32(z)
+    if not (z >= NEAR_PLANE) or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return
+    xz = min(max(x / z, -lims[0]), lims[1])
+    yz = min(max(y / z, -lims[2]), lims[3])
+    j00, j02 = fx / z, -fx * xz / z
+    j11, j12 = fy / z, -fy * yz / z
+    # M = J W (2x3), then Sigma2D = M Sigma M^T + dilation.
+    m00 = j00 * R[0, 0] + j02 * R[2, 0]
+    m01 = j00 * R[0, 1] + j02 * R[2, 1]
+    m02 = j00 * R[0, 2] + j02 * R[2, 2]
+    m10 = j11 * R[1, 0] + j12 * R[2, 0]
+    m11 = j11 * R[1, 1] + j12 * R[2, 1]
+    m12 = j11 * R[1, 2] + j12 * R[2, 2]
+    sxx, sxy, sxz = np.float64(cov6[i, 0]), np.float64(cov6[i, 1]), np.float64(cov6[i, 2])
+    syy, syz, szz = np.float64(cov6[i, 3]), np.float64(cov6[i, 4]), np.float64(cov6[i, 5])
+    t0x = sxx * m00 + sxy * m01 + sxz * m02
+    t0y = sxy * m00 + syy * m01 + syz * m02
+    t0z = sxz * m00 + syz * m01 + szz * m02
+    t1x = sxx * m10 + sxy * m11 + sxz * m12
+    t1y = sxy * m10 + syy * m11 + syz * m12
+    t1z = sxz * m10 + syz * m11 + szz * m12
+    a = m00 * t0x + m01 * t0y + m02 * t0z + COV2D_DILATION
+    b = m10 * t0x + m11 * t0y + m12 * t0z
+    c = m10 * t1x + m11 * t1y + m12 * t1z + COV2D_DILATION
+    det = a * c - b * b
+    if not (det > 0.0) or not math.isfinite(det):
+        return
+    mid = 0.5 * (a + c)
+    radius = math.ceil(RADIUS_SIGMAS * math.sqrt(mid + math.sqrt(max(EIGEN_FLOOR, mid * mid - det))))
+    pu = fx * x / z + cx
+    pv = fy * y / z + cy
+    x0 = min(max(math.floor((pu - radius) / TILE), 0.0), gx)
+    x1 = min(max(math.floor((pu + radius + TILE - 1) / TILE), 0.0), gx)
+    y0 = min(max(math.floor((pv - radius) / TILE), 0.0), gy)
+    y1 = min(max(math.floor((pv + radius + TILE - 1) / TILE), 0.0), gy)
+    if x1 <= x0 or y1 <= y0:
+        return
+    rect[i, 0] = np.int32(x0)
+    rect[i, 1] = np.int32(x1)
+    rect[i, 2] = np.int32(y0)
+    rect[i, 3] = np.int32(y1)
+    u[i] = np.float32(pu)
+    v[i] = np.float32(pv)
+    # The conic [[c, -b], [-b, a]] / det factored as q(d) = A (dx + R dy)^2 + S dy^2: a sum of two
+    # non-negative terms. On needle-like footprints the expanded form cancels; in float32 its worst
+    # error in q was 25x that of this one (1e-3 against 4e-5 on the tests' needle scenes).
+    conic[i, 0] = np.float32(c / det)
+    conic[i, 1] = np.float32(-b / c)
+    conic[i, 2] = np.float32(1.0 / c)
+
+
+@njit(cache=True, parallel=True)
+def project(means, cov6, world_to_cam, fx, fy, cx, cy, lims, width, height, u, v, conic, depth, rect, n_workers):
+    """EWA projection in float64 (see projection.py); rect = (0, 0, 0, 0) marks a culled Gaussian and
+    conic holds the factored form (A, R, S) of the inverse 2D covariance (see _project_one)."""
+    n = means.shape[0]
+    gx = (width + TILE - 1) // TILE
+    gy = (height + TILE - 1) // TILE
+    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    counter = np.zeros(1, np.int64)
+    for _ in prange(n_workers):
+        c = _fetch_add(counter, 0)
+        while c < n_chunks:
+            for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
+                _project_one(i, means, cov6, world_to_cam, fx, fy, cx, cy, lims, gx, gy, u, v, conic, depth, rect)
+            c = _fetch_add(counter, 0)
+
+
+# --- depth order and packing ----------------------------------------------------------------------
+
+
+@njit(cache=True)
+def visible_by_depth(depth, rect):
+    """Indices of visible Gaussians sorted by depth, stable (ties keep map order): LSD radix sort on the
+    float32 bit patterns, which order like the values for positive floats."""
+    n = depth.shape[0]
+    count = 0
+    for i in range(n):
+        if rect[i, 1] > rect[i, 0]:
+            count += 1
+    idx = np.empty(count, np.int32)
+    keys = np.empty(count, np.uint32)
+    bits = depth.view(np.uint32)
+    m = 0
+    for i in range(n):
+        if rect[i, 1] > rect[i, 0]:
+            idx[m] = i
+            keys[m] = bits[i]
+            m += 1
+    idx2 = np.empty(count, np.int32)
+    keys2 = np.empty(count, np.uint32)
+    hist = np.empty(2048, np.int64)
+    for shift in (0, 11, 22):
+        hist[:] = 0
+        for m in range(count):
+            hist[(keys[m] >> shift) & 2047] += 1
+        total = 0
+        for b in range(2048):
+            c = hist[b]
+            hist[b] = total
+            total += c
+        for m in range(count):
+            b = (keys[m] >> shift) & 2047
+            p = hist[b]
+            hist[b] = p + 1
+            keys2[p] = keys[m]
+            idx2[p] = idx[m]
+        keys, keys2 = keys2, keys
+        idx, idx2 = idx2, idx
+    return idx
+
+
+@njit(cache=True, inline="always")
+def _pack_one(r, i, u, v, conic, depth, opacities, colors, has_colors, rows, rects, rect):
+    A = np.float64(conic[i, 0])
+    R = np.float64(conic[i, 1])
+    S = np.float64(conic[i, 2])
+    B = A * R
+    C = S + A * R * R
+    o = np.float64(opacities[i])
+    # q = d^T conic d <= thr  <=>  o exp(-q/2) >= 1/255; padded for the cull (module comment).
+    thr = 2.0 * math.log(255.0 * o) if o > 0.0 else -1.0
+    thr = thr + _CULL_THR_REL * abs(thr) + _CULL_THR_ABS
+    ey = math.sqrt(thr / S) if thr > 0.0 else 0.0
+    ex = math.sqrt(thr * C / (A * S)) if thr > 0.0 else 0.0
+    rows[r, ROW_U] = u[i]
+    rows[r, ROW_V] = v[i]
+    rows[r, ROW_A] = conic[i, 0]
+    rows[r, ROW_R] = conic[i, 1]
+    rows[r, ROW_S] = conic[i, 2]
+    rows[r, ROW_O] = opacities[i]
+    rows[r, ROW_THR] = thr
+    rows[r, ROW_EY] = ey
+    rows[r, ROW_DYR] = -B * ex / C  # dy of the ellipse's rightmost point
+    rows[r, ROW_Z] = depth[i]
+    rows[r, ROW_RED] = colors[i, 0] if has_colors else 0.0
+    rows[r, ROW_GREEN] = colors[i, 1] if has_colors else 0.0
+    rows[r, ROW_BLUE] = colors[i, 2] if has_colors else 0.0
+    rows[r, 13] = 0.0
+    rows[r, 14] = 0.0
+    rows[r, 15] = 0.0
+    for k in range(4):
+        rects[r, k] = rect[i, k]
+
+
+@njit(cache=True, parallel=True)
+def pack_rows(order, u, v, conic, depth, opacities, colors, has_colors, rows, rects, rect, n_workers):
+    """Visible Gaussians' parameters in depth order, one 64-byte row each."""
+    n = order.shape[0]
+    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    counter = np.zeros(1, np.int64)
+    for _ in prange(n_workers):
+        c = _fetch_add(counter, 0)
+        while c < n_chunks:
+            for r in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
+                _pack_one(r, order[r], u, v, conic, depth, opacities, colors, has_colors, rows, rects, rect)
+            c = _fetch_add(counter, 0)
+
+
+# --- tile binning ---------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def band_extent(rows, r, dy0, dy1):
+    """x extent (relative to the mean) of the culling ellipse within dy0 <= dy <= dy1; lo > hi if empty."""
+    thr = np.float64(rows[r, ROW_THR])
+    ey = np.float64(rows[r, ROW_EY]) + _CULL_PAD_PX
+    if thr <= 0.0 or dy1 < -ey or dy0 > ey:
+        return 1.0, -1.0
+    A = np.float64(rows[r, ROW_A])
+    R = np.float64(rows[r, ROW_R])
+    S = np.float64(rows[r, ROW_S])
+    B = A * R
+    det = A * S  # of the conic [[A, B], [B, C]] with C = S + A R^2
+    lo_y = max(dy0, -ey)
+    hi_y = min(dy1, ey)
+    dyr = np.float64(rows[r, ROW_DYR])
+    # The ellipse's right edge is concave in dy, its left edge convex: their extremes over the band
+    # are at the extreme points of the ellipse clamped into the band.
+    yr = min(max(dyr, lo_y), hi_y)
+    yl = min(max(-dyr, lo_y), hi_y)
+    hi = (-B * yr + math.sqrt(max(0.0, A * thr - det * yr * yr))) / A
+    lo = (-B * yl - math.sqrt(max(0.0, A * thr - det * yl * yl))) / A
+    return lo - _CULL_PAD_PX, hi + _CULL_PAD_PX
+
+
+@njit(cache=True, inline="always")
+def _tile_span(rows, r, ty, x0, x1):
+    """Columns [a, b] of the tiles in tile row ty (within x0..x1-1) that the culling ellipse reaches."""
+    u = np.float64(rows[r, ROW_U])
+    v = np.float64(rows[r, ROW_V])
+    lo, hi = band_extent(rows, r, ty * TILE - v, ty * TILE + TILE - 1 - v)
+    if lo > hi:
+        return 1, 0
+    a = max(x0, int(math.ceil((u + lo - (TILE - 1)) / TILE)))
+    b = min(x1 - 1, int(math.floor((u + hi) / TILE)))
+    return a, b
+
+
+@njit(cache=True, parallel=True)
+def bin_tiles(rows, rects, n_tiles, gx, n_workers, list_buffer, slot_buffer):
+    """Gaussian-tile pairs: a stable counting sort of the depth-ordered Gaussians into tile lists.
+
+    Returns tile_start (n_tiles + 1) and, per pair in tile order, tile_list (its depth rank, front to
+    back within a tile) and tile_slot (its Gaussian-major slot: Gaussian r owns slots
+    gauss_start[r] .. gauss_start[r + 1] - 1), and gauss_start (n + 1). tile_list and tile_slot are
+    views of the given buffers when these are large enough, new arrays otherwise.
+    """
+    n = rows.shape[0]
+    # Contiguous chunks of depth ranks keep each tile's list in depth order when filled chunk by chunk.
+    n_chunks = max(1, min(64, (n + _CHUNK - 1) // _CHUNK))
+    size = (n + n_chunks - 1) // n_chunks
+    fill = np.zeros((n_chunks, n_tiles), np.int64)
+    gauss_start = np.zeros(n + 1, np.int64)
+    counter = np.zeros(2, np.int64)
+    for _ in prange(n_workers):
+        c = _fetch_add(counter, 0)
+        while c < n_chunks:
+            for r in range(c * size, min(n, (c + 1) * size)):
+                pairs = 0
+                for ty in range(rects[r, 2], rects[r, 3]):
+                    a, b = _tile_span(rows, r, ty, rects[r, 0], rects[r, 1])
+                    for tx in range(a, b + 1):
+                        fill[c, ty * gx + tx] += 1
+                    pairs += max(0, b - a + 1)
+                gauss_start[r + 1] = pairs
+            c = _fetch_add(counter, 0)
+    for r in range(n):
+        gauss_start[r + 1] += gauss_start[r]
+    tile_start = np.zeros(n_tiles + 1, np.int64)
+    total = 0
+    for t in range(n_tiles):
+        tile_start[t] = total
+        for c in range(n_chunks):
+            count = fill[c, t]
+            fill[c, t] = total
+            total += count
+    tile_start[n_tiles] = total
+    tile_list = list_buffer[:total] if list_buffer.shape[0] >= total else np.empty(total, np.int32)
+    tile_slot = slot_buffer[:total] if slot_buffer.shape[0] >= total else np.empty(total, np.int64)
+    for _ in prange(n_workers):
+        c = _fetch_add(counter, 1)
+        while c < n_chunks:
+            for r in range(c * size, min(n, (c + 1) * size)):
+                slot = gauss_start[r]
+                for ty in range(rects[r, 2], rects[r, 3]):
+                    a, b = _tile_span(rows, r, ty, rects[r, 0], rects[r, 1])
+                    for tx in range(a, b + 1):
+                        t = ty * gx + tx
+                        p = fill[c, t]
+                        fill[c, t] = p + 1
+                        tile_list[p] = r
+                        tile_slot[p] = slot
+                        slot += 1
+            c = _fetch_add(counter, 1)
+    return tile_start, tile_list, tile_slot, gauss_start
+
+
+# --- compositing ------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def _tile_pixels(t, gx, px, py):
+    """Pixel-centre coordinates of tile t in block layout."""
+    ox = (t % gx) * TILE
+    oy = (t // gx) * TILE
+    for blk in range(_PIXELS // 16):
+        bx = ox + (blk % _BLOCKS_PER_ROW) * 4
+        by = oy + (blk // _BLOCKS_PER_ROW) * 4
+        for lane in range(16):
+            px[blk * 16 + lane] = np.float32(bx + (lane & 3))
+            py[blk * 16 + lane] = np.float32(by + (lane >> 2))
+
+
+@njit(cache=True)
+def _reset_transmittance(t, gx, width, height, T):
+    """T = 1 on the image, -1 (stopped, so never blending) on a border tile's pixels off the image."""
+    ox = (t % gx) * TILE
+    oy = (t // gx) * TILE
+    for blk in range(_PIXELS // 16):
+        bx = ox + (blk % _BLOCKS_PER_ROW) * 4
+        by = oy + (blk // _BLOCKS_PER_ROW) * 4
+        for lane in range(16):
+            x = bx + (lane & 3)
+            y = by + (lane >> 2)
+            T[blk * 16 + lane] = _F1 if (x < width and y < height) else -_F1
+
+
+@njit(cache=True)
+def _load_observations(t, gx, width, height, mask, scale, valid, has_valid, y0, y1, y2, val):
+    ox = (t % gx) * TILE
+    oy = (t // gx) * TILE
+    for blk in range(_PIXELS // 16):
+        bx = ox + (blk % _BLOCKS_PER_ROW) * 4
+        by = oy + (blk // _BLOCKS_PER_ROW) * 4
+        for lane in range(16):
+            k = blk * 16 + lane
+            x = bx + (lane & 3)
+            y = by + (lane >> 2)
+            if x < width and y < height:
+                y0[k] = np.float32(mask[y, x, 0]) * scale
+                y1[k] = np.float32(mask[y, x, 1]) * scale
+                y2[k] = np.float32(mask[y, x, 2]) * scale
+                val[k] = _F1 if (not has_valid or valid[y, x]) else _F0
+            else:
+                y0[k] = _F0
+                y1[k] = _F0
+                y2[k] = _F0
+                val[k] = _F0
+
+
+@njit(cache=True, inline="always")
+def _block_rows(rows, r, oy):
+    """Block rows [a, b] of a tile whose top pixel row is oy that the culling ellipse reaches."""
+    v = np.float64(rows[r, ROW_V])
+    ey = np.float64(rows[r, ROW_EY]) + _CULL_PAD_PX
+    a = max(0, int(math.ceil((v - ey - oy - 3.0) * 0.25)))
+    b = min(_BLOCKS_PER_ROW - 1, int(math.floor((v + ey - oy) * 0.25)))
+    return a, b
+
+
+@njit(cache=True, inline="always")
+def _pixel_span(rows, r, ox, oy, br):
+    """Pixels [k0, k1) of block row br: the blocks of that row that the culling ellipse reaches."""
+    u = np.float64(rows[r, ROW_U])
+    v = np.float64(rows[r, ROW_V])
+    top = oy + br * 4
+    lo, hi = band_extent(rows, r, top - v, top + 3 - v)
+    a = max(0, int(math.ceil((u + lo - ox - 3.0) * 0.25)))
+    b = min(_BLOCKS_PER_ROW - 1, int(math.floor((u + hi - ox) * 0.25)))
+    if lo > hi or b < a:
+        return np.uint64(0), np.uint64(0)
+    first = br * _BLOCKS_PER_ROW * 16
+    return np.uint64(first + a * 16), np.uint64(first + b * 16 + 16)
+
+
+@njit(cache=True, inline="always")
+def _footprint(rows, r):
+    return rows[r, ROW_U], rows[r, ROW_V], rows[r, ROW_A], rows[r, ROW_R], rows[r, ROW_S], rows[r, ROW_O]
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _alpha(px, py, u, v, A, R, S, o):
+    dx = px - u
+    dy = py - v
+    t = dx + R * dy
+    power = _F_NEG_HALF * (A * t * t + S * dy * dy)
+    a = o * exp_nonpositive(power)
+    a = a if a < _F_ALPHA_MAX else _F_ALPHA_MAX
+    # A positive power can only be rounding error; the CUDA rasterizers skip it.
+    return a if (a >= _F_ALPHA_MIN and power <= _F0) else _F0
+
+
+@njit(cache=True)
+def _any_live(T):
+    for k in range(T.shape[0]):
+        if T[k] > _F0:
+            return True
+    return False
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T):
+    """Front-to-back compositing of one tile that only tracks transmittance."""
+    ox = (t % gx) * TILE
+    oy = (t // gx) * TILE
+    for j in range(j0, j1):
+        r = tile_list[j]
+        u, v, A, R, S, o = _footprint(rows, r)
+        br0, br1 = _block_rows(rows, r, oy)
+        for br in range(br0, br1 + 1):
+            k0, k1 = _pixel_span(rows, r, ox, oy, br)
+            for k in range(k0, k1):
+                a = _alpha(px[k], py[k], u, v, A, R, S, o)
+                Tk = T[k]
+                nT = Tk * (_F1 - a)
+                T[k] = nT if nT >= _F_T_MIN else -abs(Tk)
+        if (j - j0) % 32 == 31 and not _any_live(T):
+            break
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, height, mask, scale, valid, has_valid,
+                     bg, has_bg, pair_acc):  # fmt: skip
+    px = np.empty(_PIXELS, np.float32)
+    py = np.empty(_PIXELS, np.float32)
+    T = np.empty(_PIXELS, np.float32)
+    y0 = np.empty(_PIXELS, np.float32)
+    y1 = np.empty(_PIXELS, np.float32)
+    y2 = np.empty(_PIXELS, np.float32)
+    val = np.empty(_PIXELS, np.float32)
+    _tile_pixels(t, gx, px, py)
+    _load_observations(t, gx, width, height, mask, scale, valid, has_valid, y0, y1, y2, val)
+    _reset_transmittance(t, gx, width, height, T)
+    j0, j1 = tile_start[t], tile_start[t + 1]
+    if has_bg:
+        # y_p = C_p - T_final(p) b needs T_final before any weight is summed: one extra pass.
+        _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T)
+        for k in range(_PIXELS):
+            tf = abs(T[k])
+            y0[k] -= tf * bg[0]
+            y1[k] -= tf * bg[1]
+            y2[k] -= tf * bg[2]
+        _reset_transmittance(t, gx, width, height, T)
+    ox = (t % gx) * TILE
+    oy = (t // gx) * TILE
+    for j in range(j0, j1):
+        r = tile_list[j]
+        u, v, A, R, S, o = _footprint(rows, r)
+        acc_w = _F0
+        acc_0 = _F0
+        acc_1 = _F0
+        acc_2 = _F0
+        br0, br1 = _block_rows(rows, r, oy)
+        for br in range(br0, br1 + 1):
+            k0, k1 = _pixel_span(rows, r, ox, oy, br)
+            for k in range(k0, k1):
+                a = _alpha(px[k], py[k], u, v, A, R, S, o)
+                Tk = T[k]
+                nT = Tk * (_F1 - a)
+                go = nT >= _F_T_MIN
+                w = a * Tk if go else _F0
+                T[k] = nT if go else -abs(Tk)
+                w = w * val[k]
+                acc_w += w
+                acc_0 += w * y0[k]
+                acc_1 += w * y1[k]
+                acc_2 += w * y2[k]
+        s = tile_slot[j]
+        pair_acc[s, 0] = acc_w
+        pair_acc[s, 1] = acc_0
+        pair_acc[s, 2] = acc_1
+        pair_acc[s, 3] = acc_2
+        if (j - j0) % 32 == 31 and not _any_live(T):
+            for rest in range(j + 1, j1):
+                pair_acc[tile_slot[rest], :] = _F0
+            break
+
+
+@njit(cache=True, parallel=True)
+def accumulate_tiles(rows, tile_start, tile_list, tile_slot, tile_order, gx, width, height, mask, scale, valid,
+                     has_valid, bg, has_bg, pair_acc, n_workers):  # fmt: skip
+    """Per-pair partial sums (w, w y) of every tile; tiles are taken in `tile_order`, one at a time."""
+    n = tile_order.shape[0]
+    counter = np.zeros(1, np.int64)
+    for _ in prange(n_workers):
+        m = _fetch_add(counter, 0)
+        while m < n:
+            _accumulate_tile(tile_order[m], rows, tile_start, tile_list, tile_slot, gx, width, height, mask, scale,
+                             valid, has_valid, bg, has_bg, pair_acc)  # fmt: skip
+            m = _fetch_add(counter, 0)
+
+
+@njit(cache=True, parallel=True)
+def reduce_pairs(pair_acc, gauss_start, order, color_sum, weight_sum, n_workers):
+    """Per Gaussian, the float64 sum of its consecutive pair slots, written at its map index."""
+    n = order.shape[0]
+    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    counter = np.zeros(1, np.int64)
+    for _ in prange(n_workers):
+        c = _fetch_add(counter, 0)
+        while c < n_chunks:
+            for r in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
+                sw = 0.0
+                s0 = 0.0
+                s1 = 0.0
+                s2 = 0.0
+                for p in range(gauss_start[r], gauss_start[r + 1]):
+                    sw += pair_acc[p, 0]
+                    s0 += pair_acc[p, 1]
+                    s1 += pair_acc[p, 2]
+                    s2 += pair_acc[p, 3]
+                i = order[r]
+                weight_sum[i] = sw
+                color_sum[i, 0] = s0
+                color_sum[i, 1] = s1
+                color_sum[i, 2] = s2
+            c = _fetch_add(counter, 0)
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _render_tile(t, rows, tile_start, tile_list, gx, width, height, bg, image, trans, depth):
+    px = np.empty(_PIXELS, np.float32)
+    py = np.empty(_PIXELS, np.float32)
+    T = np.empty(_PIXELS, np.float32)
+    c0 = np.zeros(_PIXELS, np.float32)
+    c1 = np.zeros(_PIXELS, np.float32)
+    c2 = np.zeros(_PIXELS, np.float32)
+    cz = np.zeros(_PIXELS, np.float32)
+    _tile_pixels(t, gx, px, py)
+    _reset_transmittance(t, gx, width, height, T)
+    ox = (t % gx) * TILE
+    oy = (t // gx) * TILE
+    j0, j1 = tile_start[t], tile_start[t + 1]
+    for j in range(j0, j1):
+        r = tile_list[j]
+        u, v, A, R, S, o = _footprint(rows, r)
+        cr, cg, cb, z = rows[r, ROW_RED], rows[r, ROW_GREEN], rows[r, ROW_BLUE], rows[r, ROW_Z]
+        br0, br1 = _block_rows(rows, r, oy)
+        for br in range(br0, br1 + 1):
+            k0, k1 = _pixel_span(rows, r, ox, oy, br)
+            for k in range(k0, k1):
+                a = _alpha(px[k], py[k], u, v, A, R, S, o)
+                Tk = T[k]
+                nT = Tk * (_F1 - a)
+                go = nT >= _F_T_MIN
+                w = a * Tk if go else _F0
+                T[k] = nT if go else -abs(Tk)
+                c0[k] += w * cr
+                c1[k] += w * cg
+                c2[k] += w * cb
+                cz[k] += w * z
+        if (j - j0) % 32 == 31 and not _any_live(T):
+            break
+    for k in range(_PIXELS):
+        x = int(px[k])
+        y = int(py[k])
+        if x < width and y < height:
+            tf = abs(T[k])
+            image[y, x, 0] = c0[k] + tf * bg[0]
+            image[y, x, 1] = c1[k] + tf * bg[1]
+            image[y, x, 2] = c2[k] + tf * bg[2]
+            trans[y, x] = tf
+            cover = _F1 - tf
+            depth[y, x] = cz[k] / cover if cover > DEPTH_MIN_COVERAGE else _F0
+
+
+@njit(cache=True, parallel=True)
+def render_tiles(rows, tile_start, tile_list, tile_order, gx, width, height, bg, image, trans, depth, n_workers):
+    n = tile_order.shape[0]
+    counter = np.zeros(1, np.int64)
+    for _ in prange(n_workers):
+        m = _fetch_add(counter, 0)
+        while m < n:
+            _render_tile(tile_order[m], rows, tile_start, tile_list, gx, width, height, bg, image, trans, depth)
+            m = _fetch_add(counter, 0)
