@@ -1,0 +1,307 @@
+"""The incremental SCD accumulators of one Gaussian map (METHOD section 3).
+
+Per Gaussian i the state holds ``color_sum[i] = sum_p w_ip y_p`` and ``weight_sum[i] = sum_p w_ip``
+over every pixel of every keyframe integrated so far, plus the stamps of those keyframes. The
+deblended color is their ratio. Because both are plain sums, integration order does not matter and
+two states of the same map (two halves of a bag, two robots) merge by adding them; the only cost is
+float64 addition order (differences of a few ulp).
+
+Keyframes are identified by their stamp: adding a stamp twice would count its evidence twice, so it
+raises, and merging two states that share a stamp raises for the same reason.
+
+When the SLAM front-end publishes a new map, the evidence is carried over to it:
+
+* With stable per-Gaussian ids (`reindexed_by_ids`), evidence follows the id: a Gaussian that moved
+  (loop closure, re-anchoring) keeps its evidence, new ids start at zero, and the evidence of removed
+  ids is dropped. Order does not matter.
+* Without ids (`reindex_by_position`), a new Gaussian inherits the evidence of an old one only when
+  the two are *mutual* nearest neighbours within `tolerance` metres; every other new Gaussian starts
+  at zero. Mutuality keeps one old Gaussian from seeding several new ones after densification (where
+  the evidence would be double counted), and the small tolerance keeps a re-anchored region from
+  inheriting the evidence of whatever happens to lie near its old place. Gaussians that move further
+  than the tolerance lose their evidence and are re-observed by later keyframes.
+
+Evidence is kept even for keyframes that are later re-posed: SCD weights depend on the pose used at
+integration time, and re-rendering old keyframes is the caller's choice, not this store's.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+# Written into every saved file so that a foreign .npz is recognised as such.
+_FORMAT = "monovoc_semantic_state"
+_FORMAT_VERSION = 1
+
+
+def _as_ids(ids: np.ndarray | None, n: int, what: str) -> np.ndarray | None:
+    if ids is None:
+        return None
+    ids = np.asarray(ids)
+    if ids.shape != (n,):
+        raise ValueError(f"{what}: expected shape ({n},), got {ids.shape}")
+    if ids.dtype.kind not in "iu":
+        raise ValueError(f"{what}: expected integer ids, got dtype {ids.dtype}")
+    ids = ids.astype(np.int64)
+    if np.unique(ids).size != n:
+        raise ValueError(f"{what}: ids must be unique")
+    return ids
+
+
+@dataclass(eq=False)
+class SemanticState:
+    color_sum: np.ndarray  # (N, 3) float64, sum_p w_ip y_p
+    weight_sum: np.ndarray  # (N,) float64, sum_p w_ip
+    ids: np.ndarray | None = None  # (N,) int64 stable Gaussian ids (None when the map has none)
+    stamps_ns: np.ndarray | None = None  # (K,) int64 stamps of the integrated keyframes, in order of arrival
+
+    def __post_init__(self) -> None:
+        color_sum = np.array(self.color_sum, dtype=np.float64)  # a copy: the state owns its arrays
+        weight_sum = np.array(self.weight_sum, dtype=np.float64)
+        if color_sum.ndim != 2 or color_sum.shape[1] != 3:
+            raise ValueError(f"SemanticState.color_sum: expected shape (N, 3), got {color_sum.shape}")
+        n = color_sum.shape[0]
+        if weight_sum.shape != (n,):
+            raise ValueError(f"SemanticState.weight_sum: expected shape ({n},), got {weight_sum.shape}")
+        stamps = np.zeros(0, np.int64) if self.stamps_ns is None else np.array(self.stamps_ns, dtype=np.int64)
+        if stamps.ndim != 1:
+            raise ValueError(f"SemanticState.stamps_ns: expected shape (K,), got {stamps.shape}")
+        if np.unique(stamps).size != stamps.size:
+            raise ValueError("SemanticState.stamps_ns: duplicate keyframe stamps")
+        self.color_sum = color_sum
+        self.weight_sum = weight_sum
+        self.ids = _as_ids(self.ids, n, "SemanticState.ids")
+        self.stamps_ns = stamps
+
+    @classmethod
+    def zeros(cls, n: int, ids: np.ndarray | None = None) -> SemanticState:
+        """An empty state for a map of `n` Gaussians."""
+        if int(n) < 0:
+            raise ValueError(f"SemanticState.zeros: n must be >= 0, got {n}")
+        return cls(np.zeros((int(n), 3)), np.zeros(int(n)), ids, None)
+
+    def __len__(self) -> int:
+        return self.weight_sum.shape[0]
+
+    def has_stamp(self, stamp_ns: int) -> bool:
+        return bool(np.any(self.stamps_ns == np.int64(stamp_ns)))
+
+    def add(self, evidence, stamp_ns: int) -> None:
+        """Adds one keyframe's evidence (any object with `color_sum` (N, 3) and `weight_sum` (N,)).
+
+        Everything is checked before anything changes, so a rejected keyframe leaves the state as it was.
+        """
+        n = len(self)
+        color = np.asarray(evidence.color_sum, dtype=np.float64)
+        weight = np.asarray(evidence.weight_sum, dtype=np.float64)
+        if color.shape != (n, 3):
+            raise ValueError(f"evidence.color_sum: expected shape ({n}, 3), got {color.shape}")
+        if weight.shape != (n,):
+            raise ValueError(f"evidence.weight_sum: expected shape ({n},), got {weight.shape}")
+        # A single NaN would poison the accumulator for good, so bad evidence is refused up front.
+        if not (np.isfinite(color).all() and np.isfinite(weight).all()):
+            raise ValueError("evidence contains NaN or infinite values")
+        if np.any(weight < 0):
+            raise ValueError("evidence.weight_sum has negative weights")
+        if self.has_stamp(stamp_ns):
+            raise ValueError(f"keyframe stamp {int(stamp_ns)} was already integrated")
+        self.color_sum += color
+        self.weight_sum += weight
+        self.stamps_ns = np.append(self.stamps_ns, np.int64(stamp_ns))
+
+    def merged(self, other: SemanticState) -> SemanticState:
+        """The state holding both states' evidence (same map).
+
+        When both have ids they are aligned by id (the id sets must be equal; the result keeps this
+        state's order); otherwise by position (sizes must be equal). Shared stamps raise: that
+        keyframe's evidence would be counted twice.
+        """
+        if len(self) != len(other):
+            raise ValueError(f"cannot merge states of {len(self)} and {len(other)} Gaussians")
+        shared = np.intersect1d(self.stamps_ns, other.stamps_ns)
+        if shared.size:
+            raise ValueError(f"cannot merge: {shared.size} keyframe stamps are in both states (e.g. {shared[0]})")
+        color, weight = other.color_sum, other.weight_sum
+        if self.ids is not None and other.ids is not None and len(self):
+            order = np.argsort(other.ids)
+            pos = np.searchsorted(other.ids, self.ids, sorter=order).clip(0, len(self) - 1)
+            take = order[pos]
+            if not np.array_equal(other.ids[take], self.ids):
+                raise ValueError("cannot merge: the states have different Gaussian ids (reindex one first)")
+            color, weight = color[take], weight[take]
+        ids = self.ids if self.ids is not None else other.ids
+        return SemanticState(
+            self.color_sum + color,
+            self.weight_sum + weight,
+            None if ids is None else ids.copy(),
+            np.concatenate([self.stamps_ns, other.stamps_ns]),
+        )
+
+    @property
+    def observed(self) -> np.ndarray:
+        """(N,) bool: Gaussians with any evidence."""
+        return self.weight_sum > 0
+
+    def colors(self) -> np.ndarray:
+        """(N, 3) float64 deblended colors s_hat = color_sum / weight_sum; NaN rows where unobserved."""
+        out = np.full_like(self.color_sum, np.nan)
+        seen = self.observed
+        out[seen] = self.color_sum[seen] / self.weight_sum[seen, None]
+        return out
+
+    @property
+    def nbytes(self) -> int:
+        ids = 0 if self.ids is None else self.ids.nbytes
+        return self.color_sum.nbytes + self.weight_sum.nbytes + self.stamps_ns.nbytes + ids
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Writes an .npz atomically: a reader sees the old file or the new one, never a partial one."""
+        path = Path(path)
+        arrays = {
+            "format": np.array(_FORMAT),
+            "format_version": np.array(_FORMAT_VERSION, np.int64),
+            "color_sum": self.color_sum,
+            "weight_sum": self.weight_sum,
+            "stamps_ns": self.stamps_ns,
+        }
+        if self.ids is not None:
+            arrays["ids"] = self.ids
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, **arrays)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        _fsync_dir(path.parent)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> SemanticState:
+        """Reads a file written by `save` (bit-exact). A missing file raises FileNotFoundError; a corrupt
+        or foreign file raises ValueError naming the file."""
+        path = Path(path)
+        try:
+            data = np.load(path, allow_pickle=False)
+        except FileNotFoundError:
+            raise
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{path}: unreadable semantic state ({exc})") from exc
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError(f"{path}: not a semantic state file (not an .npz archive)")
+        try:
+            with data:
+                if "format" not in data.files or str(data["format"]) != _FORMAT:
+                    raise ValueError(f"not a semantic state file (no format={_FORMAT!r} entry)")
+                version = int(data["format_version"]) if "format_version" in data.files else None
+                if version != _FORMAT_VERSION:
+                    raise ValueError(f"unsupported format_version {version} (expected {_FORMAT_VERSION})")
+                missing = {"color_sum", "weight_sum", "stamps_ns"} - set(data.files)
+                if missing:
+                    raise ValueError(f"missing arrays {sorted(missing)}")
+                arrays = {k: data[k] for k in ("color_sum", "weight_sum", "stamps_ns")}
+                ids = data["ids"] if "ids" in data.files else None
+        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{path}: unreadable semantic state ({exc})") from exc
+        try:
+            return cls(arrays["color_sum"], arrays["weight_sum"], ids, arrays["stamps_ns"])
+        except ValueError as exc:
+            raise ValueError(f"{path}: inconsistent semantic state ({exc})") from exc
+
+    def reindexed_by_ids(self, new_ids: np.ndarray) -> SemanticState:
+        """This evidence carried over to a map with Gaussian ids `new_ids` (see the module docstring)."""
+        if self.ids is None:
+            raise ValueError("reindexed_by_ids: this state has no Gaussian ids (use reindex_by_position)")
+        new_ids = np.asarray(new_ids)
+        if new_ids.ndim != 1:
+            raise ValueError(f"new_ids: expected shape (N,), got {new_ids.shape}")
+        new_ids = _as_ids(new_ids, new_ids.shape[0], "new_ids")
+        out = SemanticState.zeros(new_ids.size, new_ids)
+        out.stamps_ns = self.stamps_ns.copy()
+        if len(self) == 0 or new_ids.size == 0:
+            return out
+        order = np.argsort(self.ids)
+        pos = np.searchsorted(self.ids, new_ids, sorter=order).clip(0, len(self) - 1)
+        old = order[pos]
+        hit = self.ids[old] == new_ids
+        out.color_sum[hit] = self.color_sum[old[hit]]
+        out.weight_sum[hit] = self.weight_sum[old[hit]]
+        return out
+
+
+def _fsync_dir(directory: Path) -> None:
+    # Makes the rename itself durable; not every platform can open a directory.
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _as_means(means: np.ndarray, what: str) -> np.ndarray:
+    means = np.asarray(means, dtype=np.float64)
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"{what}: expected shape (N, 3), got {means.shape}")
+    if not np.isfinite(means).all():
+        raise ValueError(f"{what}: contains NaN or infinite values")
+    return means
+
+
+def mutual_nearest(old_means: np.ndarray, new_means: np.ndarray, tolerance: float) -> np.ndarray:
+    """(M,) int64: for each new point the old point that is its mutual nearest neighbour within
+    `tolerance`, or -1."""
+    old_means = _as_means(old_means, "old_means")
+    new_means = _as_means(new_means, "new_means")
+    match = np.full(new_means.shape[0], -1, np.int64)
+    if old_means.shape[0] == 0 or new_means.shape[0] == 0:
+        return match
+    # Query radius slightly above the tolerance so ties at exactly `tolerance` count as inside.
+    bound = float(tolerance) * (1 + 1e-12) + 1e-15
+    d_new, nn_new = cKDTree(old_means).query(new_means, k=1, distance_upper_bound=bound)
+    _, nn_old = cKDTree(new_means).query(old_means, k=1, distance_upper_bound=bound)
+    close = np.isfinite(d_new) & (d_new <= tolerance)
+    cand = np.flatnonzero(close)
+    mutual = nn_old[nn_new[cand]] == cand
+    match[cand[mutual]] = nn_new[cand[mutual]]
+    return match
+
+
+def reindex_by_position(
+    state: SemanticState,
+    old_means: np.ndarray,
+    new_means: np.ndarray,
+    tolerance: float = 0.01,
+    *,
+    new_ids: np.ndarray | None = None,
+) -> SemanticState:
+    """`state` (of the map with Gaussian centres `old_means`) carried over to a map with centres
+    `new_means` by mutual nearest neighbours within `tolerance` metres; the rest start at zero.
+
+    `new_ids`, when given, become the result's ids (the new map's ids, for later id-based updates).
+    """
+    if not (np.isfinite(tolerance) and tolerance >= 0):
+        raise ValueError(f"tolerance must be a finite distance >= 0, got {tolerance}")
+    old_means = _as_means(old_means, "old_means")
+    if old_means.shape[0] != len(state):
+        raise ValueError(f"old_means has {old_means.shape[0]} points but the state has {len(state)} Gaussians")
+    match = mutual_nearest(old_means, new_means, tolerance)
+    out = SemanticState.zeros(match.size, new_ids)
+    out.stamps_ns = state.stamps_ns.copy()
+    hit = match >= 0
+    out.color_sum[hit] = state.color_sum[match[hit]]
+    out.weight_sum[hit] = state.weight_sum[match[hit]]
+    return out

@@ -1,0 +1,248 @@
+"""SemanticState: accumulation, order independence, merging, persistence and map re-indexing."""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from monovoc_ros.core.state import SemanticState, mutual_nearest, reindex_by_position
+
+
+@dataclass
+class FakeEvidence:
+    color_sum: np.ndarray
+    weight_sum: np.ndarray
+    n_visible: int = 0
+
+
+def random_evidence(rng: np.random.Generator, n: int, seen: float = 0.6) -> FakeEvidence:
+    """Evidence as SCD produces it: color_sum = sum w y with y in [0, 1], zero where unseen."""
+    weight = rng.random(n) * 3 * (rng.random(n) < seen)
+    color = weight[:, None] * rng.random((n, 3))
+    return FakeEvidence(color, weight, int((weight > 0).sum()))
+
+
+def sequence(n: int = 500, k: int = 12, seed: int = 0) -> list[tuple[int, FakeEvidence]]:
+    rng = np.random.default_rng(seed)
+    return [(1_000_000_000 + 33_000_000 * i, random_evidence(rng, n)) for i in range(k)]
+
+
+def integrate(items, n: int, ids=None) -> SemanticState:
+    state = SemanticState.zeros(n, ids)
+    for stamp, ev in items:
+        state.add(ev, stamp)
+    return state
+
+
+def test_add_accumulates_and_colors_are_weighted_means():
+    state = SemanticState.zeros(3)
+    state.add(FakeEvidence(np.array([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0], [0.2, 0.4, 0.6]]), np.array([1.0, 0, 2])), 10)
+    state.add(FakeEvidence(np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]), np.array([1.0, 0, 0])), 20)
+    assert state.observed.tolist() == [True, False, True]
+    colors = state.colors()
+    np.testing.assert_allclose(colors[0], [0.25, 0.5, 0.0])
+    assert np.isnan(colors[1]).all()
+    np.testing.assert_allclose(colors[2], [0.1, 0.2, 0.3])
+    assert state.stamps_ns.tolist() == [10, 20]
+    assert state.has_stamp(20) and not state.has_stamp(30)
+    assert state.nbytes == 3 * 3 * 8 + 3 * 8 + 2 * 8
+
+
+def test_exact_recovery_of_a_single_color():
+    # One Gaussian seen with weights w_p of pixels all of color s: s_hat == s whatever the weights.
+    rng = np.random.default_rng(1)
+    s = np.array([0.3, 0.7, 0.1])
+    state = SemanticState.zeros(1)
+    for k in range(5):
+        w = rng.random(40)
+        state.add(FakeEvidence((w.sum() * s)[None], np.array([w.sum()])), k)
+    np.testing.assert_allclose(state.colors()[0], s, rtol=1e-14)
+
+
+def test_rejected_evidence_leaves_the_state_untouched():
+    state = integrate(sequence(n=20, k=2), 20)
+    before = (state.color_sum.copy(), state.weight_sum.copy(), state.stamps_ns.copy())
+    good = random_evidence(np.random.default_rng(5), 20)
+    bad_cases = [
+        (FakeEvidence(np.zeros((19, 3)), np.zeros(19)), 99, "color_sum"),
+        (FakeEvidence(np.zeros((20, 3)), np.zeros(21)), 99, "weight_sum"),
+        (FakeEvidence(np.full((20, 3), np.nan), np.ones(20)), 99, "NaN"),
+        (FakeEvidence(np.zeros((20, 3)), -np.ones(20)), 99, "negative"),
+        (good, int(state.stamps_ns[0]), "already integrated"),
+    ]
+    for ev, stamp, message in bad_cases:
+        with pytest.raises(ValueError, match=message):
+            state.add(ev, stamp)
+    np.testing.assert_array_equal(state.color_sum, before[0])
+    np.testing.assert_array_equal(state.weight_sum, before[1])
+    np.testing.assert_array_equal(state.stamps_ns, before[2])
+
+
+def test_order_independence():
+    items = sequence()
+    forward = integrate(items, 500)
+    shuffled = integrate([items[i] for i in np.random.default_rng(2).permutation(len(items))], 500)
+    np.testing.assert_allclose(shuffled.color_sum, forward.color_sum, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(shuffled.weight_sum, forward.weight_sum, rtol=1e-13, atol=1e-15)
+    np.testing.assert_array_equal(forward.observed, shuffled.observed)
+    assert sorted(shuffled.stamps_ns) == sorted(forward.stamps_ns)
+
+
+def test_two_halves_merged_equal_the_whole():
+    items = sequence()
+    whole = integrate(items, 500)
+    first, second = integrate(items[::2], 500), integrate(items[1::2], 500)
+    merged = first.merged(second)
+    np.testing.assert_allclose(merged.color_sum, whole.color_sum, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(merged.weight_sum, whole.weight_sum, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(merged.colors(), whole.colors(), rtol=1e-12)
+    assert sorted(merged.stamps_ns) == sorted(whole.stamps_ns)
+    # Merging is a new state: the inputs keep their own evidence.
+    assert len(first.stamps_ns) == 6 and len(second.stamps_ns) == 6
+
+
+def test_merge_aligns_by_ids_and_refuses_what_does_not_fit():
+    items = sequence(n=50, k=4)
+    ids = np.arange(100, 150)
+    a = integrate(items[:2], 50, ids)
+    b = integrate(items[2:], 50, ids)
+    # The other robot holds the same Gaussians in another order.
+    perm = np.random.default_rng(3).permutation(50)
+    b_perm = SemanticState(b.color_sum[perm], b.weight_sum[perm], ids[perm], b.stamps_ns)
+    merged = a.merged(b_perm)
+    np.testing.assert_array_equal(merged.ids, ids)
+    np.testing.assert_allclose(merged.color_sum, integrate(items, 50, ids).color_sum, rtol=1e-13, atol=1e-15)
+
+    with pytest.raises(ValueError, match="in both states"):
+        a.merged(a)
+    other_ids = SemanticState(b.color_sum, b.weight_sum, ids + 1, b.stamps_ns)
+    with pytest.raises(ValueError, match="different Gaussian ids"):
+        a.merged(other_ids)
+    with pytest.raises(ValueError, match="50 and 49"):
+        a.merged(SemanticState.zeros(49))
+
+
+def test_constructor_checks():
+    with pytest.raises(ValueError, match="color_sum"):
+        SemanticState(np.zeros((4, 2)), np.zeros(4))
+    with pytest.raises(ValueError, match="weight_sum"):
+        SemanticState(np.zeros((4, 3)), np.zeros(5))
+    with pytest.raises(ValueError, match="unique"):
+        SemanticState.zeros(3, ids=np.array([1, 1, 2]))
+    with pytest.raises(ValueError, match="duplicate"):
+        SemanticState(np.zeros((1, 3)), np.zeros(1), None, np.array([5, 5]))
+    with pytest.raises(ValueError, match="n must be"):
+        SemanticState.zeros(-1)
+
+
+@pytest.mark.parametrize("with_ids", [False, True])
+def test_save_load_is_bit_exact_and_atomic(tmp_path, with_ids):
+    ids = np.random.default_rng(4).permutation(10_000)[:300] if with_ids else None
+    state = integrate(sequence(n=300, k=3), 300, ids)
+    path = tmp_path / "state.npz"
+    path.write_bytes(b"an older file that must be replaced")
+    state.save(path)
+    loaded = SemanticState.load(path)
+    assert loaded.color_sum.tobytes() == state.color_sum.tobytes()
+    assert loaded.weight_sum.tobytes() == state.weight_sum.tobytes()
+    np.testing.assert_array_equal(loaded.stamps_ns, state.stamps_ns)
+    if with_ids:
+        np.testing.assert_array_equal(loaded.ids, ids)
+        assert loaded.ids.dtype == np.int64
+    else:
+        assert loaded.ids is None
+    assert [p.name for p in tmp_path.iterdir()] == ["state.npz"]  # no temp file left behind
+
+    empty = SemanticState.zeros(0)
+    empty.save(tmp_path / "empty.npz")
+    assert len(SemanticState.load(tmp_path / "empty.npz")) == 0
+
+
+def test_load_rejects_corrupt_and_foreign_files(tmp_path):
+    state = integrate(sequence(n=100, k=2), 100)
+    good = tmp_path / "good.npz"
+    state.save(good)
+    data = good.read_bytes()
+
+    (tmp_path / "truncated.npz").write_bytes(data[: len(data) // 2])
+    (tmp_path / "garbage.npz").write_bytes(b"\x00not a zip at all" * 10)
+    flipped = bytearray(data)
+    flipped[len(data) // 3] ^= 0xFF  # inside color_sum: the zip CRC catches it
+    (tmp_path / "flipped.npz").write_bytes(bytes(flipped))
+    np.savez(tmp_path / "foreign.npz", color_sum=np.zeros((2, 3)))
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    np.savez(tmp_path / "future.npz", format=np.array("monovoc_semantic_state"), format_version=np.array(99))
+    for name in ("truncated.npz", "garbage.npz", "flipped.npz", "foreign.npz", "array.npy", "future.npz"):
+        with pytest.raises(ValueError, match=name):
+            SemanticState.load(tmp_path / name)
+    with pytest.raises(FileNotFoundError):
+        SemanticState.load(tmp_path / "missing.npz")
+    assert zipfile.is_zipfile(good)
+
+
+def test_reindex_by_ids_added_removed_reordered():
+    old_ids = np.array([10, 11, 12, 13])
+    state = SemanticState.zeros(4, old_ids)
+    state.add(FakeEvidence(np.arange(12.0).reshape(4, 3), np.array([1.0, 2.0, 3.0, 4.0])), 7)
+    # 13 and 11 survive (in another order, possibly moved: ids do not care), 10 and 12 were pruned, 20 is new.
+    new = state.reindexed_by_ids(np.array([13, 20, 11]))
+    np.testing.assert_array_equal(new.ids, [13, 20, 11])
+    np.testing.assert_array_equal(new.weight_sum, [4.0, 0.0, 2.0])
+    np.testing.assert_array_equal(new.color_sum, [[9, 10, 11], [0, 0, 0], [3, 4, 5]])
+    np.testing.assert_array_equal(new.stamps_ns, [7])
+    assert new.observed.tolist() == [True, False, True]
+    # A pure permutation keeps every Gaussian's evidence.
+    perm = state.reindexed_by_ids(old_ids[::-1])
+    np.testing.assert_array_equal(perm.weight_sum, state.weight_sum[::-1])
+    assert len(state.reindexed_by_ids(np.array([], np.int64))) == 0
+    with pytest.raises(ValueError, match="no Gaussian ids"):
+        SemanticState.zeros(2).reindexed_by_ids(np.array([1, 2]))
+    with pytest.raises(ValueError, match="unique"):
+        state.reindexed_by_ids(np.array([1, 1]))
+
+
+def test_reindex_by_position():
+    old_means = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]])
+    state = SemanticState.zeros(5)
+    state.add(FakeEvidence(np.ones((5, 3)) * np.arange(1, 6)[:, None], np.arange(1.0, 6.0)), 1)
+    new_means = np.array(
+        [
+            [3.0, 0, 0],  # Gaussian 3, unchanged, listed first (reordered)
+            [1.004, 0, 0],  # Gaussian 1 moved 4 mm: keeps its evidence
+            [2.05, 0, 0],  # Gaussian 2 moved 5 cm: beyond tolerance, starts over
+            [0.002, 0, 0],  # Gaussian 0 densified into two; the closer one inherits ...
+            [-0.006, 0, 0],  # ... the other one starts at zero (no double counting)
+            [9.0, 0, 0],  # brand new
+        ]
+    )  # Gaussian 4 was pruned.
+    new = reindex_by_position(state, old_means, new_means, tolerance=0.01, new_ids=np.arange(6))
+    np.testing.assert_array_equal(new.weight_sum, [4.0, 2.0, 0.0, 1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(new.color_sum[:, 0], [4.0, 2.0, 0.0, 1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(new.ids, np.arange(6))
+    np.testing.assert_array_equal(new.stamps_ns, [1])
+    assert new.ids is not None and reindex_by_position(state, old_means, new_means).ids is None
+    # A looser tolerance lets Gaussian 2 follow too.
+    assert reindex_by_position(state, old_means, new_means, tolerance=0.1).weight_sum[2] == 3.0
+    # Exactly at the tolerance counts as inside.
+    np.testing.assert_array_equal(mutual_nearest(np.zeros((1, 3)), np.array([[0.01, 0, 0]]), 0.01), [0])
+    assert len(reindex_by_position(state, old_means, np.zeros((0, 3)))) == 0
+    assert reindex_by_position(SemanticState.zeros(0), np.zeros((0, 3)), new_means).weight_sum.sum() == 0
+    with pytest.raises(ValueError, match="old_means has 4 points"):
+        reindex_by_position(state, old_means[:4], new_means)
+    with pytest.raises(ValueError, match="tolerance"):
+        reindex_by_position(state, old_means, new_means, tolerance=-1)
+    with pytest.raises(ValueError, match="new_means"):
+        reindex_by_position(state, old_means, new_means[:, :2])
+
+
+def test_reindex_by_position_at_scale_is_a_permutation_when_nothing_moved():
+    rng = np.random.default_rng(6)
+    means = rng.random((20_000, 3)) * 5
+    state = SemanticState.zeros(len(means))
+    state.add(random_evidence(rng, len(means)), 1)
+    perm = rng.permutation(len(means))
+    new = reindex_by_position(state, means, means[perm] + rng.normal(0, 1e-4, (len(means), 3)))
+    np.testing.assert_array_equal(new.weight_sum, state.weight_sum[perm])
