@@ -1,0 +1,125 @@
+"""Generic ``sensor_msgs/PointCloud2`` field access with NumPy structured views (no per-point loops)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+from msg_adapters.buffers import bytes_view, to_byte_array
+from msg_adapters.errors import AdapterError
+from msg_adapters.stamps import make_header
+
+# sensor_msgs/PointField datatype constants.
+INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
+DATATYPE_NAMES = {
+    INT8: "INT8", UINT8: "UINT8", INT16: "INT16", UINT16: "UINT16",
+    INT32: "INT32", UINT32: "UINT32", FLOAT32: "FLOAT32", FLOAT64: "FLOAT64",
+}  # fmt: skip
+_DATATYPE_CODES = {INT8: "i1", UINT8: "u1", INT16: "i2", UINT16: "u2", INT32: "i4", UINT32: "u4",
+                   FLOAT32: "f4", FLOAT64: "f8"}  # fmt: skip
+_NUMPY_TO_DATATYPE = {np.dtype(code): dt for dt, code in _DATATYPE_CODES.items()}
+FLOATS = (FLOAT32, FLOAT64)
+INTEGERS = (INT8, UINT8, INT16, UINT16, INT32, UINT32)
+
+
+def read_fields(
+    msg: Any,
+    required: dict[str, Sequence[int]],
+    optional: dict[str, Sequence[int]] | None = None,
+    *,
+    what: str = "PointCloud2",
+) -> dict[str, np.ndarray]:
+    """Columns of the named fields, one (N,) array each (native byte order, stored dtype).
+
+    ``required`` / ``optional`` map field names to the PointField datatypes accepted for them.
+    Optional fields that are absent are left out of the result. Arrays may be read-only views of
+    the message buffer: copy before writing.
+    """
+    optional = optional or {}
+    fields: dict[str, Any] = {}
+    for f in msg.fields:
+        name = str(f.name)
+        if name in fields and (name in required or name in optional):
+            raise AdapterError(f"{what}: field {name!r} appears more than once")
+        fields.setdefault(name, f)
+    missing = [name for name in required if name not in fields]
+    if missing:
+        raise AdapterError(f"{what}: missing required fields {missing} (has {list(fields)})")
+
+    height, width = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    n = height * width
+    byteorder = ">" if bool(msg.is_bigendian) else "<"
+    names, formats, offsets = [], [], []
+    for name, allowed in list(required.items()) + list(optional.items()):
+        if name not in fields:
+            continue
+        f = fields[name]
+        datatype, offset, count = int(f.datatype), int(f.offset), int(f.count)
+        if datatype not in _DATATYPE_CODES:
+            raise AdapterError(f"{what}: field {name!r} has unknown datatype {datatype}")
+        if datatype not in allowed:
+            want = " or ".join(DATATYPE_NAMES[d] for d in allowed)
+            raise AdapterError(f"{what}: field {name!r} has datatype {DATATYPE_NAMES[datatype]}, expected {want}")
+        if count > 1:
+            raise AdapterError(f"{what}: field {name!r} has count {count}, expected 1")
+        dtype = np.dtype(byteorder + _DATATYPE_CODES[datatype])
+        if offset < 0 or offset + dtype.itemsize > point_step:
+            raise AdapterError(f"{what}: field {name!r} at offset {offset} does not fit point_step {point_step}")
+        names.append(name)
+        formats.append(dtype)
+        offsets.append(offset)
+
+    if n == 0:
+        return {name: np.empty(0, dtype=fmt.newbyteorder("=")) for name, fmt in zip(names, formats, strict=True)}
+    row_bytes = width * point_step
+    if row_step < row_bytes:
+        raise AdapterError(f"{what}: row_step {row_step} is smaller than width * point_step = {row_bytes}")
+    data = bytes_view(msg.data, f"{what}.data")
+    needed = row_step * (height - 1) + row_bytes
+    if data.size < needed:
+        raise AdapterError(f"{what}: data has {data.size} bytes, {width}x{height} points need {needed}")
+    if height == 1 or row_step == row_bytes:
+        packed = data[: n * point_step]
+    else:  # rows padded beyond width * point_step: gather them (one copy)
+        rows = np.lib.stride_tricks.as_strided(data, shape=(height, row_bytes), strides=(row_step, 1))
+        packed = np.ascontiguousarray(rows).reshape(-1)
+    layout = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
+    points = packed.view(layout)
+    return {name: points[name] for name in names}
+
+
+def make_cloud(columns: Iterable[tuple[str, np.ndarray]], *, frame_id: str, stamp: Any = 0, is_dense: bool = True):
+    """An unordered (height 1) little-endian ``sensor_msgs.msg.PointCloud2`` with packed fields in the given order."""
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    columns = [(name, np.asarray(values)) for name, values in columns]
+    n = columns[0][1].shape[0] if columns else 0
+    layout = []
+    for name, values in columns:
+        if values.ndim != 1 or values.shape[0] != n:
+            raise AdapterError(f"PointCloud2: column {name!r} has shape {values.shape}, expected ({n},)")
+        if values.dtype.newbyteorder("=") not in _NUMPY_TO_DATATYPE:
+            raise AdapterError(f"PointCloud2: column {name!r} has unsupported dtype {values.dtype}")
+        layout.append((name, values.dtype.newbyteorder("<")))
+    points = np.empty(n, dtype=np.dtype(layout))
+    for name, values in columns:
+        points[name] = values
+    fields = [
+        PointField(
+            name=name,
+            offset=points.dtype.fields[name][1],
+            datatype=_NUMPY_TO_DATATYPE[points.dtype.fields[name][0].newbyteorder("=")],
+            count=1,
+        )
+        for name, _ in columns
+    ]
+    msg = PointCloud2(header=make_header(frame_id, stamp), height=1, width=n, fields=fields)
+    msg.is_bigendian = False
+    msg.point_step = points.dtype.itemsize
+    msg.row_step = msg.point_step * n
+    msg.is_dense = bool(is_dense)
+    msg.data = to_byte_array(points)
+    return msg
