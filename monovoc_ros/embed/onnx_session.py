@@ -1,0 +1,23 @@
+"""onnxruntime sessions configured the same way for every backend."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import onnxruntime as ort
+
+# The robot shares its CPU with SLAM and the ROS executors: two intra-op threads keep the embedder from
+# starving them while still using the vectorised kernels well (see MODELS.md for the timings).
+DEFAULT_THREADS = 2
+
+
+def make_session(path: Path, threads: int = DEFAULT_THREADS) -> ort.InferenceSession:
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = int(threads)
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # Silence the per-node "initializer appears in graph inputs" style warnings on user exports.
+    options.log_severity_level = 3
+    return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
