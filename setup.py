@@ -14,6 +14,7 @@ setup(
         ("share/" + package_name + "/config", glob("config/*")),
     ],
     install_requires=["setuptools"],
+    package_data={"monovoc_ros.embed": ["data/*.txt"]},
     zip_safe=True,
     maintainer="MonoVoc ROS developers",
     maintainer_email="monovoc@example.com",

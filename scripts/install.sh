@@ -36,6 +36,7 @@ if [ -d monovoc_interfaces ]; then
     export AMENT_PREFIX_PATH="$venv"
     build="$root/build/monovoc_interfaces"
     rm -rf "$build"
+    mkdir -p "$build"
     cmake -S monovoc_interfaces -B "$build" -DCMAKE_INSTALL_PREFIX="$venv" \
       -DCMAKE_PREFIX_PATH="$venv" -DPython3_EXECUTABLE="$venv/bin/python" \
       -DBUILD_TESTING=OFF > "$root/build/monovoc_interfaces.cmake.log" 2>&1 \
@@ -47,14 +48,14 @@ if [ -d monovoc_interfaces ]; then
   fi
 fi
 
-proj_stamp=$(stamp setup.py setup.cfg package.xml)
+# The editable install maps top-level packages found at install time: re-run it when one appears.
+proj_stamp=$( (cat setup.py setup.cfg package.xml; ls -d */__init__.py) | sha256sum | cut -c1-16)
 if [ "$(cat "$venv/.project_stamp" 2>/dev/null)" != "$proj_stamp" ]; then
   echo "[install] pip install -e . (monovoc_ros)"
   pip install --quiet --no-deps --no-build-isolation -e . 2>&1 | { grep -vE "^WARNING: Location|^ " || true; }
   echo "$proj_stamp" > "$venv/.project_stamp"
 fi
 
-if "$venv/bin/python" -c "import monovoc_ros.embed.export" 2>/dev/null; then
-  "$venv/bin/python" -m monovoc_ros.embed.export --quiet
-fi
+# Offline embedding models: exported once to ONNX into the model cache (a no-op when up to date).
+"$venv/bin/python" -m monovoc_ros.embed.export --quiet
 echo "[install] done: $venv"

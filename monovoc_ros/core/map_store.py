@@ -1,0 +1,180 @@
+"""Crash-safe persistence of a semantic map directory.
+
+Layout of a map directory:
+    CURRENT               name of the newest complete snapshot (replaced atomically)
+    snap-000007/          one complete snapshot: gaussians.npz, state.npz, palette.npz, meta.json
+    semantic.ply          the latest quantized cloud (x y z rgb object_id confidence), for viewers
+
+A snapshot is written into a fresh directory, fsynced, and only then published by atomically replacing
+CURRENT. A process killed at any moment (SIGKILL included) therefore leaves CURRENT naming a complete
+snapshot: at most the keyframes integrated since that snapshot are lost, and nothing is ever half
+written. The two newest snapshots are kept; older ones are removed after publishing.
+The map is stored as raw activated float32 arrays (not PLY, whose log/logit encoding does not round-trip
+bit-exactly), so a resumed mapper continues exactly where the saved one stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.palette import PaletteBuilder
+from monovoc_ros.core.ply import save_semantic_ply
+from monovoc_ros.core.state import SemanticState
+
+FORMAT_VERSION = 1
+_KEEP = 2
+
+
+class MapStoreError(ValueError):
+    """A map directory that cannot be read; the message names the directory and the problem."""
+
+
+@dataclass
+class SnapshotInfo:
+    path: Path
+    keyframes: int
+    gaussians: int
+    seconds: float
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as fh:
+        os.fsync(fh.fileno())
+
+
+def _snapshots(map_dir: Path) -> list[Path]:
+    return sorted(p for p in map_dir.glob("snap-*") if p.is_dir() and not p.name.endswith(".partial"))
+
+
+_MAP_FIELDS = ("means", "scales", "quats", "opacities", "colors", "ids", "semantics")
+
+
+def _save_map(path: Path, gmap: GaussianMap) -> None:
+    arrays = {name: getattr(gmap, name) for name in _MAP_FIELDS if getattr(gmap, name) is not None}
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def _load_map(path: Path) -> GaussianMap:
+    with np.load(path) as arrays:
+        return GaussianMap(**{name: arrays[name] for name in _MAP_FIELDS if name in arrays})
+
+
+def current_snapshot(map_dir: str | os.PathLike) -> Path | None:
+    """The snapshot CURRENT points to, or None for a directory without a saved map."""
+    map_dir = Path(map_dir)
+    try:
+        name = (map_dir / "CURRENT").read_text().strip()
+    except FileNotFoundError:
+        return None
+    snap = map_dir / name
+    if not name.startswith("snap-") or not (snap / "meta.json").is_file():
+        raise MapStoreError(f"{map_dir}: CURRENT names {name!r}, which is not a complete snapshot")
+    return snap
+
+
+def save_snapshot(mapper: SemanticMapper, map_dir: str | os.PathLike, *, export_cloud: bool = True) -> SnapshotInfo:
+    """Writes the mapper's full state as a new snapshot and publishes it atomically."""
+    start = time.perf_counter()
+    map_dir = Path(map_dir)
+    map_dir.mkdir(parents=True, exist_ok=True)
+    previous = current_snapshot(map_dir)
+    existing = _snapshots(map_dir)
+    number = int(existing[-1].name[5:]) + 1 if existing else 1
+    final = map_dir / f"snap-{number:06d}"
+    partial = map_dir / f"snap-{number:06d}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir()
+
+    # The map is the bulk of a snapshot: hard-link it from the previous one when it has not changed.
+    prev_meta = json.loads((previous / "meta.json").read_text()) if previous else None
+    if (
+        prev_meta
+        and prev_meta.get("map_version") == mapper.map_version
+        and prev_meta.get("gaussians") == len(mapper.gaussians)
+    ):
+        os.link(previous / "gaussians.npz", partial / "gaussians.npz")
+    else:
+        _save_map(partial / "gaussians.npz", mapper.gaussians)
+    mapper.state.save(partial / "state.npz")
+    palette_path = partial / "palette.npz"
+    with open(palette_path, "wb") as fh:
+        np.savez(fh, **mapper.palette_builder.to_arrays())
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "created_unix": time.time(),
+        "keyframes": mapper.n_keyframes,
+        "gaussians": len(mapper.gaussians),
+        "map_version": mapper.map_version,
+        "config": asdict(mapper.config),
+    }
+    (partial / "meta.json").write_text(json.dumps(meta, indent=1))
+    for f in partial.iterdir():
+        _fsync_file(f)
+    _fsync_dir(partial)
+    os.replace(partial, final)
+    _fsync_dir(map_dir)
+
+    tmp = map_dir / "CURRENT.tmp"
+    tmp.write_text(final.name + "\n")
+    _fsync_file(tmp)
+    os.replace(tmp, map_dir / "CURRENT")
+    _fsync_dir(map_dir)
+
+    for old in _snapshots(map_dir)[:-_KEEP]:
+        shutil.rmtree(old, ignore_errors=True)
+    if export_cloud:
+        export_semantic_ply(mapper, map_dir / "semantic.ply")
+    return SnapshotInfo(final, mapper.n_keyframes, len(mapper.gaussians), time.perf_counter() - start)
+
+
+def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None) -> SemanticMapper:
+    """A mapper restored from the newest complete snapshot of `map_dir`.
+
+    `config` overrides the saved configuration (e.g. another rasterizer implementation); the saved
+    one is used when it is None.
+    """
+    map_dir = Path(map_dir)
+    snap = current_snapshot(map_dir)
+    if snap is None:
+        raise MapStoreError(f"{map_dir}: no saved map (no CURRENT file)")
+    try:
+        meta = json.loads((snap / "meta.json").read_text())
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise MapStoreError(f"{snap}: unsupported format_version {meta.get('format_version')}")
+        gaussians = _load_map(snap / "gaussians.npz")
+        state = SemanticState.load(snap / "state.npz")
+        with np.load(snap / "palette.npz") as arrays:
+            builder = PaletteBuilder.from_arrays(dict(arrays))
+    except (OSError, KeyError, ValueError) as exc:
+        raise MapStoreError(f"{snap}: unreadable snapshot ({exc})") from exc
+    if len(state.weight_sum) != len(gaussians):
+        raise MapStoreError(f"{snap}: state has {len(state.weight_sum)} Gaussians, map has {len(gaussians)}")
+    mapper = SemanticMapper(gaussians, config or MapperConfig(**meta["config"]))
+    mapper.state = state
+    mapper.palette_builder = builder
+    mapper.map_version = int(meta.get("map_version", 0))
+    return mapper
+
+
+def export_semantic_ply(mapper: SemanticMapper, path: str | os.PathLike) -> None:
+    """The quantized map as a colored point cloud (Gaussian centres) for any PLY viewer."""
+    result = mapper.result()
+    save_semantic_ply(path, mapper.gaussians.means, result.object_rgb(), result.object_ids, result.confidence)
