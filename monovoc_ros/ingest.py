@@ -1,0 +1,170 @@
+"""Decoded ROS messages -> validated, synchronized Keyframes (or counted rejections).
+
+The live node and offline bag processing both feed messages through `KeyframeAssembler`, so a bag
+replayed into the node and the same bag read from disk produce the same keyframes. Messages are
+checked and converted (msg_adapters) as they arrive; bad ones are rejected with a reason and never
+reach the synchronizer or the semantic state.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+import msg_adapters as ma
+from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.datasets import instance_palette
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.palette import VOID_RGB
+from monovoc_ros.core.sync import StampSynchronizer
+
+ROLES = ("image", "mask", "camera_info", "pose")
+POSE_TYPES = ("pose", "odometry", "transform")
+_POSE_READERS = {
+    "pose": ma.pose_stamped_to_matrix,
+    "odometry": ma.odometry_to_matrix,
+    "transform": ma.transform_stamped_to_matrix,
+}
+# Rejection reasons, as counted in diagnostics.
+REASONS = (
+    "bad_image",
+    "bad_mask",
+    "bad_camera_info",
+    "bad_pose",
+    "size_mismatch",
+    "void_mask",
+    "stamp_out_of_order",
+    "duplicate_stamp",
+)
+_BAD = {"image": "bad_image", "mask": "bad_mask", "camera_info": "bad_camera_info", "pose": "bad_pose"}
+
+
+class _VoidMask(ValueError):
+    """An all-white mask: no object evidence, so not a keyframe (counted as void_mask)."""
+
+
+@dataclass
+class IngestConfig:
+    pose_type: str = "pose"  # geometry_msgs/PoseStamped | nav_msgs/Odometry | geometry_msgs/TransformStamped
+    frame_convention: str = "optical"  # "optical" (camera optical frame) or "body" (REP-103 x forward)
+    sync_tolerance_s: float = 0.02
+    use_image: bool = True  # the RGB image is only needed for object views; masks and poses suffice for SCD
+    rectified: bool = False  # CameraInfo: use P (rectified images) instead of K
+    allow_distortion: bool = False
+    max_pending: int = 32  # per-stream synchronizer buffer
+
+    def __post_init__(self) -> None:
+        if self.pose_type not in POSE_TYPES:
+            raise ValueError(f"pose_type must be one of {POSE_TYPES}, got {self.pose_type!r}")
+        if self.frame_convention not in ("optical", "body"):
+            raise ValueError(f"frame_convention must be 'optical' or 'body', got {self.frame_convention!r}")
+        if not self.sync_tolerance_s >= 0:
+            raise ValueError(f"sync_tolerance_s must be >= 0, got {self.sync_tolerance_s}")
+
+
+@dataclass
+class Rejection:
+    reason: str  # one of REASONS
+    role: str
+    stamp_ns: int | None
+    detail: str
+
+
+def image_message_to_numpy(msg: Any) -> np.ndarray:
+    """sensor_msgs/Image or CompressedImage (told apart by their fields) -> NumPy."""
+    if hasattr(msg, "format") and not hasattr(msg, "encoding"):
+        return ma.compressed_image_to_numpy(msg)
+    return ma.image_to_numpy(msg)
+
+
+def mask_from_image(array: np.ndarray) -> np.ndarray:
+    """A palette mask as (H, W, 3) uint8: color masks as they are, mono8/mono16 instance-id images
+    colorized with the deterministic instance palette (id 0 = void)."""
+    if array.ndim == 3:
+        return array
+    if array.dtype.kind != "u":
+        raise ma.AdapterError(f"mask: instance-id images must be mono8 or mono16, got dtype {array.dtype}")
+    return instance_palette(array)
+
+
+class KeyframeAssembler:
+    def __init__(self, config: IngestConfig | None = None) -> None:
+        self.config = config or IngestConfig()
+        roles = ROLES if self.config.use_image else tuple(r for r in ROLES if r != "image")
+        self.roles = roles
+        self.sync = StampSynchronizer(
+            roles, "mask", int(round(self.config.sync_tolerance_s * 1e9)), self.config.max_pending
+        )
+        self.rejected: Counter[str] = Counter()
+        self.received: Counter[str] = Counter()
+        self._last_stamp: dict[str, int] = {}
+        self._count = 0
+
+    def push(self, role: str, msg: Any) -> tuple[list[Keyframe], list[Rejection]]:
+        """Takes one decoded message of a role; returns the keyframes it completed and any rejection."""
+        if role not in self.roles:
+            return [], []
+        self.received[role] += 1
+        stamp = None
+        try:
+            stamp = ma.header_stamp_ns(msg)
+            item = self._convert(role, msg)
+        except ValueError as exc:
+            reason = "void_mask" if isinstance(exc, _VoidMask) else _BAD[role]
+            return [], [self._reject(reason, role, stamp, str(exc))]
+        last = self._last_stamp.get(role)
+        if last is not None and stamp <= last:
+            reason = "duplicate_stamp" if stamp == last else "stamp_out_of_order"
+            return [], [self._reject(reason, role, stamp, f"stamp {stamp} after {last} on {role}")]
+        self._last_stamp[role] = stamp
+        keyframes, rejections = [], []
+        for pivot_stamp, parts in self.sync.push(role, stamp, item):
+            try:
+                keyframes.append(self._assemble(pivot_stamp, parts))
+            except ValueError as exc:
+                rejections.append(self._reject("size_mismatch", "mask", pivot_stamp, str(exc)))
+        return keyframes, rejections
+
+    def _reject(self, reason: str, role: str, stamp: int | None, detail: str) -> Rejection:
+        self.rejected[reason] += 1
+        return Rejection(reason, role, stamp, detail)
+
+    def _convert(self, role: str, msg: Any) -> Any:
+        if role == "pose":
+            return _POSE_READERS[self.config.pose_type](msg, self.config.frame_convention)
+        if role == "camera_info":
+            # Validated now (size, distortion); rescaled to the mask once they are matched.
+            ma.camera_info_to_intrinsics(
+                msg, rectified=self.config.rectified, allow_distortion=self.config.allow_distortion
+            )
+            return msg
+        array = image_message_to_numpy(msg)
+        if role == "image":
+            if array.ndim != 3:
+                raise ma.AdapterError(f"image: expected a color image, got shape {array.shape}")
+            return array
+        mask = mask_from_image(array)
+        if not np.any(mask != np.array(VOID_RGB, np.uint8)):
+            raise _VoidMask(f"mask {mask.shape[1]}x{mask.shape[0]} is entirely void (white)")
+        return mask
+
+    def _assemble(self, stamp: int, parts: dict[str, Any]) -> Keyframe:
+        mask = parts["mask"]
+        h, w = mask.shape[:2]
+        info = parts["camera_info"]
+        cam_w, cam_h = int(info.width), int(info.height)
+        # Masks may be resampled copies of the camera image, never another aspect ratio.
+        if abs(w / h - cam_w / cam_h) > 0.01 * cam_w / cam_h:
+            raise ValueError(f"mask {w}x{h} does not have the aspect ratio of camera_info {cam_w}x{cam_h}")
+        rgb = parts.get("image")
+        if rgb is not None and rgb.shape[:2] != (cam_h, cam_w):
+            raise ValueError(f"image {rgb.shape[1]}x{rgb.shape[0]} disagrees with camera_info {cam_w}x{cam_h}")
+        intrinsics: Intrinsics = ma.camera_info_to_intrinsics(
+            info, w, h, rectified=self.config.rectified, allow_distortion=self.config.allow_distortion
+        )
+        keyframe = Keyframe(self._count, stamp, parts["pose"], intrinsics, mask, rgb)
+        self._count += 1
+        return keyframe

@@ -1,0 +1,77 @@
+"""The approximate-time stamp synchronizer."""
+
+from __future__ import annotations
+
+import pytest
+
+from monovoc_ros.core.sync import StampSynchronizer
+
+MS = 1_000_000
+
+
+def make() -> StampSynchronizer:
+    return StampSynchronizer(("image", "mask", "pose"), "mask", tolerance_ns=10 * MS, max_pending=4)
+
+
+def test_matches_within_tolerance_in_any_arrival_order():
+    sync = make()
+    assert sync.push("pose", 100 * MS + 3 * MS, "p1") == []
+    assert sync.push("mask", 100 * MS, "m1") == []
+    out = sync.push("image", 100 * MS - 2 * MS, "i1")
+    assert out == [(100 * MS, {"mask": "m1", "pose": "p1", "image": "i1"})]
+    assert sync.stats.matched == 1
+    assert all(sync.pending(r) == 0 for r in sync.roles)
+
+
+def test_picks_closest_partner_and_drops_skipped_ones():
+    sync = make()
+    sync.push("image", 95 * MS, "far")
+    sync.push("image", 101 * MS, "near")
+    sync.push("pose", 100 * MS, "p")
+    out = sync.push("mask", 100 * MS, "m")
+    assert out[0][1]["image"] == "near"
+    assert sync.stats.unmatched["image"] == 1
+
+
+def test_pivot_that_can_never_match_is_dropped_and_counted():
+    sync = make()
+    sync.push("mask", 100 * MS, "m_old")
+    sync.push("pose", 100 * MS, "p_old")
+    # The image stream has moved past 100 ms + tolerance: m_old can never get an image.
+    sync.push("image", 150 * MS, "i_new")
+    assert sync.stats.unmatched["mask"] == 1
+    sync.push("pose", 151 * MS, "p_new")
+    out = sync.push("mask", 149 * MS, "m_new")
+    assert out == [(149 * MS, {"mask": "m_new", "pose": "p_new", "image": "i_new"})]
+    assert sync.stats.unmatched["pose"] == 1  # p_old: too old for the next mask
+
+
+def test_several_sets_complete_at_once_oldest_first():
+    sync = make()
+    for k in range(3):
+        sync.push("mask", (100 + 50 * k) * MS, f"m{k}")
+        sync.push("pose", (100 + 50 * k) * MS, f"p{k}")
+    out = []
+    for k in range(3):
+        out += sync.push("image", (100 + 50 * k) * MS, f"i{k}")
+    assert [s for s, _ in out] == [100 * MS, 150 * MS, 200 * MS]
+    assert [parts["image"] for _, parts in out] == ["i0", "i1", "i2"]
+
+
+def test_bounded_buffers_drop_oldest_and_count():
+    sync = make()
+    for k in range(6):
+        sync.push("mask", (100 + k) * MS * 100, k)
+    assert sync.pending("mask") == 4
+    assert sync.stats.overflow["mask"] == 2
+
+
+def test_rejects_non_increasing_stamps_and_bad_configuration():
+    sync = make()
+    sync.push("mask", 100 * MS, "a")
+    with pytest.raises(ValueError, match="does not increase"):
+        sync.push("mask", 100 * MS, "b")
+    with pytest.raises(ValueError):
+        StampSynchronizer(("a",), "b", 0)
+    with pytest.raises(ValueError):
+        StampSynchronizer(("a",), "a", -1)
