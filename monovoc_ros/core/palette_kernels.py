@@ -13,7 +13,7 @@ _BLEND_NUM = 9
 _BLEND_DEN = 4
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _find(ids: np.ndarray, value: np.uint32) -> int:
     lo, hi = 0, ids.shape[0]
     while lo < hi:
@@ -25,7 +25,7 @@ def _find(ids: np.ndarray, value: np.uint32) -> int:
     return lo
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _is_blend(mask: np.ndarray, y: int, x: int, dy: int, dx: int) -> bool:
     dot = 0
     ab2 = 0
@@ -40,7 +40,7 @@ def _is_blend(mask: np.ndarray, y: int, x: int, dy: int, dx: int) -> bool:
     return dot > 0 and dot < ab2 and _BLEND_DEN * (ca2 * ab2 - dot * dot) <= _BLEND_NUM * ab2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def region_counts(mask: np.ndarray, packed: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per color of sorted `ids`: inner pixels whose 3x3 neighbourhood is all that color, and inner
     pixels that are a blend of two opposite neighbours (horizontal, vertical, diagonal)."""

@@ -16,12 +16,12 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _finish(best_k: int, best: float, second: float) -> tuple[int, float, float]:
     return best_k, math.sqrt(max(best, 0.0)), math.sqrt(max(second, 0.0))
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def nearest_euclidean(x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Euclidean distance (RGB, CAM16-UCS with K_L = 1, DIN99o)."""
     m, k = x.shape[0], p.shape[0]
@@ -43,7 +43,7 @@ def nearest_euclidean(x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndar
     return index, dist, second
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def nearest_cmc(
     lab: np.ndarray, plab: np.ndarray, l: float = 2.0, c: float = 1.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -89,7 +89,7 @@ def nearest_cmc(
     return index, dist, second
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def nearest_cie94(lab: np.ndarray, plab: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CIE 1994 (graphic arts: k_L = 1, K_1 = 0.045, K_2 = 0.015), sample as the reference color."""
     m, k = lab.shape[0], plab.shape[0]
@@ -123,7 +123,7 @@ def nearest_cie94(lab: np.ndarray, plab: np.ndarray) -> tuple[np.ndarray, np.nda
     return index, dist, second
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _hue_deg(b: float, a: float) -> float:
     if b == 0 and a == 0:
         return 0.0
@@ -136,13 +136,13 @@ _COS63, _SIN63 = math.cos(math.radians(63.0)), math.sin(math.radians(63.0))
 _POW25_7 = 25.0**7
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def _ciede2000_sl(L1: float, L2: float) -> float:
     Lbar2 = ((L1 + L2) / 2 - 50) ** 2
     return 1 + (0.015 * Lbar2) / math.sqrt(20 + Lbar2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def ciede2000_squared(L1: float, a1: float, b1: float, L2: float, a2: float, b2: float) -> float:
     """The radicand of CIEDE2000 (k_L = k_C = k_H = 1), as colour's intermediate_attributes_CIE2000.
 
@@ -210,7 +210,7 @@ def ciede2000_squared(L1: float, a1: float, b1: float, L2: float, a2: float, b2:
     return vL * vL + vC * vC + vH * vH + RT * vC * vH
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def nearest_ciede2000(lab: np.ndarray, plab: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CIEDE2000 (symmetric, every term depends on both colors: the full formula per pair).
 

@@ -103,7 +103,7 @@ def _fetch_add(typingctx, counters, index):
     return types.int64(counters, types.intp), codegen
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def exp_nonpositive(x):
     """exp(x) for float32 x <= 0, to ~1 ulp, vectorizable (inputs below -30 return exp(-30))."""
     x = x if x > _F_EXP_LO else _F_EXP_LO
@@ -121,7 +121,7 @@ def exp_nonpositive(x):
 # --- projection ---------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, gx, gy, u, v, conic, depth, rect):
     mx, my, mz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
     x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + R[0, 3]
@@ -183,7 +183,7 @@ def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, gx, gy, u, v, conic, d
     conic[i, 2] = np.float32(1.0 / c)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def project(means, cov6, world_to_cam, fx, fy, cx, cy, lims, width, height, u, v, conic, depth, rect, n_workers):
     """EWA projection in float64 (see projection.py); rect = (0, 0, 0, 0) marks a culled Gaussian and
     conic holds the factored form (A, R, S) of the inverse 2D covariance (see _project_one)."""
@@ -203,7 +203,7 @@ def project(means, cov6, world_to_cam, fx, fy, cx, cy, lims, width, height, u, v
 # --- depth order and packing ----------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def visible_by_depth(depth, rect):
     """Indices of visible Gaussians sorted by depth, stable (ties keep map order): LSD radix sort on the
     float32 bit patterns, which order like the values for positive floats."""
@@ -244,7 +244,7 @@ def visible_by_depth(depth, rect):
     return idx
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _pack_one(r, i, u, v, conic, depth, opacities, colors, has_colors, rows, rects, rect):
     A = np.float64(conic[i, 0])
     R = np.float64(conic[i, 1])
@@ -277,7 +277,7 @@ def _pack_one(r, i, u, v, conic, depth, opacities, colors, has_colors, rows, rec
         rects[r, k] = rect[i, k]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def pack_rows(order, u, v, conic, depth, opacities, colors, has_colors, rows, rects, rect, n_workers):
     """Visible Gaussians' parameters in depth order, one 64-byte row each."""
     n = order.shape[0]
@@ -294,7 +294,7 @@ def pack_rows(order, u, v, conic, depth, opacities, colors, has_colors, rows, re
 # --- tile binning ---------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def band_extent(rows, r, dy0, dy1):
     """x extent (relative to the mean) of the culling ellipse within dy0 <= dy <= dy1; lo > hi if empty."""
     thr = np.float64(rows[r, ROW_THR])
@@ -318,7 +318,7 @@ def band_extent(rows, r, dy0, dy1):
     return lo - _CULL_PAD_PX, hi + _CULL_PAD_PX
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _tile_span(rows, r, ty, x0, x1):
     """Columns [a, b] of the tiles in tile row ty (within x0..x1-1) that the culling ellipse reaches."""
     u = np.float64(rows[r, ROW_U])
@@ -331,7 +331,7 @@ def _tile_span(rows, r, ty, x0, x1):
     return a, b
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def bin_tiles(rows, rects, n_tiles, gx, n_workers, list_buffer, slot_buffer):
     """Gaussian-tile pairs: a stable counting sort of the depth-ordered Gaussians into tile lists.
 
@@ -393,7 +393,7 @@ def bin_tiles(rows, rects, n_tiles, gx, n_workers, list_buffer, slot_buffer):
 # --- compositing ------------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _tile_pixels(t, gx, px, py):
     """Pixel-centre coordinates of tile t in block layout."""
     ox = (t % gx) * TILE
@@ -406,7 +406,7 @@ def _tile_pixels(t, gx, px, py):
             py[blk * 16 + lane] = np.float32(by + (lane >> 2))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _reset_transmittance(t, gx, width, height, T):
     """T = 1 on the image, -1 (stopped, so never blending) on a border tile's pixels off the image."""
     ox = (t % gx) * TILE
@@ -420,7 +420,7 @@ def _reset_transmittance(t, gx, width, height, T):
             T[blk * 16 + lane] = _F1 if (x < width and y < height) else -_F1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _load_observations(t, gx, width, height, mask, scale, valid, has_valid, y0, y1, y2, val):
     ox = (t % gx) * TILE
     oy = (t // gx) * TILE
@@ -443,7 +443,7 @@ def _load_observations(t, gx, width, height, mask, scale, valid, has_valid, y0, 
                 val[k] = _F0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _block_rows(rows, r, oy):
     """Block rows [a, b] of a tile whose top pixel row is oy that the culling ellipse reaches."""
     v = np.float64(rows[r, ROW_V])
@@ -453,7 +453,7 @@ def _block_rows(rows, r, oy):
     return a, b
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _pixel_span(rows, r, ox, oy, br):
     """Pixels [k0, k1) of block row br: the blocks of that row that the culling ellipse reaches."""
     u = np.float64(rows[r, ROW_U])
@@ -468,12 +468,12 @@ def _pixel_span(rows, r, ox, oy, br):
     return np.uint64(first + a * 16), np.uint64(first + b * 16 + 16)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _footprint(rows, r):
     return rows[r, ROW_U], rows[r, ROW_V], rows[r, ROW_A], rows[r, ROW_R], rows[r, ROW_S], rows[r, ROW_O]
 
 
-@njit(cache=True, fastmath=_FASTMATH)
+@njit(cache=True, nogil=True, fastmath=_FASTMATH)
 def _alpha(px, py, u, v, A, R, S, o):
     dx = px - u
     dy = py - v
@@ -485,7 +485,7 @@ def _alpha(px, py, u, v, A, R, S, o):
     return a if (a >= _F_ALPHA_MIN and power <= _F0) else _F0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _any_live(T):
     for k in range(T.shape[0]):
         if T[k] > _F0:
@@ -493,7 +493,7 @@ def _any_live(T):
     return False
 
 
-@njit(cache=True, fastmath=_FASTMATH)
+@njit(cache=True, nogil=True, fastmath=_FASTMATH)
 def _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T):
     """Front-to-back compositing of one tile that only tracks transmittance."""
     ox = (t % gx) * TILE
@@ -513,7 +513,7 @@ def _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T):
             break
 
 
-@njit(cache=True, fastmath=_FASTMATH)
+@njit(cache=True, nogil=True, fastmath=_FASTMATH)
 def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, height, mask, scale, valid, has_valid,
                      bg, has_bg, pair_acc):  # fmt: skip
     px = np.empty(_PIXELS, np.float32)
@@ -571,7 +571,7 @@ def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, heigh
             break
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def accumulate_tiles(rows, tile_start, tile_list, tile_slot, tile_order, gx, width, height, mask, scale, valid,
                      has_valid, bg, has_bg, pair_acc, n_workers):  # fmt: skip
     """Per-pair partial sums (w, w y) of every tile; tiles are taken in `tile_order`, one at a time."""
@@ -585,7 +585,7 @@ def accumulate_tiles(rows, tile_start, tile_list, tile_slot, tile_order, gx, wid
             m = _fetch_add(counter, 0)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def reduce_pairs(pair_acc, gauss_start, order, color_sum, weight_sum, n_workers):
     """Per Gaussian, the float64 sum of its consecutive pair slots, written at its map index."""
     n = order.shape[0]
@@ -612,7 +612,7 @@ def reduce_pairs(pair_acc, gauss_start, order, color_sum, weight_sum, n_workers)
             c = _fetch_add(counter, 0)
 
 
-@njit(cache=True, fastmath=_FASTMATH)
+@njit(cache=True, nogil=True, fastmath=_FASTMATH)
 def _render_tile(t, rows, tile_start, tile_list, gx, width, height, bg, image, trans, depth):
     px = np.empty(_PIXELS, np.float32)
     py = np.empty(_PIXELS, np.float32)
@@ -659,7 +659,7 @@ def _render_tile(t, rows, tile_start, tile_list, gx, width, height, bg, image, t
             depth[y, x] = cz[k] / cover if cover > DEPTH_MIN_COVERAGE else _F0
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def render_tiles(rows, tile_start, tile_list, tile_order, gx, width, height, bg, image, trans, depth, n_workers):
     n = tile_order.shape[0]
     counter = np.zeros(1, np.int64)

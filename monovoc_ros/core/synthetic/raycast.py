@@ -37,7 +37,7 @@ def camera_rays(cam_to_world: np.ndarray, intrinsics: Intrinsics) -> tuple[np.nd
 # --------------------------------------------------------------------------------------------- numba
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _box(ox, oy, oz, dx, dy, dz, p):
     c, s = p[6], p[7]
     rx, ry, rz = ox - p[0], oy - p[1], oz - p[2]
@@ -68,7 +68,7 @@ def _box(ox, oy, oz, dx, dy, dz, p):
     return tnear, 0.0, 0.0, sign
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _cylinder(ox, oy, oz, dx, dy, dz, p):
     rx, ry, rz = ox - p[0], oy - p[1], oz - p[2]
     r, hh = p[3], p[4]
@@ -92,7 +92,7 @@ def _cylinder(ox, oy, oz, dx, dy, dz, p):
     return best, nx, ny, nz
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _sphere(ox, oy, oz, dx, dy, dz, p):
     rx, ry, rz = ox - p[0], oy - p[1], oz - p[2]
     r = p[3]
@@ -108,7 +108,7 @@ def _sphere(ox, oy, oz, dx, dy, dz, p):
     return t, (rx + t * dx) / r, (ry + t * dy) / r, (rz + t * dz) / r
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _plane(ox, oy, oz, dx, dy, dz, p):
     denom = dx * p[3] + dy * p[4] + dz * p[5]
     if denom > -_PARALLEL:
@@ -119,7 +119,7 @@ def _plane(ox, oy, oz, dx, dy, dz, p):
     return t, p[3], p[4], p[5]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _cast_kernel(origin, dirs, kinds, params, spheres, out_t, out_prim, out_n):
     ox, oy, oz = origin[0], origin[1], origin[2]
     for i in range(dirs.shape[0]):
