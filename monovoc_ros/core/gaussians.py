@@ -45,7 +45,12 @@ class GaussianMap:
         if norms is not None and np.any(~np.isfinite(norms) | (norms <= 0)):
             raise ValueError("GaussianMap.quats: zero or non-finite quaternion")
         if norms is not None:
-            quats = quats / norms
+            # Only rows that are not unit already: renormalizing in float32 is not idempotent, and a map
+            # must survive save/load bit for bit.
+            off = np.abs(norms[:, 0] - 1.0) > 1e-6
+            if off.any():
+                quats = quats.copy()
+                quats[off] /= norms[off]
         object.__setattr__(self, "means", means)
         object.__setattr__(self, "scales", _frozen(self.scales, np.float32, (3,), "scales", n))
         object.__setattr__(self, "quats", _frozen(quats, np.float32, (4,), "quats", n))

@@ -23,6 +23,10 @@ from monovoc_ros.core.state import SemanticState, reindex_by_position
 VOID_POLICIES = ("skip", "include")
 
 
+class DuplicateKeyframeError(ValueError):
+    """A keyframe whose stamp was already integrated (its evidence would count twice)."""
+
+
 @dataclass
 class MapperConfig:
     impl: str = "numba"  # rasterizer implementation (core.raster.IMPLEMENTATIONS)
@@ -78,6 +82,16 @@ class MapUpdateReport:
     by: str  # "ids" or "position"
 
 
+def label_gaussians(state: SemanticState, palette: Palette, metric: str) -> SemanticResult:
+    """Snaps every observed Gaussian's deblended color to the palette (METHOD section 4)."""
+    q = quantize(state.colors(), palette.colors, metric=metric)
+    known = q.index >= 0
+    object_ids = np.full(len(state), UNOBSERVED_ID, np.uint32)
+    object_ids[known] = palette.ids[q.index[known]]
+    conf = np.where(known, confidence(q), 0.0).astype(np.float32)
+    return SemanticResult(palette, q, object_ids, conf, state.observed.copy())
+
+
 class SemanticMapper:
     def __init__(self, gaussians: GaussianMap, config: MapperConfig | None = None) -> None:
         self.config = config or MapperConfig()
@@ -92,9 +106,9 @@ class SemanticMapper:
         return len(self.state.stamps_ns)
 
     def integrate(self, keyframe: Keyframe) -> IntegrationReport:
-        """Adds one keyframe's evidence. Raises ValueError (state untouched) on a duplicate stamp."""
+        """Adds one keyframe's evidence. Raises DuplicateKeyframeError (state untouched) on a repeated stamp."""
         if self.state.has_stamp(keyframe.stamp_ns):
-            raise ValueError(f"keyframe stamp {keyframe.stamp_ns} was already integrated")
+            raise DuplicateKeyframeError(f"keyframe stamp {keyframe.stamp_ns} was already integrated")
         start = time.perf_counter()
         valid = None
         if self.config.void_policy == "skip":
@@ -122,14 +136,7 @@ class SemanticMapper:
     def result(self) -> SemanticResult:
         """Quantized labels for every Gaussian (cached until the next keyframe or map update)."""
         if self._result is None:
-            palette = self.palette_builder.build()
-            colors = self.state.colors()
-            q = quantize(colors, palette.colors, metric=self.config.metric)
-            known = q.index >= 0
-            object_ids = np.full(len(colors), UNOBSERVED_ID, np.uint32)
-            object_ids[known] = palette.ids[q.index[known]]
-            conf = np.where(known, confidence(q), 0.0).astype(np.float32)
-            self._result = SemanticResult(palette, q, object_ids, conf, self.state.observed.copy())
+            self._result = label_gaussians(self.state, self.palette_builder.build(), self.config.metric)
         return self._result
 
     def update_gaussians(self, gaussians: GaussianMap) -> MapUpdateReport:

@@ -1,0 +1,190 @@
+"""`monovoc eval`: the paper's rendered-segmentation evaluation of a semantic map (METHOD section 6)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from monovoc_ros.commands.map import add_source_options, source_options
+from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
+from monovoc_ros.core.map_store import load_snapshot
+from monovoc_ros.core.mapping import label_gaussians
+from monovoc_ros.core.palette import UNOBSERVED_ID, pack_rgb
+from monovoc_ros.core.quantize import METRICS
+
+PROTOCOLS = ("points", "splats")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "eval",
+        help="mismatch ratio and mIoU of a semantic map's renderings against reference masks",
+        description="Renders the semantic map into keyframes and compares with the reference masks, for "
+        "every quantization metric. Protocol 'points' is the paper's: Gaussian centres drawn as discs of "
+        "world radius --point-size, nearest first. Protocol 'splats' renders the labels through the "
+        "Gaussians (alpha compositing), as the map itself renders. Synthetic sources are compared with "
+        "their clean ground-truth masks, and also scored with ground-truth labels (the protocol's ceiling).",
+    )
+    p.add_argument("map_dir", help="a map directory written by `monovoc map` or the node")
+    add_source_options(p)
+    p.add_argument("--every", type=int, default=3, help="evaluate every N-th keyframe (default 3)")
+    p.add_argument("--metrics", default="all", help=f"comma-separated subset of {','.join(METRICS)} or all")
+    p.add_argument("--protocols", default="points,splats", help="points, splats or both (default)")
+    p.add_argument("--point-size", type=float, default=0.05, help="disc world radius, metres (default 0.05)")
+    p.add_argument("-o", "--out", default=None, help="JSON report path (default MAP_DIR/eval.json)")
+    p.add_argument("--figure", default=None, help="PNG figure path (default MAP_DIR/eval.png)")
+    p.set_defaults(func=run)
+
+
+def _frames(args: argparse.Namespace):
+    """(name, frames [(intrinsics, pose, reference mask)], labels {id: name}, ground truth ids or None)."""
+    from monovoc_ros import offline
+
+    if args.bag:
+        from monovoc_ros.bags import bag_events, bag_labels
+        from monovoc_ros.core.keyframe import Keyframe
+
+        kfs = [e for e in bag_events(args.bag) if isinstance(e, Keyframe)][:: args.every]
+        frames = [(k.intrinsics, k.cam_to_world, k.mask) for k in kfs]
+        return Path(args.bag).name, frames, _names(bag_labels(args.bag)), None
+    seq = offline.open_source(args.source, args.layout, **source_options(args))
+    return sequence_frames(seq, args.every, args.max_keyframes)
+
+
+def sequence_frames(seq, every: int = 1, max_keyframes: int | None = None):
+    """Frames of a sequence; synthetic scenes give their clean masks and per-Gaussian ground truth."""
+    n = len(seq) if max_keyframes is None else min(len(seq), max_keyframes)
+    frames = []
+    for i in range(0, n, every):
+        kf = seq.keyframe(i)
+        reference = seq.clean_mask(i) if hasattr(seq, "clean_mask") else kf.mask
+        frames.append((kf.intrinsics, kf.cam_to_world, reference))
+    truth = None
+    if hasattr(seq, "gaussian_object"):
+        palette = np.array([o.palette_rgb for o in seq.objects], np.uint8)
+        truth = np.full(len(seq.gaussian_object), UNOBSERVED_ID, np.uint32)
+        labelled = seq.gaussian_object >= 0
+        truth[labelled] = pack_rgb(palette[seq.gaussian_object[labelled]])
+    return seq.name, frames, _names(seq.labels()), truth
+
+
+def _names(labels: list[dict]) -> dict[int, str]:
+    return {int(pack_rgb(np.array(e["color"], np.uint8))): str(e.get("class_name", "")) for e in labels}
+
+
+def score(gaussians, object_ids, frames, protocol: str, point_size: float) -> tuple[dict, list[np.ndarray]]:
+    evaluator = SegmentationEvaluator()
+    rendered = []
+    for intrinsics, pose, reference in frames:
+        if protocol == "points":
+            pred = render_point_labels(gaussians.means, object_ids, intrinsics, pose, point_size=point_size)
+        else:
+            pred = render_splat_labels(gaussians, object_ids, intrinsics, pose)
+        evaluator.update(pred, pack_rgb(reference))
+        rendered.append(pred)
+    return evaluator.result(), rendered
+
+
+def _public(result: dict, names: dict[int, str]) -> dict:
+    per_object = {
+        f"{oid:06x}": {"name": names.get(int(oid), ""), "iou": round(float(iou), 4)}
+        for oid, iou in sorted(result["iou"].items())
+    }
+    return {
+        "miou": round(float(result["miou"]), 4),
+        "mismatch_all": round(float(result["mismatch_all"]), 4),
+        "mismatch_nonwhite": round(float(result["mismatch_nonwhite"]), 4),
+        "mismatched_pixels": int(result["mismatched"]),
+        "pixels": int(result["pixels"]),
+        "objects": per_object,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    if bool(args.source) == bool(args.bag):
+        raise SystemExit("monovoc eval: give either SOURCE or --bag BAG")
+    metrics = METRICS if args.metrics == "all" else tuple(m.strip() for m in args.metrics.split(","))
+    protocols = tuple(p.strip() for p in args.protocols.split(","))
+    for bad in set(metrics) - set(METRICS) | set(protocols) - set(PROTOCOLS):
+        raise SystemExit(f"monovoc eval: unknown metric or protocol {bad!r}")
+    start = time.perf_counter()
+    mapper = load_snapshot(args.map_dir)
+    name, frames, names, truth = _frames(args)
+    palette = mapper.palette_builder.build()
+    report: dict = {"map": str(args.map_dir), "source": name, "frames": len(frames), "point_size": args.point_size}
+    figure_rows = None
+    for metric in metrics:
+        result = label_gaussians(mapper.state, palette, metric)
+        entry: dict = {}
+        for protocol in protocols:
+            scores, rendered = score(mapper.gaussians, result.object_ids, frames, protocol, args.point_size)
+            entry[protocol] = _public(scores, names)
+            if metric == mapper.config.metric and figure_rows is None:
+                figure_rows = (protocol, rendered, scores)
+        if truth is not None and len(truth) == len(mapper.gaussians):
+            observed = result.observed & (truth != UNOBSERVED_ID)
+            entry["gaussian_accuracy"] = round(float((result.object_ids[observed] == truth[observed]).mean()), 4)
+        report[metric] = entry
+    if truth is not None and len(truth) == len(mapper.gaussians):
+        report["ground_truth_labels"] = {
+            p: _public(score(mapper.gaussians, truth, frames, p, args.point_size)[0], names) for p in protocols
+        }
+    report["seconds"] = round(time.perf_counter() - start, 1)
+    out = Path(args.out or Path(args.map_dir) / "eval.json")
+    out.write_text(json.dumps(report, indent=1))
+    figure = Path(args.figure or Path(args.map_dir) / "eval.png")
+    if figure_rows is not None:
+        _figure(figure, frames, figure_rows, names, mapper.config.metric)
+    print(_table(report, metrics, protocols))
+    print(f"report: {out}\nfigure: {figure}")
+    return 0
+
+
+def _table(report: dict, metrics, protocols) -> str:
+    lines = [f"{'metric':10s} " + " ".join(f"{p + ' mIoU':>12s} {p + ' err(nw)':>14s}" for p in protocols)]
+    rows = [(m, report[m]) for m in metrics]
+    if "ground_truth_labels" in report:
+        rows.append(("(truth)", report["ground_truth_labels"]))
+    for m, entry in rows:
+        cells = " ".join(
+            f"{100 * entry[p]['miou']:11.2f}% {100 * entry[p]['mismatch_nonwhite']:13.2f}%" for p in protocols
+        )
+        lines.append(f"{m:10s} {cells}")
+    return "\n".join(lines)
+
+
+def _figure(path: Path, frames, rows, names: dict[int, str], metric: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from monovoc_ros.core.palette import unpack_rgb
+
+    protocol, rendered, scores = rows
+    picks = np.linspace(0, len(frames) - 1, min(3, len(frames))).astype(int)
+    fig = plt.figure(figsize=(12, 3.2 * len(picks) + 3.5))
+    grid = fig.add_gridspec(len(picks) + 1, 2, height_ratios=[3.2] * len(picks) + [3.5])
+    for row, i in enumerate(picks):
+        ref = frames[i][2]
+        pred = unpack_rgb(np.minimum(rendered[i], 0xFFFFFF).astype(np.uint32))
+        for col, (img, title) in enumerate(((pred, f"rendered ({protocol}, {metric})"), (ref, "reference mask"))):
+            ax = fig.add_subplot(grid[row, col])
+            ax.imshow(img)
+            ax.set_title(f"{title}, frame {i}", fontsize=9)
+            ax.axis("off")
+    ax = fig.add_subplot(grid[-1, :])
+    items = sorted(scores["iou"].items(), key=lambda kv: kv[1])
+    colors = [unpack_rgb(np.uint32(k)) / 255.0 for k, _ in items]
+    ax.bar(range(len(items)), [v for _, v in items], color=colors, edgecolor="black", linewidth=0.4)
+    ax.set_xticks(range(len(items)), [names.get(int(k), f"{int(k):06x}") for k, _ in items], rotation=70, fontsize=7)
+    ax.set_ylabel("IoU")
+    ax.set_ylim(0, 1)
+    ax.set_title(f"per-object IoU ({protocol}), mIoU {100 * scores['miou']:.2f}%", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
