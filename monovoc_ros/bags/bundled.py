@@ -1,0 +1,43 @@
+"""The bags shipped in ``bags/`` and how to regenerate them deterministically.
+
+``synthetic_room.mcap``: the default synthetic scene (``generate_scene(SceneConfig())``), every keyframe,
+JPEG images, PNG masks. Committed. ``replica_office0.mcap``: Replica office_0 from the plain folder in
+``/work/shared/data/replica_office0`` (research-only license: generated on demand, git-ignored, never
+committed).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from monovoc_ros.bags.convert import ConvertReport, sequence_to_bag
+
+BUNDLED_DIR = Path(__file__).resolve().parents[2] / "bags"
+SYNTHETIC_BAG = "synthetic_room.mcap"
+REPLICA_BAG = "replica_office0.mcap"
+DEFAULT_REPLICA_SOURCE = Path("/work/shared/data/replica_office0")
+
+
+def bundled_bag(name: str = SYNTHETIC_BAG) -> Path:
+    """Path of a bundled bag (it may not exist yet: ``monovoc bag make-bundled``)."""
+    return BUNDLED_DIR / name
+
+
+def make_synthetic_bag(out_dir: str | os.PathLike = BUNDLED_DIR, *, progress: bool = False) -> ConvertReport:
+    from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+
+    return sequence_to_bag(generate_scene(SceneConfig()), Path(out_dir) / SYNTHETIC_BAG, progress=progress)
+
+
+def make_replica_bag(
+    source: str | os.PathLike = DEFAULT_REPLICA_SOURCE,
+    out_dir: str | os.PathLike = BUNDLED_DIR,
+    *,
+    max_keyframes: int | None = None,
+    progress: bool = False,
+) -> ConvertReport:
+    from monovoc_ros.core.datasets import open_sequence
+
+    sequence = open_sequence(source, layout="plain")
+    return sequence_to_bag(sequence, Path(out_dir) / REPLICA_BAG, max_keyframes=max_keyframes, progress=progress)

@@ -1,0 +1,79 @@
+"""Offline processing of a bag without any ROS graph: maps, keyframes and rejections in log-time order.
+
+Keyframe messages go through the same ``KeyframeAssembler`` as in the live node, so offline results
+equal those of a replay into the node. A map message that does not convert is yielded as a
+``Rejection`` with reason ``bad_map`` (role ``gaussians``); the stream goes on.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Mapping
+
+import msg_adapters as ma
+from monovoc_ros.bags.reader import iter_messages
+from monovoc_ros.bags.topics import DEFAULT_NAMESPACE, MAP_ROLE, topic_names
+from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.ingest import IngestConfig, KeyframeAssembler, Rejection
+
+BAD_MAP = "bad_map"
+BagEvent = GaussianMap | Keyframe | Rejection
+
+
+def bag_events(
+    path: str | os.PathLike,
+    ingest_config: IngestConfig | None = None,
+    namespace: str = DEFAULT_NAMESPACE,
+    *,
+    topics: Mapping[str, str] | None = None,
+    assembler: KeyframeAssembler | None = None,
+) -> Iterator[BagEvent]:
+    """Yields, in log-time order, each Gaussian map message as a ``GaussianMap`` and the ``Keyframe``s and
+    ``Rejection``s of a ``KeyframeAssembler`` fed with the decoded keyframe messages.
+
+    ``topics``: role -> topic overrides (roles image, mask, camera_info, pose, gaussians), for bags
+    recorded with other names. ``assembler``: pass one to read its counters afterwards.
+    """
+    names = topic_names(namespace)
+    if topics:
+        unknown = set(topics) - set(names)
+        if unknown:
+            raise ValueError(f"unknown role(s) {sorted(unknown)}; roles are {sorted(names)}")
+        names.update(topics)
+    assembler = assembler or KeyframeAssembler(ingest_config)
+    role_of = {topic: role for role, topic in names.items() if role == MAP_ROLE or role in assembler.roles}
+    for message in iter_messages(path, topics=list(role_of)):
+        role = role_of[message.topic]
+        try:
+            decoded = message.decode()
+        except Exception as exc:  # a CDR payload that does not match its schema (truncated, corrupt)
+            yield from _undecodable(assembler, role, message.log_time_ns, exc)
+            continue
+        if role == MAP_ROLE:
+            try:
+                yield ma.cloud_to_gaussian_map(decoded)
+            except ValueError as exc:
+                yield Rejection(BAD_MAP, MAP_ROLE, _stamp_or_none(decoded), str(exc))
+            continue
+        keyframes, rejections = assembler.push(role, decoded)
+        yield from rejections
+        yield from keyframes
+
+
+def _stamp_or_none(msg) -> int | None:
+    try:
+        return ma.header_stamp_ns(msg)
+    except ValueError:
+        return None
+
+
+def _undecodable(assembler: KeyframeAssembler, role: str, log_time_ns: int, exc: Exception) -> Iterator[Rejection]:
+    detail = f"undecodable CDR ({type(exc).__name__}: {exc})"
+    if role == MAP_ROLE:
+        yield Rejection(BAD_MAP, MAP_ROLE, log_time_ns, detail)
+        return
+    # Counted like any other bad message of that role, as the live node would (its rmw drops it).
+    reason = {"image": "bad_image", "mask": "bad_mask", "camera_info": "bad_camera_info", "pose": "bad_pose"}[role]
+    assembler.rejected[reason] += 1
+    yield Rejection(reason, role, log_time_ns, detail)

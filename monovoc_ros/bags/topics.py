@@ -1,0 +1,26 @@
+"""The topic contract between bags, replay and the live node (docs/interfaces.md has the schemas).
+
+Under a namespace (default ``/monovoc``): ``image`` (CompressedImage jpeg/png or Image rgb8), ``mask``
+(lossless palette mask: CompressedImage png or Image rgb8), ``camera_info`` (of the image's resolution,
+no distortion), ``pose`` (PoseStamped, camera optical frame to ``map``) and ``gaussians`` (the Gaussian
+map PointCloud2, transient-local). A keyframe's four messages share one header stamp; in bags the MCAP
+log time equals the header stamp.
+"""
+
+from __future__ import annotations
+
+DEFAULT_NAMESPACE = "/monovoc"
+CAMERA_FRAME = "camera_optical_frame"
+MAP_FRAME = "map"
+KEYFRAME_ROLES = ("image", "mask", "camera_info", "pose")
+MAP_ROLE = "gaussians"
+ROLES = (*KEYFRAME_ROLES, MAP_ROLE)
+LABELS_METADATA = "monovoc_labels"  # JSON list of {color: [r, g, b], class_name, ...} (Sequence.labels())
+SOURCE_METADATA = "monovoc_source"  # JSON: where the bag came from, formats, time offset
+MAP_LEAD_NS = 1_000_000  # a map message is logged 1 ms before the keyframe it precedes
+
+
+def topic_names(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
+    """Role -> topic, e.g. ``{"image": "/monovoc/image", ..., "gaussians": "/monovoc/gaussians"}``."""
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    return {role: f"{ns}/{role}" for role in ROLES}

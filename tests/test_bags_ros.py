@@ -1,0 +1,218 @@
+"""`monovoc replay` and `monovoc record` with real rclpy processes on loopback."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+from rosgraph_msgs.msg import Clock
+from rosutil import MessageCollector, RosClientNode, RosProcess, ros_environment, wait_until
+from sensor_msgs.msg import CameraInfo, CompressedImage, PointCloud2
+from test_bags_convert import assert_same_map, moved, small_scene
+
+import msg_adapters as ma
+from monovoc_ros.bags import bag_info, iter_messages, record, replay, sequence_to_bag, topic_names
+from monovoc_ros.bags.schemas import canonical_cdr
+
+pytestmark = pytest.mark.ros
+
+TOPICS = topic_names()
+TYPES = {
+    "image": CompressedImage,
+    "mask": CompressedImage,
+    "camera_info": CameraInfo,
+    "pose": PoseStamped,
+    "gaussians": PointCloud2,
+}
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return small_scene()
+
+
+@pytest.fixture(scope="module")
+def bag(scene, tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("ros") / "scene.mcap"
+    sequence_to_bag(scene, path, map_updates={3: moved(scene.gaussians)})
+    return path
+
+
+def qos(role: str):
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    durability = DurabilityPolicy.TRANSIENT_LOCAL if role == "gaussians" else DurabilityPolicy.VOLATILE
+    return QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=durability)
+
+
+def replay_process(bag: Path, env: dict, *args: str) -> RosProcess:
+    return RosProcess.python(["-m", "monovoc_ros.cli", "replay", str(bag), *args], env, name="replay")
+
+
+def finish(process: RosProcess, timeout: float = 60.0) -> dict:
+    """Waits for the process to exit with 0; returns the JSON summary it printed."""
+    wait_until(lambda: process.returncode is not None, timeout, f"{process.name} to exit")
+    assert process.returncode == 0, process.describe()
+    return printed_summary(process)
+
+
+def printed_summary(process: RosProcess) -> dict:
+    text = process.output()
+    return json.loads(text[text.index("{\n") : text.index("\n}") + 2])
+
+
+def bag_messages(bag: Path, role: str) -> list:
+    return [m.decode() for m in iter_messages(bag, topics=[TOPICS[role]])]
+
+
+def test_replay_fast_delivers_every_message_and_remaps(bag: Path, tmp_path: Path) -> None:
+    env = ros_environment(tmp_path)
+    counts = {t.name: t.count for t in bag_info(bag).topics.values()}
+    with RosClientNode(env) as client:
+        received = {role: MessageCollector() for role in TYPES}
+        for role, cls in TYPES.items():
+            name = "/cam/image" if role == "image" else TOPICS[role]
+            client.node.create_subscription(cls, name, received[role], qos(role))
+        old_name = MessageCollector()
+        client.node.create_subscription(CompressedImage, TOPICS["image"], old_name, qos("image"))
+        args = ["--fast", "--wait-subscribers", "1", "--remap", "/monovoc/image:=/cam/image"]
+        with replay_process(bag, env, *args) as p:
+            summary = finish(p)
+        assert summary["messages"]["/cam/image"] == counts[TOPICS["image"]] and not summary["unacked"]
+        for role in TYPES:
+            received[role].wait_for(counts[TOPICS[role]], timeout=10.0)
+        time.sleep(0.2)  # nothing more may arrive (no duplicates)
+        assert {role: len(c.messages) for role, c in received.items()} == {r: counts[TOPICS[r]] for r in TYPES}
+        assert not old_name.messages
+    for got, ref in zip(received["mask"].messages, bag_messages(bag, "mask"), strict=True):
+        assert ma.header_stamp_ns(got) == ma.header_stamp_ns(ref)
+        np.testing.assert_array_equal(ma.compressed_image_to_numpy(got), ma.compressed_image_to_numpy(ref))
+    maps = [ma.cloud_to_gaussian_map(m) for m in received["gaussians"].messages]
+    for got, ref in zip(maps, bag_messages(bag, "gaussians"), strict=True):
+        assert_same_map(got, ma.cloud_to_gaussian_map(ref))
+
+
+class _Arrivals:
+    def __init__(self) -> None:
+        self.times: list[float] = []
+        self.values: list[int] = []
+
+    def __call__(self, msg) -> None:
+        self.times.append(time.monotonic())
+        self.values.append(ma.time_to_ns(msg.clock) if isinstance(msg, Clock) else ma.header_stamp_ns(msg))
+
+
+def test_replay_keeps_the_recorded_rate_and_publishes_clock(bag: Path, tmp_path: Path) -> None:
+    env = ros_environment(tmp_path)
+    info = bag_info(bag)
+    masks, clock = _Arrivals(), _Arrivals()
+    with RosClientNode(env) as client:
+        client.node.create_subscription(CompressedImage, TOPICS["mask"], masks, qos("mask"))
+        client.node.create_subscription(PoseStamped, TOPICS["pose"], MessageCollector(), qos("pose"))
+        client.node.create_subscription(Clock, "/clock", clock, qos("clock"))
+        args = ["--rate", "0.5", "--clock", "--wait-subscribers", "1", "--topics", TOPICS["mask"], TOPICS["pose"]]
+        with replay_process(bag, env, *args) as p:
+            summary = finish(p)
+    assert set(summary["messages"]) == {TOPICS["mask"], TOPICS["pose"]}
+    # Keyframes are 0.1 s apart in the bag: 0.2 s at half rate.
+    stamps = [m.log_time_ns for m in iter_messages(bag, topics=[TOPICS["mask"]])]
+    assert masks.values == stamps
+    gaps = np.diff(masks.times)
+    assert np.all(np.abs(gaps - 0.2) < 0.08), gaps
+    assert abs(masks.times[-1] - masks.times[0] - 1.0) < 0.15
+    # /clock: bag time, never backwards, at ~40 Hz of wall time in between.
+    assert len(clock.values) >= 25
+    assert np.all(np.diff(clock.values) >= 0)
+    assert info.start_ns <= clock.values[0] and clock.values[-1] <= info.end_ns
+
+
+def test_late_subscriber_gets_the_latched_map_and_ctrl_c_exits_cleanly(scene, bag: Path, tmp_path: Path) -> None:
+    env = ros_environment(tmp_path)
+    with replay_process(bag, env, "--rate", "4", "--hold", "60") as p:
+        p.wait_for_output('"total"', timeout=30.0)  # playback over; the publishers are held
+        with RosClientNode(env) as client:
+            maps = MessageCollector()
+            client.node.create_subscription(PointCloud2, TOPICS["gaussians"], maps, qos("gaussians"))
+            maps.wait_for(2, timeout=10.0, process=p)
+        assert p.stop() == 0, p.describe()
+    assert "Traceback" not in p.output()
+    assert_same_map(ma.cloud_to_gaussian_map(maps.messages[0]), scene.gaussians)
+    assert_same_map(ma.cloud_to_gaussian_map(maps.messages[-1]), moved(scene.gaussians))
+
+
+def _use_ros_env(env: dict, monkeypatch) -> None:
+    # In-process replay/record create their own context: it reads these from the process environment.
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOG_DIR", "HOME"):
+        monkeypatch.setenv(key, env[key])
+    for key in ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", "FASTRTPS_DEFAULT_PROFILES_FILE"):
+        monkeypatch.delenv(key, raising=False)
+
+
+def test_record_a_replay_gives_the_same_bag(bag: Path, tmp_path: Path, monkeypatch) -> None:
+    env = ros_environment(tmp_path)
+    _use_ros_env(env, monkeypatch)
+    out = tmp_path / "recorded.mcap"
+    total = bag_info(bag).message_count
+    args = ["-m", "monovoc_ros.cli", "record", "-o", str(out), *TOPICS.values()]
+    with RosProcess.python([*args, "--count", str(total), "--log-time", "header"], env, name="record") as rec:
+        rec.wait_for_output("monovoc record: recording", timeout=30.0)
+        summary = replay(bag, fast=True, wait_subscribers=1, wait_timeout=30.0)
+        assert sum(summary.messages.values()) == total and not summary.unacked
+        recorded = finish(rec, timeout=30.0)
+    assert recorded["total"] == total and not recorded["missing"]
+    source, copy = bag_info(bag), bag_info(out)
+    assert {t.name: (t.type_name, t.count) for t in copy.topics.values()} == {
+        t.name: (t.type_name, t.count) for t in source.topics.values()
+    }
+    assert copy.topics[TOPICS["gaussians"]].transient_local and not copy.topics[TOPICS["mask"]].transient_local
+    for topic, info in source.topics.items():
+        a = [(m.log_time_ns, canonical_cdr(m.data, info.type_name)) for m in iter_messages(bag, [topic])]
+        b = [(m.log_time_ns, canonical_cdr(m.data, info.type_name)) for m in iter_messages(out, [topic])]
+        assert a == b, topic
+    with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        assert reader.message_count == total
+        for connection, _, raw in reader.messages(connections=reader.connections[:1]):
+            reader.deserialize(raw, connection.msgtype)
+
+
+def test_record_stops_on_ctrl_c_and_on_duration(tmp_path: Path, monkeypatch) -> None:
+    env = ros_environment(tmp_path)
+    _use_ros_env(env, monkeypatch)
+    out = tmp_path / "interrupted.mcap"
+    with RosProcess.python(["-m", "monovoc_ros.cli", "record", "-o", str(out), "/nobody/publishes"], env) as rec:
+        rec.wait_for_output("monovoc record: recording", timeout=30.0)
+        assert rec.stop() == 0, rec.describe()
+    summary = printed_summary(rec)
+    assert summary["interrupted"] and summary["missing"] == ["/nobody/publishes"]
+    assert bag_info(out).message_count == 0  # a finalized, readable (empty) bag
+    stop = threading.Event()
+    start = time.monotonic()
+    result = record(tmp_path / "timed.mcap", ["/nobody/either"], duration=0.3, stop_event=stop)
+    assert 0.3 <= time.monotonic() - start < 5.0 and result.missing == ["/nobody/either"]
+    assert bag_info(tmp_path / "timed.mcap").message_count == 0
+
+
+def test_replay_errors(bag: Path, tmp_path: Path, monkeypatch) -> None:
+    from monovoc_ros.bags.replayer import ReplayError, parse_remaps
+
+    assert parse_remaps(["/a:=/b", "/c:=/d"]) == {"/a": "/b", "/c": "/d"}
+    with pytest.raises(ValueError, match="FROM:=TO"):
+        parse_remaps(["/a=/b"])
+    with pytest.raises(ValueError, match="absolute"):
+        parse_remaps(["a:=/b"])
+    with pytest.raises(ValueError, match="rate"):
+        replay(bag, rate=0.0)
+    with pytest.raises(ReplayError, match="/nope"):
+        replay(bag, topics=["/nope"])
+    _use_ros_env(ros_environment(tmp_path), monkeypatch)
+    start = time.monotonic()
+    with pytest.raises(ReplayError, match="1 subscriber"):
+        replay(bag, topics=[TOPICS["mask"]], wait_subscribers=1, wait_timeout=0.3)
+    assert time.monotonic() - start < 5.0
