@@ -29,10 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import colour
 import numpy as np
-
-from monovoc_ros.core import quantize_kernels as kernels
 
 METRICS = ("cmc", "ciede2000", "cie94", "cam16ucs", "din99o", "rgb")
 
@@ -64,6 +61,8 @@ def lab_to_din99o(lab: np.ndarray) -> np.ndarray:
 
 def to_metric_space(rgb: np.ndarray, metric: str) -> np.ndarray:
     """(M, 3) sRGB in [0, 1] -> (M, 3) float64 coordinates of the metric's color space."""
+    import colour  # deferred: slow to import (colour pulls in its plotting stack)
+
     _check_metric(metric)
     rgb = np.asarray(rgb, dtype=np.float64).reshape(-1, 3)
     if metric == "rgb":
@@ -113,6 +112,8 @@ def quantize(colors: np.ndarray, palette_rgb: np.ndarray, metric: str = "cmc") -
 
     An empty palette gives index -1 and infinite distances for every observed color.
     """
+    from monovoc_ros.core import quantize_kernels as kernels  # deferred: numba compiles/loads on first use
+
     _check_metric(metric)
     values, observed, palette = _check_inputs(colors, palette_rgb)
     out = _empty(len(observed))
@@ -137,6 +138,8 @@ def quantize(colors: np.ndarray, palette_rgb: np.ndarray, metric: str = "cmc") -
 def distance_matrix_reference(colors: np.ndarray, palette_rgb: np.ndarray, metric: str = "cmc") -> np.ndarray:
     """(N, K) float64 distances with colour-science's `colour.delta_E` (plain NumPy for Euclidean
     spaces): the reference twin of the kernels. NaN rows stay NaN. Memory is N x K: for tests."""
+    import colour  # deferred: slow to import (colour pulls in its plotting stack)
+
     _check_metric(metric)
     values, observed, palette = _check_inputs(colors, palette_rgb)
     out = np.full((len(observed), palette.shape[0]), np.nan)
