@@ -3,7 +3,8 @@
 World frame: metres, z up, floor at z = 0. Each primitive knows three things about itself:
 - its packed row for the ray casters (``KIND_*`` code + ``PARAMS`` floats, see ``raycast``),
 - its signed distance (negative inside the solid; used to cull hidden surface samples and in tests),
-- how to sample its outer surface on a jittered grid of a given spacing (points, normals, tangents).
+- its outer surface as charts (``charts``: maps from the unit square, with edges and curvature), and a
+  jittered-grid sample of them at a given spacing (points, normals, tangents).
 
 A ``RoomFace`` is one inner face of the (convex) room. The solid it bounds is everything outside the
 room, so a picture touching a wall is "against a solid" there, just like a box standing on a table.
@@ -16,6 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from monovoc_ros.core.synthetic.charts import Chart, DiscChart, RectChart, SphereChart, TubeChart
 
 KIND_BOX = 0
 KIND_CYLINDER = 1
@@ -44,44 +47,22 @@ class SurfaceSamples:
         )
 
 
-def _rect_samples(
-    center: np.ndarray,
-    u: np.ndarray,
-    v: np.ndarray,
-    half_u: float,
-    half_v: float,
-    normal: np.ndarray,
-    spacing: float,
-    jitter: float,
-    rng: np.random.Generator,
-) -> SurfaceSamples:
-    # One sample per grid cell, displaced within its cell: roughly uniform density without the clumps
-    # and gaps of i.i.d. sampling, so splats of ~0.6 spacing cover the face without holes.
-    nu = max(1, round(2 * half_u / spacing))
-    nv = max(1, round(2 * half_v / spacing))
-    iu, iv = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
-    n = nu * nv
-    fu = (iu.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / nu
-    fv = (iv.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / nv
-    pts = center + np.outer((2 * fu - 1) * half_u, u) + np.outer((2 * fv - 1) * half_v, v)
-    return SurfaceSamples(pts, np.tile(normal, (n, 1)), np.tile(u, (n, 1)))
+def chart_samples(chart: Chart, spacing: float, jitter: float, rng: np.random.Generator) -> SurfaceSamples:
+    """One sample per cell of the chart's base grid, displaced within its cell.
 
-
-def _disc_samples(
-    center: np.ndarray, radius: float, normal_z: float, spacing: float, jitter: float, rng: np.random.Generator
-) -> SurfaceSamples:
-    n_side = max(1, round(2 * radius / spacing))
-    i, j = np.meshgrid(np.arange(n_side), np.arange(n_side), indexing="ij")
-    n = n_side * n_side
-    x = ((i.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / n_side * 2 - 1) * radius
-    y = ((j.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / n_side * 2 - 1) * radius
-    keep = x * x + y * y <= radius * radius
-    if not keep.any():  # a disc smaller than one cell still gets its centre
-        x, y, keep = np.zeros(1), np.zeros(1), np.ones(1, bool)
-    x, y = x[keep], y[keep]
-    pts = np.stack([center[0] + x, center[1] + y, np.full_like(x, center[2])], axis=1)
-    m = len(x)
-    return SurfaceSamples(pts, np.tile([0.0, 0.0, normal_z], (m, 1)), np.tile([1.0, 0.0, 0.0], (m, 1)))
+    Roughly uniform density without the clumps and gaps of i.i.d. sampling, so splats of ~0.8 spacing
+    cover the face without holes. A disc smaller than one cell still gets its centre.
+    """
+    na, nb = chart.base_cells(spacing)
+    ia, ib = np.meshgrid(np.arange(na), np.arange(nb), indexing="ij")
+    n = na * nb
+    a = (ia.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / na
+    b = (ib.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / nb
+    keep = chart.contains(a, b)
+    if not keep.any():
+        a, b, keep = np.full(1, 0.5), np.full(1, 0.5), np.ones(1, bool)
+    p = chart.evaluate(a[keep], b[keep])
+    return SurfaceSamples(p.points, p.normals, p.ta)
 
 
 @dataclass(frozen=True)
@@ -108,15 +89,18 @@ class Box:
         outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
         return outside + np.minimum(q.max(axis=-1), 0.0)
 
-    def sample(self, spacing: float, jitter: float, rng: np.random.Generator) -> SurfaceSamples:
+    def charts(self) -> list[Chart]:
         R, c, h = self._rotation(), np.asarray(self.center, float), np.asarray(self.half, float)
-        parts = []
+        out: list[Chart] = []
         for a in range(3):
             b, d = (a + 1) % 3, (a + 2) % 3
             for sign in (-1.0, 1.0):
                 n = R[:, a] * sign
-                parts.append(_rect_samples(c + n * h[a], R[:, b], R[:, d], h[b], h[d], n, spacing, jitter, rng))
-        return SurfaceSamples.concat(parts)
+                out.append(RectChart(c + n * h[a], R[:, b], R[:, d], float(h[b]), float(h[d]), n))
+        return out
+
+    def sample(self, spacing: float, jitter: float, rng: np.random.Generator) -> SurfaceSamples:
+        return _sample(self, spacing, jitter, rng)
 
     def area(self) -> float:
         hx, hy, hz = self.half
@@ -147,23 +131,12 @@ class Cylinder:
         d = np.stack([np.hypot(p[..., 0], p[..., 1]) - self.radius, np.abs(p[..., 2]) - self.half_height], -1)
         return np.minimum(d.max(axis=-1), 0.0) + np.linalg.norm(np.maximum(d, 0.0), axis=-1)
 
+    def charts(self) -> list[Chart]:
+        c, r, hh = np.asarray(self.center, float), float(self.radius), float(self.half_height)
+        return [TubeChart(c, r, hh), DiscChart(c + (0.0, 0.0, hh), r, 1.0), DiscChart(c - (0.0, 0.0, hh), r, -1.0)]
+
     def sample(self, spacing: float, jitter: float, rng: np.random.Generator) -> SurfaceSamples:
-        c, r, hh = np.asarray(self.center, float), self.radius, self.half_height
-        n_theta = max(3, round(2 * np.pi * r / spacing))
-        n_z = max(1, round(2 * hh / spacing))
-        it, iz = np.meshgrid(np.arange(n_theta), np.arange(n_z), indexing="ij")
-        n = n_theta * n_z
-        theta = 2 * np.pi * (it.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / n_theta
-        z = hh * (2 * (iz.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / n_z - 1)
-        normals = np.stack([np.cos(theta), np.sin(theta), np.zeros(n)], axis=1)
-        side = SurfaceSamples(
-            c + np.stack([r * normals[:, 0], r * normals[:, 1], z], axis=1),
-            normals,
-            np.stack([-np.sin(theta), np.cos(theta), np.zeros(n)], axis=1),
-        )
-        top = _disc_samples(c + (0.0, 0.0, hh), r, 1.0, spacing, jitter, rng)
-        bottom = _disc_samples(c - (0.0, 0.0, hh), r, -1.0, spacing, jitter, rng)
-        return SurfaceSamples.concat([side, top, bottom])
+        return _sample(self, spacing, jitter, rng)
 
     def area(self) -> float:
         return 2 * np.pi * self.radius * (self.radius + 2 * self.half_height)
@@ -187,19 +160,12 @@ class Sphere:
     def sdf(self, points: np.ndarray) -> np.ndarray:
         return np.linalg.norm(np.asarray(points, float) - self.center, axis=-1) - self.radius
 
+    def charts(self) -> list[Chart]:
+        # (longitude, z) is an equal-area parametrisation, so a jittered grid in it is uniform on the sphere.
+        return [SphereChart(np.asarray(self.center, float), float(self.radius))]
+
     def sample(self, spacing: float, jitter: float, rng: np.random.Generator) -> SurfaceSamples:
-        # (z, longitude) is an equal-area parametrisation, so a jittered grid in it is uniform on the sphere.
-        r = self.radius
-        n_z = max(2, round(2 * r / spacing))
-        n_phi = max(3, round(2 * np.pi * r / spacing))
-        iz, ip = np.meshgrid(np.arange(n_z), np.arange(n_phi), indexing="ij")
-        n = n_z * n_phi
-        z = 2 * (iz.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / n_z - 1
-        phi = 2 * np.pi * (ip.ravel() + 0.5 + jitter * rng.uniform(-0.5, 0.5, n)) / n_phi
-        ring = np.sqrt(np.clip(1 - z * z, 0.0, 1.0))
-        normals = np.stack([ring * np.cos(phi), ring * np.sin(phi), z], axis=1)
-        tangents = np.stack([-np.sin(phi), np.cos(phi), np.zeros(n)], axis=1)
-        return SurfaceSamples(np.asarray(self.center) + r * normals, normals, tangents)
+        return _sample(self, spacing, jitter, rng)
 
     def area(self) -> float:
         return 4 * np.pi * self.radius**2
@@ -228,10 +194,12 @@ class RoomFace:
         # Positive on the room side: the "solid" is everything beyond the face.
         return (np.asarray(points, float) - self.center) @ np.asarray(self.normal, float)
 
-    def sample(self, spacing: float, jitter: float, rng: np.random.Generator) -> SurfaceSamples:
+    def charts(self) -> list[Chart]:
         n, u = np.asarray(self.normal, float), np.asarray(self.u, float)
-        v = np.cross(n, u)
-        return _rect_samples(np.asarray(self.center, float), u, v, self.half_u, self.half_v, n, spacing, jitter, rng)
+        return [RectChart(np.asarray(self.center, float), u, np.cross(n, u), float(self.half_u), float(self.half_v), n)]
+
+    def sample(self, spacing: float, jitter: float, rng: np.random.Generator) -> SurfaceSamples:
+        return _sample(self, spacing, jitter, rng)
 
     def area(self) -> float:
         return 4 * self.half_u * self.half_v
@@ -244,6 +212,10 @@ class RoomFace:
 
 
 Primitive = Box | Cylinder | Sphere | RoomFace
+
+
+def _sample(prim: Primitive, spacing: float, jitter: float, rng: np.random.Generator) -> SurfaceSamples:
+    return SurfaceSamples.concat([chart_samples(c, spacing, jitter, rng) for c in prim.charts()])
 
 
 def pack(primitives: list[Primitive]) -> tuple[np.ndarray, np.ndarray]:

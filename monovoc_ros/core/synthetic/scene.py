@@ -24,6 +24,7 @@ from monovoc_ros.core.synthetic.primitives import Primitive, pack
 from monovoc_ros.core.synthetic.raycast import bounding_spheres, camera_rays, cast_rays
 from monovoc_ros.core.synthetic.sampling import sample_map
 from monovoc_ros.core.synthetic.trajectory import camera_loop
+from monovoc_ros.core.synthetic.visibility import observed_views, typical_pixel_size
 
 VARIANTS = ("clean", "confusable", "boundary_noise", "label_noise", "mixed_boundary", "region_artifacts")
 FLOATER = -1  # gaussian_object of a Gaussian in free space
@@ -45,7 +46,10 @@ class SceneConfig:
     variant: str = "clean"
     floater_fraction: float = 0.005
     surface_noise: float = 0.001  # std (m) of Gaussian centres along the surface normal
-    tangent_scale_range: tuple[float, float] = (0.01, 0.03)  # tangent sigmas (m) are clipped to this
+    tangent_scale_range: tuple[float, float] = (0.01, 0.03)  # tangent sigmas (m) away from edges are clipped to this
+    min_tangent_scale: float = 0.0025  # smallest tangent sigma (m) of the Gaussians that edges shrink
+    edge_adaptive: bool = True  # shrink Gaussians across face edges and densify there, as optimisation does
+    observed_only: bool = True  # Gaussians only on surface points some keyframe sees, as a SLAM map has
     low_opacity_fraction: float = 0.1  # surface Gaussians with opacity 0.05-0.5 instead of 0.6-0.99
     confusable_pairs: int = 3  # confusable: pairs of objects given near-identical colors
     confusable_delta: int = 6  # confusable: max-norm RGB distance within a pair
@@ -85,6 +89,11 @@ class SceneConfig:
         need(self.surface_noise >= 0, f"surface_noise must be >= 0, got {self.surface_noise}")
         lo, hi = self.tangent_scale_range
         need(0 < lo <= hi, f"tangent_scale_range must be 0 < lo <= hi, got {self.tangent_scale_range}")
+        # Above the largest normal sigma (2 mm), so the thin axis of every surface Gaussian stays its normal.
+        need(
+            0.002 < self.min_tangent_scale <= lo,
+            f"min_tangent_scale must be in (0.002, {lo}], got {self.min_tangent_scale}",
+        )
         need(0.0 <= self.low_opacity_fraction <= 1.0, "low_opacity_fraction must be in [0, 1]")
         need(self.confusable_pairs >= 1, f"confusable_pairs must be >= 1, got {self.confusable_pairs}")
         need(1 <= self.confusable_delta <= 60, f"confusable_delta must be in 1..60, got {self.confusable_delta}")
@@ -140,6 +149,7 @@ class SyntheticScene(Sequence):
         gaussian_primitive: np.ndarray,
         appearance: Appearance,
         confusable_pairs: list[tuple[int, int]],
+        poses: np.ndarray | None = None,
     ) -> None:
         self.config = config
         self.name = f"synthetic-{config.variant}-seed{config.seed}"
@@ -179,7 +189,7 @@ class SyntheticScene(Sequence):
         self.gaussian_object = self.gaussian_object.astype(np.int32)
         self.gaussian_object.setflags(write=False)
 
-        self.poses = camera_loop(config.n_keyframes, config.camera_phase)
+        self.poses = camera_loop(config.n_keyframes, config.camera_phase) if poses is None else np.array(poses)
         self.poses.setflags(write=False)
         seconds = np.arange(config.n_keyframes) / config.frame_rate
         self.stamps_ns = config.start_ns + np.round(seconds * 1e9).astype(np.int64)
@@ -304,11 +314,25 @@ def generate_scene(config: SceneConfig | None = None) -> SyntheticScene:
     appearance = Appearance(materials, stream(3))
     rng = stream(4)
 
+    # The trajectory comes first: a SLAM system creates Gaussians only where its keyframes saw a surface.
+    poses = camera_loop(config.n_keyframes, config.camera_phase)
+    observe = None
+    if config.observed_only:
+        kinds, params = pack(primitives)
+        spheres = bounding_spheres(kinds, params)
+        intrinsics = config.intrinsics
+
+        def observe(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+            views, _ = observed_views(points, normals, poses, intrinsics, kinds, params, spheres, need=1)
+            return views >= 1
+
     n_floaters = round(config.floater_fraction * config.n_gaussians)
     m = sample_map(
         primitives, appearance, config.n_gaussians - n_floaters, n_floaters, ROOM_MIN, ROOM_MAX, rng,
         surface_noise=config.surface_noise, tangent_scale_range=tuple(config.tangent_scale_range),
-        low_opacity_fraction=config.low_opacity_fraction,
+        low_opacity_fraction=config.low_opacity_fraction, min_tangent_scale=config.min_tangent_scale,
+        edge_adaptive=config.edge_adaptive, observe=observe,
+        pixel_size=typical_pixel_size(primitives, poses, config.intrinsics),
     )  # fmt: skip
     # A front-end's storage order has nothing to do with objects; ids grow with creation and have gaps
     # where Gaussians were pruned.
@@ -319,4 +343,4 @@ def generate_scene(config: SceneConfig | None = None) -> SyntheticScene:
         means=m.means[order], scales=m.scales[order], quats=m.quats[order], opacities=m.opacities[order],
         colors=m.colors[order], ids=ids,
     )  # fmt: skip
-    return SyntheticScene(config, surfaces, palette, gaussians, m.primitive[order], appearance, pairs)
+    return SyntheticScene(config, surfaces, palette, gaussians, m.primitive[order], appearance, pairs, poses)
