@@ -293,3 +293,67 @@ class MessageCollector:
         wait_until(lambda: len(self.messages) >= count, timeout, f"{count} message(s)", process=process)
         with self._lock:
             return list(self.messages)
+
+
+def ros_args(params: Mapping[str, Any] | None = None, remaps: Mapping[str, str] | None = None) -> list[str]:
+    """``--ros-args -p k:=v ... -r a:=b ...`` for a node's command line (floats keep their decimal point,
+    lists are written as YAML lists, booleans as true/false)."""
+
+    def text(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (list, tuple)):
+            return "[" + ",".join(text(x) for x in v) + "]"
+        return repr(v) if isinstance(v, float) else str(v)
+
+    args = ["--ros-args"]
+    for key, value in (params or {}).items():
+        args += ["-p", f"{key}:={text(value)}"]
+    for key, value in (remaps or {}).items():
+        args += ["-r", f"{key}:={value}"]
+    return args
+
+
+class DiagnosticsMonitor:
+    """Keeps the latest ``/diagnostics`` status per name; ``wait_for(pred)`` polls pred(values) where
+    values is the key -> value dict (strings) of the newest status whose name contains ``name``."""
+
+    def __init__(self, node: Any, name: str = "", topic: str = "/diagnostics"):
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.name = name
+        self.latest: dict[str, Any] = {}
+        self._lock = threading.Lock()
+        self.subscription = node.create_subscription(DiagnosticArray, topic, self._on_message, 10)
+
+    def _on_message(self, msg: Any) -> None:
+        with self._lock:
+            for status in msg.status:
+                if self.name in status.name:
+                    self.latest[status.name] = status
+
+    def values(self) -> dict[str, str]:
+        with self._lock:
+            statuses = list(self.latest.values())
+        if not statuses:
+            return {}
+        return {kv.key: kv.value for kv in statuses[-1].values}
+
+    def wait_for(
+        self, predicate: Callable[[dict[str, str]], bool], timeout: float = 10.0, *, what: str = "", process: Any = None
+    ) -> dict[str, str]:
+        found: dict[str, str] = {}
+
+        def check() -> bool:
+            values = self.values()
+            if values and predicate(values):
+                found.update(values)
+                return True
+            return False
+
+        try:
+            wait_until(check, timeout, what or "a diagnostics status matching the predicate", process=process,
+                       interval=0.05)  # fmt: skip
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\nlatest diagnostics: {self.values()}") from None
+        return found

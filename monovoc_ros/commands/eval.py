@@ -45,14 +45,20 @@ def _frames(args: argparse.Namespace):
     from monovoc_ros import offline
 
     if args.bag:
-        from monovoc_ros.bags import bag_events, bag_labels
-        from monovoc_ros.core.keyframe import Keyframe
+        from monovoc_ros.bags import bag_labels
 
-        kfs = [e for e in bag_events(args.bag) if isinstance(e, Keyframe)][:: args.every]
-        frames = [(k.intrinsics, k.cam_to_world, k.mask) for k in kfs]
-        return Path(args.bag).name, frames, _names(bag_labels(args.bag)), None
+        return Path(args.bag).name, bag_frames(args.bag, args.every), label_names(bag_labels(args.bag)), None
     seq = offline.open_source(args.source, args.layout, **source_options(args))
     return sequence_frames(seq, args.every, args.max_keyframes)
+
+
+def bag_frames(path, every: int = 1) -> list:
+    """Frames [(intrinsics, pose, mask)] of every ``every``-th keyframe of a bag."""
+    from monovoc_ros.bags import bag_events
+    from monovoc_ros.core.keyframe import Keyframe
+
+    keyframes = [e for e in bag_events(path) if isinstance(e, Keyframe)][::every]
+    return [(k.intrinsics, k.cam_to_world, k.mask) for k in keyframes]
 
 
 def sequence_frames(seq, every: int = 1, max_keyframes: int | None = None):
@@ -69,10 +75,11 @@ def sequence_frames(seq, every: int = 1, max_keyframes: int | None = None):
         truth = np.full(len(seq.gaussian_object), UNOBSERVED_ID, np.uint32)
         labelled = seq.gaussian_object >= 0
         truth[labelled] = pack_rgb(palette[seq.gaussian_object[labelled]])
-    return seq.name, frames, _names(seq.labels()), truth
+    return seq.name, frames, label_names(seq.labels()), truth
 
 
-def _names(labels: list[dict]) -> dict[int, str]:
+def label_names(labels: list[dict]) -> dict[int, str]:
+    """Packed palette color -> class name of a labels.json list."""
     return {int(pack_rgb(np.array(e["color"], np.uint8))): str(e.get("class_name", "")) for e in labels}
 
 
@@ -138,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     out.write_text(json.dumps(report, indent=1))
     figure = Path(args.figure or Path(args.map_dir) / "eval.png")
     if figure_rows is not None:
-        _figure(figure, frames, figure_rows, names, mapper.config.metric)
+        write_figure(figure, frames, figure_rows, names, mapper.config.metric)
     print(_table(report, metrics, protocols))
     print(f"report: {out}\nfigure: {figure}")
     return 0
@@ -157,7 +164,7 @@ def _table(report: dict, metrics, protocols) -> str:
     return "\n".join(lines)
 
 
-def _figure(path: Path, frames, rows, names: dict[int, str], metric: str) -> None:
+def write_figure(path: Path, frames, rows, names: dict[int, str], metric: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")

@@ -1,0 +1,427 @@
+"""Objects, language embeddings and the text-query service, attached to the `semantic_mapper` node.
+
+    python -m monovoc_ros.nodes.object_query --ros-args -p map_directory:=/maps/office ...
+
+runs the semantic_mapper with this component (``attach(node)`` is its ``setup`` hook). It adds:
+
+* service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) in its own callback
+  group, answered from an immutable snapshot of the object index, so it stays responsive while the
+  worker integrates keyframes and while objects are being embedded;
+* topics ``query/highlight`` (PointCloud2 in the semantic-cloud schema: the Gaussians of the objects of
+  the last successful query) and ``query/markers`` (MarkerArray: their boxes and labels), both latched;
+* ``objects.db`` (monovoc_ros.objects.database) beside the map snapshots, written whenever the node
+  writes a snapshot (save_map, periodic and final saves), and read back on resume and load_map.
+
+Threads: the keyframe hook (worker thread) only offers views (~5-10 ms); the result hook (worker thread)
+only hands the newest result over; this component's own thread refreshes summaries and re-embeds dirty
+objects in bounded chunks (``objects.max_objects_per_refresh``), so the worker never waits for the image
+encoder. A reset clears the objects; a load_map restores those saved with that map (if any).
+
+Robot usage::
+
+    ros2 service call /monovoc/query monovoc_interfaces/srv/TextQuery "{text: 'chair', top_k: 3}"
+    monovoc query "chair" --top-k 3          # the same without the ros2 CLI
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+
+import msg_adapters as ma
+from monovoc_ros.embed.model_store import ModelMissingError
+from monovoc_ros.objects.database import DB_NAME, ObjectDatabase, ObjectDatabaseError, load_object_index
+from monovoc_ros.objects.index import LIVE_OBJECTS_PER_REFRESH, UP_AXES, IndexConfig, ObjectIndex, lazy_backend
+from monovoc_ros.objects.records import QueryError
+
+# (name, default, description): declared on the node next to its own parameters.
+PARAMETERS: tuple[tuple[str, Any, str], ...] = (
+    ("query.top_k", 5, "objects returned when a TextQuery asks for top_k = 0"),
+    ("query.max_text_chars", 1000, "longer query texts are truncated (the answer's message says so)"),
+    ("query.highlight", True, "publish query/highlight (Gaussians) and query/markers for answers"),
+    ("query.highlight_rate_hz", 5.0, "max highlight publications per second (the newest answer wins)"),
+    ("objects.backend", "conse", "embedding backend: 'conse' (offline default) or 'clip_onnx' (user-supplied)"),
+    ("objects.model_dir", "", "embedding model directory (empty: ~/.cache/monovoc_ros/models)"),
+    ("objects.crop_mode", "soft", "object crops: 'soft' (context dimmed) or 'hard' (object only)"),
+    ("objects.views_per_object", 3, "best keyframe views kept per object (by mask pixel count)"),
+    ("objects.description_weight", 0.3, "share of the attribute description in each object's embedding (0-1)"),
+    ("objects.min_gaussians", 10, "objects with fewer Gaussians are not listed"),
+    ("objects.up_axis", "auto", "up direction for sizes and heights: +x..-z, or 'auto' (cameras + flat surfaces)"),
+    ("objects.max_objects_per_refresh", LIVE_OBJECTS_PER_REFRESH, "objects (re-)embedded per chunk of work"),
+)
+
+
+@dataclass(frozen=True)
+class QuerySettings:
+    top_k: int
+    max_text_chars: int
+    highlight: bool
+    highlight_rate_hz: float
+    backend: str
+    model_dir: str
+    max_objects_per_refresh: int
+    index: IndexConfig
+
+
+def read_settings(node: Any) -> QuerySettings:
+    values = {}
+    for name, default, description in PARAMETERS:
+        descriptor = ParameterDescriptor(description=description, read_only=True, dynamic_typing=True)
+        values[name] = node.declare_parameter(name, default, descriptor).value
+
+    def need(ok: bool, name: str, what: str) -> None:
+        if not ok:
+            raise ValueError(f"{name}: {what}, got {values[name]!r}")
+
+    need(int(values["query.top_k"]) >= 1, "query.top_k", "must be >= 1")
+    need(int(values["query.max_text_chars"]) >= 1, "query.max_text_chars", "must be >= 1")
+    need(float(values["query.highlight_rate_hz"]) > 0, "query.highlight_rate_hz", "must be > 0")
+    need(values["objects.backend"] in ("conse", "clip_onnx"), "objects.backend", "must be 'conse' or 'clip_onnx'")
+    need(values["objects.up_axis"] in UP_AXES, "objects.up_axis", f"must be one of {list(UP_AXES)}")
+    need(int(values["objects.max_objects_per_refresh"]) >= 1, "objects.max_objects_per_refresh", "must be >= 1")
+    labels = dict(getattr(getattr(node, "params", None), "labels", {}) or {})
+    index = IndexConfig(
+        crop_mode=str(values["objects.crop_mode"]),
+        views_per_object=int(values["objects.views_per_object"]),
+        description_weight=float(values["objects.description_weight"]),
+        labels=labels or None,
+        min_gaussians=int(values["objects.min_gaussians"]),
+        up_axis=str(values["objects.up_axis"]),
+        default_top_k=int(values["query.top_k"]),
+        max_query_chars=int(values["query.max_text_chars"]),
+    )
+    return QuerySettings(
+        top_k=int(values["query.top_k"]),
+        max_text_chars=int(values["query.max_text_chars"]),
+        highlight=bool(values["query.highlight"]),
+        highlight_rate_hz=float(values["query.highlight_rate_hz"]),
+        backend=str(values["objects.backend"]),
+        model_dir=str(values["objects.model_dir"]),
+        max_objects_per_refresh=int(values["objects.max_objects_per_refresh"]),
+        index=index,
+    )
+
+
+class ObjectQueryComponent:
+    """See the module docstring. Create with ``attach(node)``; ``stop()`` ends its thread."""
+
+    def __init__(self, node: Any, settings: QuerySettings, backend: object | None = None) -> None:
+        from sensor_msgs.msg import PointCloud2
+        from visualization_msgs.msg import MarkerArray
+
+        from monovoc_interfaces.srv import TextQuery
+        from monovoc_ros.nodes.qos import latched_qos
+
+        self.node = node
+        self.settings = settings
+        self.log = node.get_logger()
+        options = {"model_dir": settings.model_dir} if settings.model_dir else {}
+        self._backend_source = backend if backend is not None else lazy_backend(settings.backend, **options)
+        self._index_lock = threading.Lock()
+        self.index = ObjectIndex(self._backend_source, settings.index)
+        self._pending: tuple[Any, Any] | None = None  # newest (gaussians, result) from the worker
+        self._labelled: tuple[Any, np.ndarray] | None = None  # newest (gaussians, per-Gaussian ids)
+        self._wake = threading.Event()
+        self._stopping = threading.Event()
+        self.backend_error: str | None = None
+        self.queries_answered = 0
+        self.queries_failed = 0
+        self.group = MutuallyExclusiveCallbackGroup()  # queries never wait for the mapper's groups
+        self.service = node.create_service(TextQuery, "query", self._on_query, callback_group=self.group)
+        self.highlight = node.create_publisher(PointCloud2, "query/highlight", latched_qos())
+        self.markers = node.create_publisher(MarkerArray, "query/markers", latched_qos())
+        self.frame_id = getattr(getattr(node, "params", None), "frame_id", "map")
+        self.marker_up = tuple(getattr(getattr(node, "params", None), "marker_up", (0.0, 0.0, 1.0)))
+        self._thread = threading.Thread(target=self._run, name="monovoc-object-index", daemon=True)
+        # Highlights are published off the service callback, so the answer goes out first (a big
+        # object's cloud takes a few ms to build and send), and at a bounded rate: the newest wins.
+        self._highlight_request: tuple[ObjectIndex, list] | None = None
+        self._highlight_wake = threading.Event()
+        self._highlighter = threading.Thread(target=self._run_highlights, name="monovoc-query-highlight", daemon=True)
+
+    # ------------------------------------------------------------------ wiring
+
+    def connect(self) -> None:
+        """Registers the hooks on the node (and its worker) and starts the indexing thread."""
+        node = self.node
+        node.add_keyframe_listener(self._on_keyframe)
+        node.add_result_listener(self._on_result)
+        if hasattr(node, "add_diagnostics_source"):
+            node.add_diagnostics_source(self.diagnostics)
+        worker = getattr(node, "worker", None)
+        if worker is not None:
+            worker.add_reset_listener(self._on_reset)
+            self._wrap_persistence(worker)
+        params = getattr(node, "params", None)
+        if params is not None and params.resume and params.map_directory:
+            self._restore(params.map_directory)
+            mapper = getattr(worker, "mapper", None)
+            ids = self.index.object_ids
+            if mapper is not None and ids is not None and len(ids) == len(mapper.gaussians):
+                self._labelled = (mapper.gaussians, ids)  # highlights work before the first result
+        self._thread.start()
+        self._highlighter.start()
+
+    def _wrap_persistence(self, worker: Any) -> None:
+        # The worker has no save/load hooks: wrap its bound methods on this instance so that objects.db is
+        # written with every snapshot (service, periodic, final) and read back with load_map.
+        save, load = worker.save, worker.load
+
+        def save_with_objects(directory: str):
+            info = save(directory)
+            self.save(directory, snapshot=info.path.name, keyframes=info.keyframes, mapper=worker.mapper)
+            return info
+
+        def load_with_objects(path: str):
+            mapper = load(path)
+            if Path(path).is_dir():
+                self._restore(path)
+            else:
+                self._replace_index(None)
+            return mapper
+
+        worker.save, worker.load = save_with_objects, load_with_objects
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self._wake.set()
+        self._highlight_wake.set()
+        for thread in (self._thread, self._highlighter):
+            if thread.is_alive():
+                thread.join(10.0)
+
+    def diagnostics(self) -> dict[str, Any]:
+        """The object index's part of the node's /diagnostics status."""
+        index = self.index
+        return {
+            "objects.indexed": len(index),
+            "objects.pending": index.pending(),
+            "objects.backend_error": self.backend_error or "",
+            "queries.answered": self.queries_answered,
+            "queries.failed": self.queries_failed,
+        }
+
+    # ------------------------------------------------------------------ hooks (worker thread)
+
+    def _on_keyframe(self, keyframe: Any, mapper: Any) -> None:
+        self.index.keyframe_listener(keyframe, mapper)
+
+    def _on_result(self, mapper: Any, result: Any) -> None:
+        # Gaussian maps and results are immutable snapshots: safe to hand to another thread.
+        self._pending = (mapper.gaussians, result)
+        self._labelled = (mapper.gaussians, result.object_ids)
+        self._wake.set()
+
+    def _on_reset(self) -> None:
+        self._labelled = None
+        self._replace_index(None)
+
+    # ------------------------------------------------------------------ indexing thread
+
+    def _run(self) -> None:
+        try:
+            _ = self.index.backend  # load the models now, so the first query does not pay for it
+        except (ModelMissingError, ValueError, OSError) as exc:  # a clip_onnx dir with bad files: ValueError
+            self._backend_failed(exc)
+        while not self._stopping.is_set():
+            self._wake.wait(1.0)
+            self._wake.clear()
+            if self._stopping.is_set():
+                break
+            pending, self._pending = self._pending, None
+            try:
+                self._refresh(pending)
+            except ModelMissingError as exc:
+                self._backend_failed(exc)
+            except Exception as exc:  # one bad refresh must not end the indexing thread
+                self.log.error(f"object index refresh failed: {type(exc).__name__}: {exc}")
+
+    def _refresh(self, pending: tuple[Any, Any] | None) -> None:
+        index = self.index
+        geometry = {} if pending is None else {"gaussians": pending[0], "result": pending[1]}
+        if not geometry and index.pending() == 0:
+            return
+        report = index.refresh(**geometry, max_objects=self.settings.max_objects_per_refresh)
+        self.backend_error = None
+        # Keep going in bounded chunks until everything is embedded or a newer result arrives.
+        while report.pending and not self._stopping.is_set() and self._pending is None and index is self.index:
+            report = index.refresh(max_objects=self.settings.max_objects_per_refresh)
+
+    def _backend_failed(self, exc: Exception) -> None:
+        message = str(exc)
+        if message != self.backend_error:
+            self.log.error(f"object embeddings unavailable: {message}")
+        self.backend_error = message
+
+    # ------------------------------------------------------------------ persistence
+
+    def save(self, directory: str, *, snapshot: str | None = None, keyframes: int | None = None, mapper=None) -> None:
+        """Writes objects.db into ``directory`` (errors are logged: a snapshot must not fail for them)."""
+        index = self.index
+        try:
+            if mapper is not None and index.object_ids is None:
+                index.object_ids = mapper.result().object_ids
+            report = ObjectDatabase(directory).save(
+                index,
+                snapshot=snapshot,
+                map_version=getattr(mapper, "map_version", None),
+                keyframes=keyframes,
+            )
+            self.log.info(
+                f"{report.path}: {report.objects} objects, {report.views_written} new views in {report.seconds:.2f} s"
+            )
+        except (ObjectDatabaseError, OSError) as exc:
+            self.log.error(f"could not save objects to {directory}: {exc}")
+
+    def _restore(self, directory: str) -> None:
+        path = Path(directory) / DB_NAME
+        if not path.is_file():
+            self._replace_index(None)
+            return
+        try:
+            index = load_object_index(path, backend=self._current_backend(), config=self.settings.index)
+        except (ObjectDatabaseError, ModelMissingError, ValueError) as exc:
+            self.log.error(f"could not restore objects from {path}: {exc}")
+            self._replace_index(None)
+            return
+        self._replace_index(index)
+        self.log.info(f"restored {len(index)} objects from {path}")
+
+    def _current_backend(self) -> object:
+        return self.index.backend if self.index.backend_loaded else self._backend_source
+
+    def _replace_index(self, index: ObjectIndex | None) -> None:
+        with self._index_lock:
+            self.index = index if index is not None else ObjectIndex(self._current_backend(), self.settings.index)
+
+    # ------------------------------------------------------------------ the service
+
+    def _on_query(self, request: Any, response: Any) -> Any:
+        response = self._answer(request, response)
+        if response.success:
+            self.queries_answered += 1
+        else:
+            self.queries_failed += 1
+        return response
+
+    def _answer(self, request: Any, response: Any) -> Any:
+        index = self.index
+        response.header = ma.make_header(self.frame_id, self.node.get_clock().now().nanoseconds)
+        try:
+            result = index.query(request.text, int(request.top_k), float(request.min_score))
+        except QueryError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        except Exception as exc:  # the service must answer, whatever went wrong
+            response.success, response.message = False, f"query failed: {type(exc).__name__}: {exc}"
+            return response
+        if not result.answered:
+            response.success = False
+            response.message = result.message
+            if self.backend_error:
+                response.message += f"; embedding backend unavailable: {self.backend_error}"
+            return response
+        response.success = True
+        response.message = result.message
+        for record, score in result.matches:
+            response.objects.append(
+                ma.semantic_object(
+                    record.id,
+                    centroid=record.centroid,
+                    bbox_min=record.bbox_min,
+                    bbox_max=record.bbox_max,
+                    label=record.label,
+                    description=record.description,
+                    score=score,
+                    num_gaussians=record.num_gaussians,
+                    num_observations=record.num_observations,
+                )
+            )
+        if self.settings.highlight:
+            self._highlight_request = (index, result.matches)
+            self._highlight_wake.set()
+        return response
+
+    def _run_highlights(self) -> None:
+        while not self._stopping.is_set():
+            self._highlight_wake.wait()
+            self._highlight_wake.clear()
+            request, self._highlight_request = self._highlight_request, None
+            if request is None or self._stopping.is_set():
+                continue
+            try:
+                self._publish_highlight(*request)
+            except Exception as exc:  # a failed highlight must not end the thread
+                self.log.error(f"query highlight failed: {type(exc).__name__}: {exc}")
+            # Rate limit: building and sending a big cloud competes with the service for the GIL
+            # (at 100 queries/s with a highlight each, the answer's p50 went from 10 to 22 ms).
+            self._stopping.wait(1.0 / self.settings.highlight_rate_hz)
+
+    def _publish_highlight(self, index: ObjectIndex, matches: list) -> None:
+        ids = np.array([r.id for r, _ in matches], np.uint32)
+        stamp = self.node.get_clock().now().nanoseconds
+        gaussians, object_ids = self._labelled or (index.gaussians, index.object_ids)
+        if gaussians is not None and object_ids is not None and len(object_ids) == len(gaussians):
+            pick = np.isin(object_ids, ids)
+            picked = object_ids[pick]
+            order = np.argsort(ids)
+            score_of = np.array([s for _, s in matches], np.float32)[order]
+            scores = score_of[np.searchsorted(ids[order], picked)] if picked.size else np.zeros(0, np.float32)
+            self.highlight.publish(
+                ma.semantic_cloud_from_arrays(
+                    gaussians.means[pick], picked, picked, np.clip(scores, 0, 1), frame_id=self.frame_id, stamp=stamp
+                )
+            )
+        records = [r for r, _ in matches]
+        self.markers.publish(
+            ma.object_markers(
+                ids.astype(np.int64),
+                [f"{r.label} {s:.2f}" for r, s in matches],
+                np.array([r.centroid for r in records]).reshape(-1, 3),
+                np.array([r.extent for r in records]).reshape(-1, 3),
+                ids,
+                frame_id=self.frame_id,
+                stamp=stamp,
+                namespace="monovoc/query",
+                up=self.marker_up,
+            )
+        )
+
+
+def attach(node: Any, backend: object | None = None) -> ObjectQueryComponent:
+    """Adds objects, embeddings, objects.db and the ``query`` service to a SemanticMapperNode."""
+    component = ObjectQueryComponent(node, read_settings(node), backend)
+    component.connect()
+    stop = node.stop
+
+    def stop_both() -> None:
+        stop()  # the worker's final snapshot (and objects.db with it) first
+        component.stop()
+
+    node.stop = stop_both
+    node.object_query = component
+    return component
+
+
+def main(args: list[str] | None = None, *, setup: Callable[[Any], None] | None = None) -> int:
+    """The semantic_mapper node with this component attached."""
+    from monovoc_ros.nodes.semantic_mapper import main as mapper_main
+
+    def setup_all(node: Any) -> None:
+        attach(node)
+        if setup is not None:
+            setup(node)
+
+    return mapper_main(args, setup=setup_all)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""The semantic_mapper's outputs: semantic cloud, object markers and SemanticObjectArray (worker thread).
+
+Everything published is derived from one `SemanticResult`, so cloud, markers and objects always agree.
+The cloud holds observed Gaussians only (those with evidence and a palette label): unobserved ones have
+no label to show, and leaving them out keeps the message small early in a run. Its header stamp is the
+stamp of the newest integrated keyframe, so clients can tell which keyframes a cloud includes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+import msg_adapters as ma
+from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
+from monovoc_ros.core.objects import ObjectSummary, summarize_objects
+from monovoc_ros.core.palette import UNOBSERVED_ID
+from monovoc_ros.nodes.qos import latched_qos
+
+
+class SemanticOutputs:
+    """Publishers of `semantic_cloud`, `objects/markers` and `objects` (all reliable + transient-local)."""
+
+    def __init__(self, node: Any, *, frame_id: str, labels: dict[int, str], up: tuple[float, float, float]):
+        from sensor_msgs.msg import PointCloud2
+        from visualization_msgs.msg import MarkerArray
+
+        from monovoc_interfaces.msg import SemanticObjectArray
+
+        self._node = node
+        self.frame_id = frame_id
+        self.labels = labels
+        self.up = up
+        self.cloud = node.create_publisher(PointCloud2, "semantic_cloud", latched_qos())
+        self.markers = node.create_publisher(MarkerArray, "objects/markers", latched_qos())
+        self.objects = node.create_publisher(SemanticObjectArray, "objects", latched_qos())
+
+    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
+        if mapper is None or result is None:
+            points, rgb = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+            ids, conf = np.zeros(0, np.uint32), np.zeros(0, np.float32)
+            summaries: list[ObjectSummary] = []
+            observations = np.zeros(0, np.int64)
+            stamp = self._node.get_clock().now().nanoseconds
+        else:
+            known = result.object_ids != UNOBSERVED_ID
+            points, rgb = mapper.gaussians.means[known], result.object_rgb()[known]
+            ids, conf = result.object_ids[known], result.confidence[known]
+            summaries = summarize_objects(mapper.gaussians, result.object_ids)
+            index = result.palette.index_of(np.array([s.id for s in summaries], np.uint32))
+            observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
+            stamp = (
+                int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else self._node.get_clock().now().nanoseconds
+            )
+        header = dict(frame_id=self.frame_id, stamp=stamp)
+        self.cloud.publish(ma.semantic_cloud_from_arrays(points, rgb, ids, conf, **header))
+        self.objects.publish(self._objects(summaries, observations, header))
+        self.markers.publish(
+            ma.object_markers(
+                np.array([s.id for s in summaries], np.int64),
+                [self.labels.get(s.id, "") for s in summaries],
+                np.array([s.centroid for s in summaries]).reshape(-1, 3),
+                np.array([s.extent for s in summaries]).reshape(-1, 3),
+                np.array([s.rgb for s in summaries], np.uint8).reshape(-1, 3),
+                up=self.up,
+                **header,
+            )
+        )
+        return len(summaries)
+
+    def _objects(self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict) -> Any:
+        from monovoc_interfaces.msg import SemanticObjectArray
+
+        out = SemanticObjectArray(header=ma.make_header(header["frame_id"], header["stamp"]))
+        for s, seen in zip(summaries, observations.tolist(), strict=True):
+            out.objects.append(
+                ma.semantic_object(
+                    s.id,
+                    centroid=s.centroid,
+                    bbox_min=s.bbox_min,
+                    bbox_max=s.bbox_max,
+                    label=self.labels.get(s.id, ""),
+                    num_gaussians=s.num_gaussians,
+                    num_observations=int(seen),
+                )
+            )
+        return out

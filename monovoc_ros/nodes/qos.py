@@ -1,0 +1,34 @@
+"""QoS profiles of the semantic_mapper topics (the topic contract of docs/interfaces.md).
+
+* Keyframe inputs (image, mask, camera_info, pose): reliable by default (a bag replayed with --fast must
+  not lose messages), volatile, keep-last `input_depth`; best effort for sensor-data publishers.
+* The Gaussian map and every output (semantic cloud, objects, markers): reliable + transient-local,
+  depth 1, so a node or viewer that starts late still gets the latest one. Big clouds must be reliable:
+  best effort over the default Fast DDS shared-memory segment drops most of them (ROS_WHEELS.md).
+"""
+
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+
+def input_qos(depth: int, reliability: str = "reliable") -> QoSProfile:
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
+def latched_qos() -> QoSProfile:
+    """Reliable, transient-local, depth 1: the latest message for late joiners (maps, semantic outputs)."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+
+
+DIAGNOSTICS_QOS = QoSProfile(depth=10)

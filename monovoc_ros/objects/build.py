@@ -1,0 +1,71 @@
+"""Building an object index offline: from a finished mapper and its keyframes, or while mapping.
+
+For ``monovoc map`` (or any offline driver) either
+- map first, then ``build_object_index(mapper, keyframes, config, backend)`` (views chosen with the
+  final palette), or
+- pass ``index.keyframe_listener`` as the per-keyframe hook while mapping (as the live node does) and
+  call ``index.refresh(mapper)`` at the end; then ``save_object_index(index, map_dir, ...)``.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable
+
+from tqdm import tqdm
+
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
+from monovoc_ros.objects.labels import labels_from_entries
+
+
+def build_object_index(
+    mapper: SemanticMapper,
+    keyframes: Iterable[Keyframe],
+    config: IndexConfig | None = None,
+    backend: object | None = None,
+) -> ObjectIndex:
+    """The index of a finished map: every keyframe offers views of the final palette's objects, then
+    every object is embedded once."""
+    index = ObjectIndex(backend if backend is not None else lazy_backend("conse"), config)
+    palette_ids = mapper.result().palette.ids
+    for keyframe in keyframes:
+        index.observe(keyframe, palette_ids)
+    index.refresh(mapper)
+    return index
+
+
+def map_with_objects(
+    sequence,
+    mapper_config: MapperConfig | None = None,
+    index_config: IndexConfig | None = None,
+    backend: object | None = None,
+    *,
+    stride: int = 1,
+    max_keyframes: int | None = None,
+    use_labels: bool = True,
+    progress: bool = False,
+) -> tuple[SemanticMapper, ObjectIndex]:
+    """Maps a ``core.datasets.Sequence`` (every ``stride``-th keyframe) and indexes its objects as the
+    live node does (views offered after each integration). ``use_labels``: take class names from the
+    sequence's labels (labels.json) unless ``index_config`` has its own."""
+    gaussians = sequence.load_gaussians()
+    if gaussians is None:
+        raise ValueError(f"{sequence.name}: the sequence has no Gaussian map")
+    config = index_config or IndexConfig()
+    if use_labels and config.labels is None:
+        labels = labels_from_entries(sequence.labels())
+        if labels:
+            config = IndexConfig(**{**config.__dict__, "labels": labels})
+    mapper = SemanticMapper(gaussians, mapper_config)
+    index = ObjectIndex(backend if backend is not None else lazy_backend("conse"), config)
+    frames = range(0, len(sequence), max(1, int(stride)))
+    if max_keyframes is not None:
+        frames = frames[: int(max_keyframes)]
+    for i in tqdm(frames, desc="map+views", unit="kf", disable=not progress, file=sys.stderr):
+        keyframe = sequence.keyframe(i)
+        mapper.integrate(keyframe)
+        index.keyframe_listener(keyframe, mapper)
+    index.refresh(mapper)
+    return mapper, index

@@ -1,0 +1,111 @@
+"""semantic_mapper: a changed Gaussian map while running (removed, added and moved Gaussians, with ids).
+
+Evidence must follow the ids: kept Gaussians keep theirs (moved ones too), new ones start empty, removed
+ones are gone; and the node's state must equal an offline mapper given the same map update.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import msg_adapters as ma
+from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map_store import load_snapshot
+from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
+from tests.rosutil import (
+    DiagnosticsMonitor,
+    RosClientNode,
+    RosProcess,
+    call_service,
+    ros_args,
+    ros_environment,
+    wait_for_service,
+    wait_for_subscribers,
+)
+from tests.test_node_support import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
+
+pytestmark = pytest.mark.ros
+
+
+def changed_map(old: GaussianMap, seed: int = 0) -> GaussianMap:
+    """10% removed, 10% of the rest moved by 0.3 m (far beyond any position tolerance), 2000 added, shuffled."""
+    rng = np.random.default_rng(seed)
+    n = len(old)
+    keep = np.sort(rng.choice(n, size=int(0.9 * n), replace=False))
+    means = old.means[keep].copy()
+    moved = rng.random(keep.size) < 0.1
+    means[moved] += np.float32([0.3, 0.0, 0.0])
+    new = rng.choice(n, size=2000)
+    ids = np.concatenate([old.ids[keep], old.ids.max() + 1 + np.arange(2000)])
+    gmap = GaussianMap(
+        np.concatenate([means, old.means[new] + np.float32([0.0, 0.0, 0.02])]),
+        np.concatenate([old.scales[keep], old.scales[new]]),
+        np.concatenate([old.quats[keep], old.quats[new]]),
+        np.concatenate([old.opacities[keep], old.opacities[new]]),
+        np.concatenate([old.colors[keep], old.colors[new]]),
+        ids=ids,
+    )
+    return gmap.subset(rng.permutation(len(gmap)))
+
+
+def test_map_update_carries_evidence_by_id(tmp_path):
+    from monovoc_interfaces.srv import SaveMap
+
+    scene, messages = small_scene(), scene_messages()
+    keyframes = assemble(messages)
+    update_msg = ma.gaussian_map_to_cloud(changed_map(scene.gaussians), stamp=keyframes[7].stamp_ns)
+    updated = ma.cloud_to_gaussian_map(update_msg)  # what the node will see
+
+    reference = offline_mapper(scene.gaussians, keyframes[:8])
+    before = reference.state
+    report = reference.update_gaussians(updated)
+    assert report.by == "ids" and report.dropped > 0
+    mid_weights = reference.state.weight_sum.copy()  # integrate() adds in place
+    for keyframe in keyframes[8:]:
+        reference.integrate(keyframe)
+
+    env = ros_environment(tmp_path)
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
+    with (
+        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        RosClientNode(env) as client,
+    ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        publisher = KeyframePublisher(client.node)
+        save = client.node.create_client(SaveMap, "/monovoc/save_map")
+        for pub in publisher.all_publishers():
+            wait_for_subscribers(pub, timeout=20.0, process=node)
+        wait_for_service(save, process=node)
+        publisher.publish_map(scene.gaussians)
+        for msgs in messages[:8]:
+            publisher.publish_messages(msgs)
+        diagnostics.wait_for(lambda v: v["keyframes_processed"] == "8", 20.0, process=node)
+        publisher.gaussians.publish(update_msg)
+        diagnostics.wait_for(lambda v: v["map_updates"] == "1", 20.0, process=node)
+        assert call_service(save, SaveMap.Request(directory=str(tmp_path / "mid")), process=node).success
+        for msgs in messages[8:]:
+            publisher.publish_messages(msgs)
+        done = diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(N_KEYFRAMES), 20.0, process=node)
+        assert done["gaussians"] == str(len(updated)) and done["map_version"] == "1"
+        assert call_service(save, SaveMap.Request(directory=str(tmp_path / "final")), process=node).success
+        assert f"{report.carried} carried, {report.dropped} dropped" in node.output()
+
+    mid = load_snapshot(tmp_path / "mid").state
+    np.testing.assert_array_equal(mid.ids, updated.ids)
+    # Evidence followed the ids: compare per id with the state before the update.
+    old_index = {int(i): k for k, i in enumerate(before.ids)}
+    kept = np.array([int(i) in old_index for i in updated.ids])
+    src = np.array([old_index[int(i)] for i in updated.ids[kept]])
+    np.testing.assert_array_equal(mid.weight_sum[kept], before.weight_sum[src])
+    np.testing.assert_array_equal(mid.color_sum[kept], before.color_sum[src])
+    assert np.all(mid.weight_sum[~kept] == 0) and (~kept).sum() == 2000
+    moved = kept.copy()
+    moved[kept] = np.any(updated.means[kept] != scene.gaussians.means[src], axis=1)
+    assert moved.sum() > 1000 and np.all(mid.weight_sum[moved] == before.weight_sum[src[moved[kept]]])
+    np.testing.assert_array_equal(mid.weight_sum, mid_weights)
+
+    final = load_snapshot(tmp_path / "final")
+    np.testing.assert_allclose(final.state.color_sum, reference.state.color_sum, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(final.state.weight_sum, reference.state.weight_sum, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(final.result().object_ids, reference.result().object_ids)

@@ -1,0 +1,310 @@
+"""The semantic_mapper's worker without ROS: queue policy, ordering, hooks, persistence."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map_store import current_snapshot, load_snapshot
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
+from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped, same_geometry
+
+CAM = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
+
+
+def plane_map(n: int = 200, seed: int = 0, ids: bool = True) -> GaussianMap:
+    rng = np.random.default_rng(seed)
+    means = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-0.7, 0.7, n), np.full(n, 2.0)])
+    return GaussianMap(
+        means,
+        np.full((n, 3), 0.05),
+        np.tile([1.0, 0, 0, 0], (n, 1)),
+        np.full(n, 0.8),
+        ids=np.arange(n) + 1000 if ids else None,
+    )
+
+
+def keyframe(stamp: int, shift: int = 0) -> Keyframe:
+    mask = np.zeros((24, 32, 3), np.uint8)
+    mask[:, : 16 + shift] = (200, 30, 30)
+    mask[:, 16 + shift :] = (30, 200, 30)
+    return Keyframe(stamp, stamp, np.eye(4), CAM, mask)
+
+
+class Sink:
+    def __init__(self):
+        self.published = []
+
+    def publish(self, mapper, result):
+        self.published.append((None if mapper is None else mapper.n_keyframes, result))
+        return 0
+
+
+class Log:
+    def __init__(self):
+        self.lines = []
+
+    def info(self, msg):
+        self.lines.append(("info", msg))
+
+    def warning(self, msg):
+        self.lines.append(("warning", msg))
+
+    def error(self, msg):
+        self.lines.append(("error", msg))
+
+
+def make_worker(tmp_path: Path | None = None, **settings) -> tuple[MapWorker, Sink, Log]:
+    sink, log = Sink(), Log()
+    opts = {"queue_size": 8, "publish_period_s": 0.0, "save_period_s": 0.0}
+    opts.update(settings)
+    worker = MapWorker(MapperConfig(), WorkerSettings(**opts), sink=sink, log=log)
+    return worker, sink, log
+
+
+def drain(worker: MapWorker, timeout: float = 10.0) -> None:
+    """Waits until everything queued so far has run (a call is queued behind it)."""
+    worker.call(lambda: None).result(timeout)
+
+
+def test_queue_drops_the_oldest_keyframe_and_never_maps_or_calls():
+    q = TaskQueue(max_keyframes=2)
+    gmap = plane_map()
+    q.put_map(gmap)
+    future = q.put_call(lambda: 1)
+    assert q.put_keyframe(keyframe(1)) is None
+    assert q.put_keyframe(keyframe(2)) is None
+    dropped = q.put_keyframe(keyframe(3))
+    assert dropped is not None and dropped.stamp_ns == 1
+    assert q.keyframes == 2 and len(q) == 4
+    kinds = [q.take(True, 0).kind for _ in range(4)]
+    assert kinds == ["map", "call", "keyframe", "keyframe"]
+    assert not future.done()
+
+
+def test_consecutive_maps_coalesce_but_not_across_keyframes():
+    q = TaskQueue(4)
+    a, b, c = plane_map(seed=1), plane_map(seed=2), plane_map(seed=3)
+    assert not q.put_map(a)
+    assert q.put_map(b)  # replaces a
+    q.put_keyframe(keyframe(1))
+    assert not q.put_map(c)
+    tasks = [q.take(True, 0) for _ in range(3)]
+    assert [t.kind for t in tasks] == ["map", "keyframe", "map"]
+    assert tasks[0].payload is b and tasks[2].payload is c
+
+
+def test_without_a_map_keyframes_wait_and_other_tasks_pass():
+    q = TaskQueue(4)
+    q.put_keyframe(keyframe(1))
+    q.put_call(lambda: None)
+    assert q.take(False, 0).kind == "call"
+    assert q.take(False, 0) is None  # only a keyframe left, not runnable without a map
+    assert q.take(True, 0).kind == "keyframe"
+
+
+def test_worker_integrates_in_order_like_an_offline_mapper():
+    worker, sink, _ = make_worker()
+    seen = []
+    worker.add_keyframe_listener(lambda kf, mapper: seen.append((kf.stamp_ns, mapper.n_keyframes)))
+    worker.start()
+    try:
+        for stamp in (1, 2):  # before the map: they wait
+            worker.submit_keyframe(keyframe(stamp, shift=stamp))
+        worker.submit_map(plane_map())
+        for stamp in (3, 4):
+            worker.submit_keyframe(keyframe(stamp, shift=stamp))
+        drain(worker)
+        state = worker.submit(lambda mapper: mapper.state).result(5)
+    finally:
+        worker.stop()
+    offline = SemanticMapper(plane_map())
+    for stamp in (1, 2, 3, 4):
+        offline.integrate(keyframe(stamp, shift=stamp))
+    np.testing.assert_array_equal(state.color_sum, offline.state.color_sum)
+    np.testing.assert_array_equal(state.stamps_ns, [1, 2, 3, 4])
+    assert seen == [(1, 1), (2, 2), (3, 3), (4, 4)]
+    assert worker.stats.keyframes_processed == 4
+    assert sink.published  # published once the queue ran empty
+
+
+def test_duplicate_stamps_are_counted_and_change_nothing():
+    worker, _, log = make_worker()
+    worker.submit_map(plane_map())
+    worker.submit_keyframe(keyframe(5))
+    worker.submit_keyframe(keyframe(5, shift=3))
+    worker.start()
+    try:
+        drain(worker)
+        weights = worker.submit(lambda m: m.state.weight_sum.copy()).result(5)
+    finally:
+        worker.stop()
+    assert worker.stats.rejected["duplicate_stamp"] == 1 and worker.stats.keyframes_processed == 1
+    offline = SemanticMapper(plane_map())
+    offline.integrate(keyframe(5))
+    np.testing.assert_array_equal(weights, offline.state.weight_sum)
+    assert any("already in the map" in msg for _, msg in log.lines)
+
+
+def test_full_queue_drops_oldest_and_counts():
+    worker, _, _ = make_worker(queue_size=2)
+    for stamp in range(1, 6):  # worker not started and no map: all wait
+        worker.submit_keyframe(keyframe(stamp))
+    assert worker.stats.keyframes_dropped == 3
+    worker.submit_map(plane_map())
+    worker.start()
+    try:
+        drain(worker)
+        stamps = worker.submit(lambda m: m.state.stamps_ns.tolist()).result(5)
+    finally:
+        worker.stop()
+    assert stamps == [4, 5]
+
+
+def test_map_update_by_ids_and_unchanged_maps_are_skipped():
+    worker, _, log = make_worker()
+    old = plane_map()
+    worker.submit_map(old)
+    worker.submit_keyframe(keyframe(1))
+    worker.submit_map(plane_map())  # equal arrays: no update
+    worker.start()
+    try:
+        drain(worker)
+        moved = GaussianMap(old.means[::-1] + [0.5, 0, 0], old.scales, old.quats, old.opacities, ids=old.ids[::-1])
+        before = worker.submit(lambda m: m.state.weight_sum.copy()).result(5)
+        worker.submit_map(moved)
+        after = worker.submit(lambda m: m.state.weight_sum.copy()).result(5)
+    finally:
+        worker.stop()
+    assert worker.stats.maps_unchanged == 1 and worker.stats.map_updates == 1
+    np.testing.assert_array_equal(after, before[::-1])  # evidence followed the ids
+    assert any("evidence by ids" in msg for _, msg in log.lines)
+
+
+def test_same_geometry():
+    a = plane_map()
+    assert same_geometry(a, plane_map())
+    assert not same_geometry(a, plane_map(seed=1))
+    assert not same_geometry(a, plane_map(ids=False))
+    assert not same_geometry(a, a.subset(np.arange(10)))
+
+
+def test_listener_errors_are_logged_not_fatal():
+    worker, _, log = make_worker()
+    worker.add_keyframe_listener(lambda kf, m: 1 / 0)
+    results = []
+    worker.add_result_listener(lambda mapper, result: results.append(result.object_ids.copy()))
+    worker.submit_map(plane_map())
+    worker.submit_keyframe(keyframe(1))
+    worker.submit_keyframe(keyframe(2))
+    worker.start()
+    try:
+        drain(worker)
+        worker.call(worker.publish_now).result(5)
+    finally:
+        worker.stop()
+    assert worker.stats.keyframes_processed == 2 and worker.stats.worker_errors == 2
+    assert results and len(results[-1]) == 200
+    assert any("ZeroDivisionError" in msg for kind, msg in log.lines if kind == "error")
+
+
+def test_publish_rate_limits_and_final_state_is_published():
+    worker, sink, _ = make_worker(publish_period_s=0.3)
+    worker.submit_map(plane_map())
+    worker.start()
+    try:
+        for stamp in range(1, 9):
+            worker.submit_keyframe(keyframe(stamp))
+            time.sleep(0.02)
+        drain(worker)
+        deadline = time.monotonic() + 5
+        while (not sink.published or sink.published[-1][0] != 8) and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        worker.stop()
+    assert sink.published[-1][0] == 8  # the newest state always goes out, one period later at most
+    assert len(sink.published) <= 4  # start + at most ~1 per 0.3 s over ~0.2 s of keyframes + the last
+
+
+def test_periodic_and_final_snapshots(tmp_path):
+    worker, _, _ = make_worker(map_directory=str(tmp_path), save_period_s=0.2)
+    worker.submit_map(plane_map())
+    worker.submit_keyframe(keyframe(1))
+    worker.start()
+    try:
+        deadline = time.monotonic() + 5
+        while current_snapshot(tmp_path) is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert load_snapshot(tmp_path).n_keyframes == 1
+        worker.submit_keyframe(keyframe(2))
+        drain(worker)
+    finally:
+        info = worker.stop()  # the final snapshot holds keyframe 2 (unless a periodic one got there first)
+    assert load_snapshot(tmp_path).state.stamps_ns.tolist() == [1, 2]
+    assert info is None or info.keyframes == 2
+    assert worker.stats.snapshots_saved >= 2
+
+
+def test_calls_run_in_order_and_fail_after_stop(tmp_path):
+    worker, _, _ = make_worker()
+    worker.submit_map(plane_map())
+    worker.submit_keyframe(keyframe(1))
+    saved = worker.call(lambda: worker.save(str(tmp_path / "a")))
+    worker.submit_keyframe(keyframe(2))
+    worker.start()
+    try:
+        assert saved.result(5).keyframes == 1  # saved before keyframe 2, as queued
+        worker.call(lambda: worker.reset(keep_gaussians=True)).result(5)
+        assert worker.submit(lambda m: (m.n_keyframes, len(m.gaussians))).result(5) == (0, 200)
+        worker.call(lambda: worker.load(str(tmp_path / "a"))).result(5)
+        assert worker.submit(lambda m: m.n_keyframes).result(5) == 1
+        worker.call(lambda: worker.reset(keep_gaussians=False)).result(5)
+        assert worker.submit(lambda m: m).result(5) is None
+        with pytest.raises(ValueError, match="no map"):
+            worker.call(lambda: worker.save(str(tmp_path / "b"))).result(5)
+    finally:
+        worker.stop()
+    with pytest.raises(WorkerStopped):
+        worker.call(lambda: None).result(1)
+
+
+def test_service_waits_do_not_block_other_threads():
+    # A call waiting behind a slow task; another thread meanwhile can still queue and count keyframes.
+    worker, _, _ = make_worker()
+    release = threading.Event()
+    worker.submit_map(plane_map())
+    worker.call(lambda: release.wait(5))
+    worker.start()
+    try:
+        behind = worker.call(lambda: "done")
+        worker.submit_keyframe(keyframe(1))
+        assert worker.stats.queue_length == 1 and not behind.done()
+        release.set()
+        assert behind.result(5) == "done"
+    finally:
+        worker.stop()
+
+
+def test_rejection_log_throttles_per_reason():
+    lines, now = [], [0.0]
+    log = RejectionLog(lines.append, interval_s=5.0, clock=lambda: now[0])
+    assert log("bad_pose", "a") and not log("bad_pose", "b") and log("bad_mask", "c")
+    now[0] = 6.0
+    assert log("bad_pose", "d")
+    assert lines[-1] == "rejected (bad_pose): d (+1 more since the last report)"
+
+
+def test_stats_snapshot_mean():
+    stats = MapperStats()
+    stats.add(keyframes_processed=2, ms_per_keyframe_total=30.0)
+    stats.reject("bad_pose")
+    snap = stats.snapshot()
+    assert snap["ms_per_keyframe_mean"] == 15.0 and snap["rejected"] == {"bad_pose": 1}

@@ -1,0 +1,26 @@
+"""`monovoc query --map DIR`: the offline client on a saved map's objects.db."""
+
+import json
+
+from monovoc_ros.cli import main as cli_main
+from tests.test_objects_support import room_directory, room_id
+
+
+def test_offline_query_prints_the_ranking(capsys):
+    assert cli_main(["query", "--map", str(room_directory()), "a sofa", "--top-k", "3"]) == 0
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    assert lines[0] == "3 of 28 objects" and lines[1].split()[:3] == ["rank", "id", "label"]
+    assert lines[2].split()[:3] == ["1", f"#{room_id('sofa'):06x}", "sofa"]
+
+
+def test_offline_query_json_and_errors(capsys, tmp_path):
+    assert cli_main(["query", "--map", str(room_directory()), "lamp", "--json", "--min-score", "0.5"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["success"] and all(o["score"] >= 0.5 for o in answer["objects"])
+    assert answer["objects"][0]["hex"] == f"#{room_id('lamp'):06x}"
+    assert cli_main(["query", "--map", str(room_directory()), "  "]) == 1
+    assert "empty query" in capsys.readouterr().err
+    assert cli_main(["query", "--map", str(tmp_path), "a chair"]) == 2
+    assert "no object database" in capsys.readouterr().err
+    assert cli_main(["query", "--map", str(room_directory()), "a chair", "--top-k", "-1"]) == 1

@@ -1,0 +1,194 @@
+"""The text-query service of the live node (monovoc_ros.nodes.object_query), in real processes.
+
+* a node resumed from a saved map answers at once, edge cases included, publishes the highlight, and
+  the `monovoc query` client prints its answer (or exits 2 when no node is there);
+* a node fed keyframes live: no objects before, objects after, queries stay fast while it integrates,
+  objects.db is written with save_map, cleared by reset and restored by load_map.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+import msg_adapters as ma
+from monovoc_ros.embed import default_model_dir
+from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
+from monovoc_ros.nodes.qos import latched_qos
+from monovoc_ros.objects.database import DB_NAME, ObjectDatabase
+from tests.rosutil import (
+    VENV_PYTHON,
+    MessageCollector,
+    RosClientNode,
+    RosProcess,
+    call_service,
+    ros_args,
+    ros_environment,
+    wait_for_service,
+    wait_for_subscribers,
+    wait_until,
+)
+from tests.test_objects_support import copy_directory, room, room_directory, room_id, room_map
+
+pytestmark = pytest.mark.ros
+
+NODE = ["-m", "monovoc_ros.nodes.object_query"]
+CLI = [str(VENV_PYTHON), "-m", "monovoc_ros.cli", "query"]
+
+
+def _query(client, text, top_k=0, min_score=-1.0, process=None, timeout=20.0):
+    from monovoc_interfaces.srv import TextQuery
+
+    request = TextQuery.Request(text=text, top_k=top_k, min_score=min_score)
+    return call_service(client, request, timeout, process=process)
+
+
+def _environment(tmp_path):
+    """Loopback ROS environment; its HOME is a temporary folder, so point it at the exported models."""
+    return ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
+
+
+def test_query_service_on_a_resumed_map(tmp_path):
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import MarkerArray
+
+    from monovoc_interfaces.srv import TextQuery
+
+    directory = copy_directory(room_directory(), tmp_path / "map")
+    _, index = room_map()
+    env = _environment(tmp_path)
+    params = {
+        "map_directory": str(directory),
+        "resume": True,
+        "labels_file": str(directory / "labels.json"),
+        "query.top_k": 4,
+        "diagnostics_period_s": 5.0,
+    }
+    with RosProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, RosClientNode(env) as client:
+        highlight, markers = MessageCollector(), MessageCollector()
+        client.node.create_subscription(PointCloud2, "/monovoc/query/highlight", highlight, latched_qos())
+        client.node.create_subscription(MarkerArray, "/monovoc/query/markers", markers, latched_qos())
+        service = client.node.create_client(TextQuery, "/monovoc/query")
+        wait_for_service(service, 30.0, process=node)
+
+        sofa = _query(service, "a sofa", top_k=3, process=node)
+        assert sofa.success, sofa.message
+        assert [o.id for o in sofa.objects][0] == room_id("sofa") and len(sofa.objects) == 3
+        assert sofa.header.frame_id == "map" and sofa.objects[0].label == "sofa"
+        first = sofa.objects[0]
+        assert first.description and 0 < first.score <= 1 and first.num_gaussians > 0
+        lo, hi, size = first.bbox_min, first.bbox_max, first.extent
+        np.testing.assert_allclose([size.x, size.y, size.z], [hi.x - lo.x, hi.y - lo.y, hi.z - lo.z])
+        # The highlight holds exactly the sofa's Gaussians, the markers the three answers.
+        wait_until(lambda: highlight.messages, 10.0, "a highlight cloud", process=node)
+        cloud = ma.semantic_cloud_to_arrays(highlight.messages[-1])
+        expected = set(int(o.id) for o in sofa.objects)
+        assert set(np.unique(cloud.object_ids).tolist()) <= expected
+        assert len(cloud.object_ids) == int(np.isin(index.object_ids, list(expected)).sum())
+        wait_until(lambda: markers.messages, 10.0, "query markers", process=node)
+        boxes = [m for m in markers.messages[-1].markers if m.ns == "monovoc/query/boxes"]
+        assert sorted(m.id for m in boxes) == sorted(expected)
+
+        # Edge cases: clear answers, never a crash.
+        for text in ("", "   "):
+            empty = _query(service, text, process=node)
+            assert not empty.success and "empty query" in empty.message and not empty.objects
+        huge = _query(service, "a lamp " * 20_000, top_k=1, process=node)
+        assert huge.success and "truncated" in huge.message and len(huge.objects) == 1
+        assert len(_query(service, "chair", top_k=0, process=node).objects) == 4  # query.top_k
+        everything = _query(service, "chair", top_k=2**32 - 1, process=node)
+        assert everything.success and len(everything.objects) == len(index)
+        scores = [o.score for o in everything.objects]
+        assert scores == sorted(scores, reverse=True)
+        strict = _query(service, "chair", min_score=2.0, process=node)
+        assert strict.success and not strict.objects and "min_score" in strict.message
+        nan = _query(service, "chair", min_score=float("nan"), process=node)
+        assert not nan.success and "NaN" in nan.message
+
+        # The command line client, against the same node.
+        run = subprocess.run(
+            [*CLI, "the sofa", "--top-k", "2", "--json", "--timeout", "20"], env=env, capture_output=True, text=True
+        )
+        assert run.returncode == 0, run.stderr
+        answer = json.loads(run.stdout)
+        assert answer["success"] and answer["objects"][0]["hex"] == f"#{room_id('sofa'):06x}"
+        table = subprocess.run([*CLI, "a lamp", "--timeout", "20"], env=env, capture_output=True, text=True)
+        assert table.returncode == 0 and "lamp" in table.stdout and "rank" in table.stdout
+        bad = subprocess.run([*CLI, " ", "--timeout", "20"], env=env, capture_output=True, text=True)
+        assert bad.returncode == 1 and "empty query" in bad.stderr
+        node.check_running()
+
+
+def test_client_without_a_node_exits_2(tmp_path):
+    env = _environment(tmp_path)
+    run = subprocess.run([*CLI, "a chair", "--timeout", "1"], env=env, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and "/monovoc/query is not available" in run.stderr
+
+
+def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
+    from monovoc_interfaces.srv import LoadMap, Reset, SaveMap, TextQuery
+
+    scene = room()
+    directory = tmp_path / "map"
+    labels_file = tmp_path / "labels.json"
+    labels_file.write_text(json.dumps(scene.labels()))
+    env = _environment(tmp_path)
+    params = {
+        "map_directory": str(directory),
+        "save_period_s": 0.0,
+        "publish_rate_hz": 2.0,
+        "labels_file": str(labels_file),
+        "diagnostics_period_s": 5.0,
+    }
+    with RosProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, RosClientNode(env) as client:
+        service = client.node.create_client(TextQuery, "/monovoc/query")
+        wait_for_service(service, 30.0, process=node)
+        before = _query(service, "a sofa", process=node)
+        assert not before.success and "no objects" in before.message
+
+        publisher = KeyframePublisher(client.node)
+        for pub in publisher.all_publishers():
+            wait_for_subscribers(pub, timeout=20.0, process=node)
+        publisher.publish_map(scene.gaussians)
+        latencies = []
+        for i in range(len(scene)):
+            publisher.publish_messages(keyframe_messages(scene.keyframe(i)))
+            start = time.perf_counter()
+            _query(service, "a sofa", process=node)  # while the worker integrates and the index embeds
+            latencies.append(time.perf_counter() - start)
+
+        def sofa_found() -> bool:
+            answer = _query(service, "a sofa", top_k=1, process=node)
+            return answer.success and answer.objects[0].id == room_id("sofa")
+
+        wait_until(sofa_found, 60.0, "the sofa to be indexed", process=node, interval=0.2)
+
+        def all_embedded() -> bool:
+            return len(_query(service, "anything", top_k=1000, process=node).objects) >= 20
+
+        wait_until(all_embedded, 60.0, "most objects to be embedded", process=node, interval=0.2)
+        median, worst = 1e3 * np.median(latencies), 1e3 * max(latencies)
+        print(f"query latency while mapping: median {median:.1f} ms, max {worst:.1f} ms")
+        assert np.median(latencies) < 0.5 and max(latencies) < 5.0
+
+        save = client.node.create_client(SaveMap, "/monovoc/save_map")
+        wait_for_service(save, process=node)
+        saved = call_service(save, SaveMap.Request(), 60.0, process=node)
+        assert saved.success, saved.message
+        db = ObjectDatabase(directory / DB_NAME, create=False)
+        assert len(db.records()) >= 20 and db.gaussian_index().object_ids.size == len(scene.gaussians)
+
+        reset = client.node.create_client(Reset, "/monovoc/reset")
+        wait_for_service(reset, process=node)
+        assert call_service(reset, Reset.Request(keep_gaussians=True), 30.0, process=node).success
+        assert not _query(service, "a sofa", process=node).success  # objects forgotten with the evidence
+
+        load = client.node.create_client(LoadMap, "/monovoc/load_map")
+        wait_for_service(load, process=node)
+        assert call_service(load, LoadMap.Request(), 60.0, process=node).success
+        wait_until(sofa_found, 20.0, "the objects restored with the map", process=node, interval=0.2)
+        node.check_running()
