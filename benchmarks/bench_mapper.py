@@ -3,10 +3,11 @@
     scripts/with_env.sh python benchmarks/bench_mapper.py [--bag bags/synthetic_room.mcap] [--mapping-only]
 
 The node runs as a separate process (with the object database and query service unless --mapping-only),
-publishing its semantic cloud whenever its queue is empty (publish_rate_hz 0). Two runs, each on a fresh node:
+publishing its semantic cloud at most --publish-rate times a second (default 1, the node's default).
+Two runs, each on a fresh node:
 - ``fast``: the bag replayed as fast as possible (reliable, nothing lost): keyframes per second sustained
   from the first message to the last keyframe integrated, mean SCD ms per keyframe, keyframes dropped;
-- ``recorded_rate``: the bag at its recorded rate (10 Hz for the synthetic room): per keyframe, the latency
+- ``paced``: the bag at --rate times its recorded rate (10 Hz for the synthetic room): per keyframe, the latency
   from its scheduled publication to the arrival of the first semantic cloud that includes it (the cloud's
   stamp is the newest integrated keyframe), p50 / p95 / max ms.
 """
@@ -34,30 +35,31 @@ from monovoc_ros.nodes.mapper_process import (  # noqa: E402
     MapperClient,
     MapperProcess,
     loopback_environment,
+    settled,
 )
 
 
-def _one_run(bag: Path, module: str, fast: bool, work: Path) -> dict:
+def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float, rate: float = 1.0) -> dict:
     info = bag_info(bag)
     mask_topic = topic_names()["mask"]
     n = info.topics[mask_topic].count
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
     first_log = min(m.log_time_ns for m in iter_messages(bag))
-    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "queue_size": max(32, n)}
+    params = {"publish_rate_hz": publish_rate, "diagnostics_period_s": 0.2, "queue_size": max(32, n)}
     with (
         MapperProcess(params, work / f"node-{'fast' if fast else 'rate'}.log", module) as node,
         MapperClient() as client,
     ):
         started: list[float] = []
         replay(
-            bag, fast=fast, wait_subscribers=1, wait_timeout=60.0, on_started=lambda: started.append(time.monotonic())
+            bag,
+            fast=fast,
+            rate=rate,
+            wait_subscribers=1,
+            wait_timeout=60.0,
+            on_started=lambda: started.append(time.monotonic()),
         )
-        done = client.wait_diagnostics(
-            lambda d: int(d["keyframes_processed"]) + int(d["keyframes_dropped"]) >= n,
-            600.0,
-            node.check,
-            "all keyframes",
-        )
+        done = client.wait_diagnostics(lambda d: settled(d, n), 600.0, node.check, "all keyframes")
         finished = time.monotonic()
         time.sleep(0.5)  # the last cloud
         out = {
@@ -72,11 +74,14 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path) -> dict:
             return out
         latencies = []
         for stamp in stamps:
-            scheduled = started[0] + (stamp - first_log) / 1e9
-            arrivals = [t for s, t in client.cloud_arrivals.items() if s >= stamp]
+            scheduled = started[0] + (stamp - first_log) / 1e9 / rate
+            # Clouds before the first keyframe carry the node's clock, not a bag stamp: not counted.
+            arrivals = [t for s, t in client.cloud_arrivals.items() if stamp <= s <= stamps[-1]]
             if arrivals:
                 latencies.append(1e3 * (min(arrivals) - scheduled))
         lat = np.array(latencies)
+        if not len(lat):
+            raise SystemExit(f"no cloud carried a keyframe stamp: {sorted(client.cloud_arrivals)[:5]} vs {stamps[:3]}")
         out.update(
             keyframes_with_cloud=len(lat),
             latency_ms_p50=round(float(np.percentile(lat, 50)), 1),
@@ -90,6 +95,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bag", default=str(REPO / "bags" / "synthetic_room.mcap"))
     parser.add_argument("--mapping-only", action="store_true", help="the node without the object database")
+    parser.add_argument("--publish-rate", type=float, default=1.0, help="the node's publish_rate_hz (default 1)")
+    parser.add_argument("--rate", type=float, default=0.5, help="paced run: multiple of the recorded rate (0.5)")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="monovoc_bench_mapper_"))
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 232)))
@@ -100,8 +107,9 @@ def main() -> int:
         "bag": str(bag),
         "node": module,
         "cpus": os.cpu_count(),
-        "fast": _one_run(bag, module, True, work),
-        "recorded_rate": _one_run(bag, module, False, work),
+        "publish_rate_hz": args.publish_rate,
+        "fast": _one_run(bag, module, True, work, args.publish_rate),
+        "paced": {"rate": args.rate, **_one_run(bag, module, False, work, args.publish_rate, args.rate)},
         "loadavg": [round(x, 2) for x in os.getloadavg()],
     }
     print(json.dumps(report, indent=1))

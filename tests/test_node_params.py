@@ -114,3 +114,13 @@ def test_params_file_loads_under_a_remapped_name_and_namespace(tmp_path):
         wait_for_service(publish, process=node)
         assert call_service(publish, Trigger.Request(), process=node).success
         assert node.stop() == 0  # SIGINT: clean exit
+
+
+def test_object_query_config_lists_every_parameter_with_its_default():
+    from monovoc_ros.nodes.object_query import PARAMETERS as OBJECT_PARAMETERS
+
+    nested = yaml.safe_load((REPO / "config" / "object_query.yaml").read_text())["/**"]["ros__parameters"]
+    flat = {f"{group}.{key}": value for group, values in nested.items() for key, value in values.items()}
+    assert list(flat) == [name for name, _, _ in OBJECT_PARAMETERS]
+    for name, default, _ in OBJECT_PARAMETERS:
+        assert flat[name] == default and type(flat[name]) is type(default), name

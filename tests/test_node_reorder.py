@@ -52,3 +52,23 @@ def test_overflow_releases_without_waiting():
     for s in range(1, 4):
         assert r.add("mask", msg(s)) == []
     assert [m.stamp for _, m in r.add("mask", msg(4))] == [1]
+
+
+def test_a_topic_that_is_still_delivering_is_waited_for():
+    now = [0.0]
+    r = StampReorder(("image", "mask"), max_wait_s=0.5, clock=lambda: now[0])
+    for s in range(1, 41):
+        r.add("image", msg(s))
+    # Masks lag more than max_wait_s behind the images, but keep coming: nothing is forced out.
+    out = []
+    for s in range(1, 41):
+        now[0] += 0.1
+        out += r.add("mask", msg(s))
+    assert [(role, m.stamp) for role, m in out[:4]] == [("image", 1), ("mask", 1), ("image", 2), ("mask", 2)]
+    assert len(out) == 79 and [m.stamp for _, m in out] == sorted(m.stamp for _, m in out)
+    # The last mask waits for an image of a later stamp; once the images have been silent (and the mask has
+    # waited) for max_wait_s it goes.
+    now[0] += 0.4
+    assert r.due() == []
+    now[0] += 0.2
+    assert [(role, m.stamp) for role, m in r.due()] == [("mask", 40)]

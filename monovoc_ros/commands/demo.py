@@ -21,7 +21,14 @@ import types
 from pathlib import Path
 from typing import Any
 
-from monovoc_ros.nodes.mapper_process import NAMESPACE, MapperClient, MapperError, MapperProcess, loopback_environment
+from monovoc_ros.nodes.mapper_process import (
+    NAMESPACE,
+    MapperClient,
+    MapperError,
+    MapperProcess,
+    loopback_environment,
+    settled,
+)
 
 DEFAULT_QUERIES = ("a sofa", "a television", "a potted plant", "the orange ball", "the small box on the table")
 
@@ -131,12 +138,11 @@ def _session(client, alive, bag, out, n_keyframes, queries, rate, top_k, timeout
         raise DemoError(f"the node did not acknowledge messages on {played.unacked}")
     replay_s = time.monotonic() - start
 
-    def integrated(d: dict[str, str]) -> bool:
-        done = int(d["keyframes_processed"]) + int(d["keyframes_dropped"])
-        return int(d["keyframes_received"]) >= n_keyframes and done >= int(d["keyframes_received"])
-
-    diag = client.wait_diagnostics(integrated, timeout, alive, "every keyframe integrated")
+    diag = client.wait_diagnostics(lambda d: settled(d, n_keyframes), timeout, alive, "every keyframe integrated")
     mapped_s = time.monotonic() - start
+    if int(diag["keyframes_processed"]) != n_keyframes:
+        lost = {k: v for k, v in diag.items() if k.startswith(("sync_", "rejected")) and v != "0"}
+        raise DemoError(f"{diag['keyframes_processed']} of {n_keyframes} keyframes integrated: {lost}")
     diag = client.wait_diagnostics(
         lambda d: int(d["objects.indexed"]) > 0 and int(d["objects.pending"]) == 0 and int(d["queue_length"]) == 0,
         timeout,

@@ -35,6 +35,17 @@ def loopback_environment(log_dir: Path) -> None:
     os.environ.setdefault("ROS_LOG_DIR", str(log_dir))
 
 
+def settled(values: Mapping[str, str], masks_sent: int) -> bool:
+    """Diagnostics say every sent mask reached the node and every keyframe made of them left the queue."""
+    done = int(values["keyframes_processed"]) + int(values["keyframes_dropped"])
+    return (
+        int(values["messages_received.mask"]) >= masks_sent
+        and int(values["inputs_waiting"]) == 0
+        and int(values["queue_length"]) == 0
+        and done >= int(values["keyframes_received"])
+    )
+
+
 class MapperProcess:
     """``python -m <module> --ros-args -p k:=v ...`` with its output in ``log_path``; stopped with SIGINT
     (final snapshot), then SIGKILL after 30 s."""

@@ -7,9 +7,12 @@ decoded messages per topic, so such a skew lost keyframes (measured: 64 of 96 in
 
 `StampReorder` keeps the raw messages (compressed, cheap) per topic and releases the oldest head only
 once every topic has a message waiting, so the synchronizer sees the streams merged by stamp. A message
-is released anyway after waiting `max_wait_s` (a topic that stopped, or that will never send this stamp)
-or when a topic holds `max_buffered` messages, so nothing waits forever. Per-topic order is never
-changed: out-of-order and duplicate stamps still reach the assembler as sent, and are rejected there.
+is released anyway once it has waited `max_wait_s` and every topic it waits for has been silent for
+`max_wait_s` (a topic that stopped, or that will never send this stamp), or when a topic holds
+`max_buffered` messages, so nothing waits forever. A topic that is still delivering is only behind: at
+start-up, while the node loaded its models, the masks of a --fast replay ran more than 0.5 s behind the
+images, and a wait counted from the image's arrival alone lost 23 of 60 keyframes. Per-topic order is
+never changed: out-of-order and duplicate stamps still reach the assembler as sent, and are rejected there.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ class StampReorder:
         # role -> (stamp or None, arrival time, message); the role's rank breaks ties at equal stamps
         self._queues: dict[str, deque[tuple[int | None, float, Any]]] = {r: deque() for r in self.roles}
         self._rank = {r: i for i, r in enumerate(self.roles)}
+        self._last_arrival = dict.fromkeys(self.roles, -float("inf"))
 
     def __len__(self) -> int:
         return sum(len(q) for q in self._queues.values())
@@ -47,7 +51,9 @@ class StampReorder:
             stamp: int | None = header_stamp_ns(msg)
         except ValueError:
             stamp = None  # no readable stamp: released at once, the assembler rejects it
-        self._queues[role].append((stamp, self._clock(), msg))
+        now = self._clock()
+        self._queues[role].append((stamp, now, msg))
+        self._last_arrival[role] = now
         return self.due()
 
     def due(self) -> list[tuple[str, Any]]:
@@ -58,8 +64,11 @@ class StampReorder:
             if not heads:
                 return out
             now = self._clock()
+            # Waiting ends max_wait_s after the later of the head's arrival and the last message of the
+            # topics it waits for.
+            heard = max((self._last_arrival[r] for r in self.roles if r not in heads), default=-float("inf"))
             forced = [r for r, (stamp, arrived, _) in heads.items()
-                      if stamp is None or now - arrived >= self.max_wait_s
+                      if stamp is None or now - max(arrived, heard) >= self.max_wait_s
                       or len(self._queues[r]) > self.max_buffered]  # fmt: skip
             if len(heads) < len(self.roles) and not forced:
                 return out
@@ -70,3 +79,4 @@ class StampReorder:
     def clear(self) -> None:
         for q in self._queues.values():
             q.clear()
+        self._last_arrival = dict.fromkeys(self.roles, -float("inf"))
