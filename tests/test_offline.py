@@ -47,6 +47,26 @@ def test_map_and_eval_commands_on_a_plain_folder(scene, tmp_path, capsys):
     assert "cmc" in capsys.readouterr().out
 
 
+def test_map_objects_writes_a_database_that_answers_queries(scene, tmp_path, capsys):
+    from monovoc_ros.embed import default_model_dir
+    from monovoc_ros.objects.database import ObjectDatabase
+
+    data = tmp_path / "seq"
+    write_plain(scene, data)
+    out = tmp_path / "map"
+    assert main(["map", str(data), "-o", str(out), "--quiet", "--objects", "--crop-mode", "hard"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    db = ObjectDatabase(summary["objects_db"], create=False)
+    records = db.records()
+    assert len(records) >= 10 and all(r.label for r in records)  # named from the folder's labels.json
+    assert db.gaussian_index().object_ids.size == 30_000
+    assert default_model_dir().exists()
+    capsys.readouterr()
+    assert main(["query", "--map", str(out), "a sofa", "--top-k", "3", "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["success"] and len(answer["objects"]) == 3
+
+
 def test_synthetic_frames_carry_ground_truth_and_score_both_protocols():
     from monovoc_ros.commands.eval import score, sequence_frames
 

@@ -92,6 +92,27 @@ def test_accumulate_with_valid_and_background_matches_reference(impl, seed, kind
 
 
 @pytest.mark.parametrize("impl", FAST)
+@pytest.mark.parametrize("power", [2, 3, 4])
+def test_weight_powers_match_reference(impl, power):
+    gmap, k, pose, mask = random_scene(3, kind=SCENES[0][1])
+    valid = np.random.default_rng(7).random(mask.shape[:2]) < 0.8
+    ref = accumulate(gmap, mask, k, pose, valid=valid, weight_power=power, impl="reference")
+    out = accumulate(gmap, mask, k, pose, valid=valid, weight_power=power, impl=impl)
+    assert_close(out.weight_sum, ref.weight_sum, "weight_sum")
+    assert_close(out.color_sum, ref.color_sum, "color_sum")
+    # w^k <= w: larger powers only shrink the sums, and the per-pixel weights stay consistent.
+    plain = accumulate(gmap, mask, k, pose, valid=valid, impl="reference")
+    assert np.all(ref.weight_sum <= plain.weight_sum + 1e-12) and ref.weight_sum.sum() < plain.weight_sum.sum()
+
+
+@pytest.mark.parametrize("power", [0, 5, 1.5, True])
+def test_bad_weight_power_raises_value_error(power):
+    gmap, k, pose, mask = random_scene(0, kind=SCENES[0][1])
+    with pytest.raises(ValueError, match="weight_power"):
+        accumulate(gmap, mask, k, pose, weight_power=power)
+
+
+@pytest.mark.parametrize("impl", FAST)
 @pytest.mark.parametrize("seed,kind", SCENES[::3])
 def test_render_matches_reference(impl, seed, kind):
     gmap, k, pose, _ = random_scene(seed, kind=kind)

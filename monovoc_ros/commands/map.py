@@ -11,13 +11,20 @@ from monovoc_ros.core.map_store import save_snapshot
 from monovoc_ros.core.mapping import VOID_POLICIES, MapperConfig
 from monovoc_ros.core.objects import summarize_objects
 from monovoc_ros.core.quantize import METRICS
-from monovoc_ros.core.raster import IMPLEMENTATIONS
+from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
 
 
 def add_mapper_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--impl", choices=IMPLEMENTATIONS, default="numba", help="SCD rasterizer (default numba)")
     parser.add_argument("--device", default=None, help="torch device for --impl torch (e.g. cuda)")
     parser.add_argument("--metric", choices=METRICS, default="cmc", help="palette quantization metric (default cmc)")
+    parser.add_argument(
+        "--weight-power",
+        type=int,
+        choices=WEIGHT_POWERS,
+        default=MapperConfig.weight_power,
+        help=f"exponent k of the evidence weights w^k (1 = the paper's SCD; default {MapperConfig.weight_power})",
+    )
     parser.add_argument(
         "--void-policy",
         choices=VOID_POLICIES,
@@ -40,8 +47,26 @@ def add_source_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-keyframes", type=int, default=None)
 
 
+def _object_index(args: argparse.Namespace, labels: list[dict]):
+    """The object index to fill while mapping (None without --objects), named from the source's labels."""
+    if not args.objects:
+        return None
+    from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
+    from monovoc_ros.objects.labels import labels_from_entries
+
+    return ObjectIndex(
+        lazy_backend("conse"), IndexConfig(crop_mode=args.crop_mode, labels=labels_from_entries(labels) or None)
+    )
+
+
 def mapper_config(args: argparse.Namespace) -> MapperConfig:
-    return MapperConfig(impl=args.impl, device=args.device, metric=args.metric, void_policy=args.void_policy)
+    return MapperConfig(
+        impl=args.impl,
+        device=args.device,
+        metric=args.metric,
+        void_policy=args.void_policy,
+        weight_power=args.weight_power,
+    )
 
 
 def source_options(args: argparse.Namespace) -> dict:
@@ -59,6 +84,12 @@ def register(subparsers) -> None:
     add_source_options(p)
     add_mapper_options(p)
     p.add_argument("-o", "--out", required=True, help="map directory to write")
+    p.add_argument(
+        "--objects",
+        action="store_true",
+        help="also build the object database (objects.db: views, embeddings) as the live node does",
+    )
+    p.add_argument("--crop-mode", choices=("soft", "hard"), default="soft", help="object crops with --objects")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -70,15 +101,29 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("monovoc map: give either SOURCE or --bag BAG")
     config = mapper_config(args)
     if args.bag:
-        mapper, stats = offline.map_bag(args.bag, config, progress=not args.quiet)
-        name = Path(args.bag).name
+        from monovoc_ros.bags import bag_labels
+
+        labels, name = bag_labels(args.bag), Path(args.bag).name
+        index = _object_index(args, labels)
+        hook = index.keyframe_listener if index is not None else None
+        mapper, stats = offline.map_bag(args.bag, config, progress=not args.quiet, on_keyframe=hook)
     else:
         sequence = offline.open_source(args.source, args.layout, **source_options(args))
+        name, index = sequence.name, _object_index(args, sequence.labels())
+        hook = index.keyframe_listener if index is not None else None
         mapper, stats = offline.map_sequence(
-            sequence, config, max_keyframes=args.max_keyframes, progress=not args.quiet
+            sequence, config, max_keyframes=args.max_keyframes, progress=not args.quiet, on_keyframe=hook
         )
-        name = sequence.name
     snapshot = save_snapshot(mapper, args.out)
+    objects_db = None
+    if index is not None:
+        from monovoc_ros.objects.database import save_object_index
+
+        index.refresh(mapper)
+        report = save_object_index(
+            index, args.out, snapshot=snapshot.path.name, map_version=mapper.map_version, keyframes=mapper.n_keyframes
+        )
+        objects_db = str(report.path)
     result = mapper.result()
     objects = summarize_objects(mapper.gaussians, result.object_ids)
     summary = {
@@ -92,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
         "config": asdict(config),
         "snapshot": str(snapshot.path),
         "semantic_ply": str(Path(args.out) / "semantic.ply"),
+        "objects_db": objects_db,
     }
     (Path(args.out) / "summary.json").write_text(json.dumps(summary, indent=1))
     print(json.dumps(summary, indent=1))

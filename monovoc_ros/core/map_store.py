@@ -149,7 +149,7 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
     """A mapper restored from the newest complete snapshot of `map_dir`.
 
     `config` overrides the saved configuration (e.g. another rasterizer implementation); the saved
-    one is used when it is None.
+    one is used when it is None. Evidence accumulated with another weight_power raises MapStoreError.
     """
     map_dir = Path(map_dir)
     snap = current_snapshot(map_dir)
@@ -167,7 +167,13 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
         raise MapStoreError(f"{snap}: unreadable snapshot ({exc})") from exc
     if len(state.weight_sum) != len(gaussians):
         raise MapStoreError(f"{snap}: state has {len(state.weight_sum)} Gaussians, map has {len(gaussians)}")
-    mapper = SemanticMapper(gaussians, config or MapperConfig(**meta["config"]))
+    saved = {"weight_power": 1, **meta["config"]}  # snapshots from before weight_power used the paper's 1
+    if config is not None and config.weight_power != saved["weight_power"] and len(state.stamps_ns):
+        raise MapStoreError(
+            f"{snap}: its evidence was accumulated with weight_power {saved['weight_power']}, not "
+            f"{config.weight_power}: the two cannot be mixed (reset the map or keep weight_power)"
+        )
+    mapper = SemanticMapper(gaussians, config or MapperConfig(**saved))
     mapper.state = state
     mapper.palette_builder = builder
     mapper.map_version = int(meta.get("map_version", 0))

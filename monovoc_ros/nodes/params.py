@@ -57,6 +57,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("device", "", "torch device when impl is 'torch' (e.g. 'cuda'); empty = default"),
     ParameterSpec("metric", "cmc", "palette quantization color distance: cmc, ciede2000, cie94, cam16ucs, din99o, rgb"),
     ParameterSpec("void_policy", "skip", "white (void) mask pixels: 'skip' (no evidence) or 'include' (white is a color)"),
+    ParameterSpec("weight_power", 4, "exponent k of the SCD evidence weights w^k: 1 = the paper's SCD, 4 = fewest boundary errors (1..4)"),
     ParameterSpec("reassociation_tolerance", 0.01, "map updates without ids: max distance (m) for evidence to follow a Gaussian"),
     ParameterSpec("queue_size", 32, "keyframes waiting for the worker; when full the oldest is dropped (counted)"),
     # Outputs
@@ -141,6 +142,7 @@ class NodeParams:
                 metric=v["metric"],
                 void_policy=v["void_policy"],
                 reassociation_tolerance=float(v["reassociation_tolerance"]),
+                weight_power=v["weight_power"],
             )
         except ValueError as exc:
             raise ParameterError(str(exc).replace(" must be", ": must be", 1)) from None

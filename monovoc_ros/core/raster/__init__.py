@@ -25,15 +25,20 @@ from monovoc_ros.core.raster.inputs import (
 )
 
 IMPLEMENTATIONS = ("numba", "torch", "reference")
+# Exponents k of the evidence weights w_ip^k. k = 1 is the paper's SCD (the exact minimizer of
+# sum_p w_ip ||s - y_p||^2); larger k trusts the pixels a Gaussian dominates over those it shares with its
+# neighbours, which shrinks the overlap bias at object boundaries (see README, "Choices"). Any k keeps the
+# sums incremental, order independent and mergeable.
+WEIGHT_POWERS = (1, 2, 3, 4)
 _MODULES = {"numba": "numba_impl", "torch": "torch_impl", "reference": "reference"}
 
-__all__ = ["IMPLEMENTATIONS", "Evidence", "Rendering", "accumulate", "render"]
+__all__ = ["IMPLEMENTATIONS", "WEIGHT_POWERS", "Evidence", "Rendering", "accumulate", "render"]
 
 
 @dataclass
 class Evidence:
-    color_sum: np.ndarray  # (N, 3) float64: sum_p w_ip * y_p
-    weight_sum: np.ndarray  # (N,) float64: sum_p w_ip
+    color_sum: np.ndarray  # (N, 3) float64: sum_p w_ip^k * y_p
+    weight_sum: np.ndarray  # (N,) float64: sum_p w_ip^k
     n_visible: int  # Gaussians that survived culling for this camera
 
 
@@ -64,20 +69,26 @@ def accumulate(
     *,
     valid: np.ndarray | None = None,
     background: Sequence[float] | None = None,
+    weight_power: int = 1,
     impl: str = "numba",
     device: str | None = None,
 ) -> Evidence:
-    """SCD evidence of one keyframe: per Gaussian, sum_p w_ip y_p and sum_p w_ip with y_p = C_p - T_p b.
+    """SCD evidence of one keyframe: per Gaussian, sum_p w_ip^k y_p and sum_p w_ip^k with y_p = C_p - T_p b
+    and k = `weight_power` (1 is the paper's SCD; see WEIGHT_POWERS).
 
     `mask` is (H, W, 3) uint8 (color = value / 255) or float in [0, 1]; pixels where `valid` is False add
     nothing (they still occlude as usual). Returns float64 NumPy arrays whatever the implementation.
     """
+    if isinstance(weight_power, bool) or weight_power not in WEIGHT_POWERS:
+        raise ValueError(f"weight_power must be one of {WEIGHT_POWERS}, got {weight_power!r}")
     module = _module(impl, device)
     view = check_view(gmap, intrinsics, cam_to_world)
     mask = check_mask(mask, intrinsics)
     valid = check_valid(valid, intrinsics)
     bg = check_background(background)
-    color_sum, weight_sum, n_visible = module.accumulate(gmap, mask, view, valid, bg, **_device_kwargs(impl, device))
+    color_sum, weight_sum, n_visible = module.accumulate(
+        gmap, mask, view, valid, bg, int(weight_power), **_device_kwargs(impl, device)
+    )
     return Evidence(color_sum, weight_sum, int(n_visible))
 
 

@@ -106,7 +106,12 @@ def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: 
 
 
 def accumulate(
-    gmap: GaussianMap, mask: np.ndarray, view: View, valid: np.ndarray | None, background: np.ndarray | None
+    gmap: GaussianMap,
+    mask: np.ndarray,
+    view: View,
+    valid: np.ndarray | None,
+    background: np.ndarray | None,
+    weight_power: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     n = len(gmap)
     color_sum = np.zeros((n, 3))
@@ -123,7 +128,8 @@ def accumulate(
         nk.accumulate_tiles(
             b.rows, b.tile_start, b.tile_list, b.tile_slot, b.tile_order, b.grid[0], view.width, view.height, mask,
             scale, _NO_VALID if valid is None else valid, valid is not None,
-            _ZERO_BG if background is None else background, background is not None, pair_acc, workers,
+            _ZERO_BG if background is None else background, background is not None, np.int64(weight_power), pair_acc,
+            workers,
         )  # fmt: skip
         nk.reduce_pairs(pair_acc, b.gauss_start, b.order, color_sum, weight_sum, workers)
         return color_sum, weight_sum, len(b.order)

@@ -515,7 +515,7 @@ def _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T):
 
 @njit(cache=True, nogil=True, fastmath=_FASTMATH)
 def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, height, mask, scale, valid, has_valid,
-                     bg, has_bg, pair_acc):  # fmt: skip
+                     bg, has_bg, power, pair_acc):  # fmt: skip
     px = np.empty(_PIXELS, np.float32)
     py = np.empty(_PIXELS, np.float32)
     T = np.empty(_PIXELS, np.float32)
@@ -556,6 +556,9 @@ def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, heigh
                 w = a * Tk if go else _F0
                 T[k] = nT if go else -abs(Tk)
                 w = w * val[k]
+                # w^power for power 1..4 by selects, which keep the loop vectorized (a pow call would not).
+                w2 = w * w
+                w = w if power == 1 else (w2 if power == 2 else (w2 * w if power == 3 else w2 * w2))
                 acc_w += w
                 acc_0 += w * y0[k]
                 acc_1 += w * y1[k]
@@ -573,15 +576,15 @@ def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, heigh
 
 @njit(cache=True, nogil=True, parallel=True)
 def accumulate_tiles(rows, tile_start, tile_list, tile_slot, tile_order, gx, width, height, mask, scale, valid,
-                     has_valid, bg, has_bg, pair_acc, n_workers):  # fmt: skip
-    """Per-pair partial sums (w, w y) of every tile; tiles are taken in `tile_order`, one at a time."""
+                     has_valid, bg, has_bg, power, pair_acc, n_workers):  # fmt: skip
+    """Per-pair partial sums (w^power, w^power y) of every tile; tiles are taken in `tile_order`, one at a time."""
     n = tile_order.shape[0]
     counter = np.zeros(1, np.int64)
     for _ in prange(n_workers):
         m = _fetch_add(counter, 0)
         while m < n:
             _accumulate_tile(tile_order[m], rows, tile_start, tile_list, tile_slot, gx, width, height, mask, scale,
-                             valid, has_valid, bg, has_bg, pair_acc)  # fmt: skip
+                             valid, has_valid, bg, has_bg, power, pair_acc)  # fmt: skip
             m = _fetch_add(counter, 0)
 
 

@@ -72,9 +72,11 @@ def accumulate(
     view: View,
     valid: np.ndarray | None,
     background: np.ndarray | None,
+    weight_power: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     proj = project_map(gmap, view)
     weights, T = composite(proj, view.width, view.height, gmap.opacities.astype(np.float64))
+    weights = weights**weight_power
     y = mask.reshape(-1, 3).astype(np.float64)
     if mask.dtype == np.uint8:
         y = y / 255.0

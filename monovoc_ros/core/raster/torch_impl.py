@@ -207,6 +207,7 @@ def accumulate(
     view: View,
     valid: np.ndarray | None,
     background: np.ndarray | None,
+    weight_power: int = 1,
     device: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     n = len(gmap)
@@ -229,7 +230,7 @@ def accumulate(
         y = obs_t[tiles]
         if bg is not None:
             y = y - final_T[:, :, None] * bg
-        weights = weights * keep_t[tiles][:, :, None]
+        weights = (weights * keep_t[tiles][:, :, None]) ** weight_power
         w_pair = weights.sum(dim=1)
         c_pair = torch.bmm(weights.transpose(1, 2), y)
         weight_sum.index_add_(0, rank[in_list], w_pair[in_list].double())
