@@ -12,6 +12,11 @@ command -v "$python" >/dev/null || python=python3
 
 stamp() { sha256sum "$@" | sha256sum | cut -c1-16; }
 
+# System tools the interfaces build needs (Debian/Ubuntu: apt-get install python3.11-venv cmake g++ make).
+for tool in "$python" cmake c++ make; do
+  command -v "$tool" >/dev/null || { echo "[install] missing $tool (apt-get install python3.11-venv cmake g++ make)" >&2; exit 1; }
+done
+
 if [ ! -x "$venv/bin/python" ]; then
   echo "[install] creating $venv"
   "$python" -m venv "$venv"

@@ -124,3 +124,13 @@ def test_object_query_config_lists_every_parameter_with_its_default():
     assert list(flat) == [name for name, _, _ in OBJECT_PARAMETERS]
     for name, default, _ in OBJECT_PARAMETERS:
         assert flat[name] == default and type(flat[name]) is type(default), name
+
+
+def test_readme_documents_every_parameter_with_its_default():
+    from monovoc_ros.nodes.object_query import PARAMETERS as OBJECT_PARAMETERS
+
+    readme = (REPO / "README.md").read_text()
+    specs = [(p.name, p.default) for p in PARAMETERS] + [(name, default) for name, default, _ in OBJECT_PARAMETERS]
+    for name, default in specs:
+        text = str(default).lower() if isinstance(default, bool) else json.dumps(default)
+        assert f"| `{name}` | `{text}` |" in readme, name

@@ -2,7 +2,7 @@
 
 ``synthetic_room.mcap``: the default synthetic scene (``generate_scene(SceneConfig())``), every keyframe,
 JPEG images, PNG masks. Committed. ``replica_office0.mcap``: Replica office_0 from the plain folder in
-``/work/shared/data/replica_office0`` (research-only license: generated on demand, git-ignored, never
+``../shared/data/replica_office0`` beside the repository (research-only license: generated on demand, git-ignored, never
 committed).
 """
 
@@ -16,7 +16,7 @@ from monovoc_ros.bags.convert import ConvertReport, sequence_to_bag
 BUNDLED_DIR = Path(__file__).resolve().parents[2] / "bags"
 SYNTHETIC_BAG = "synthetic_room.mcap"
 REPLICA_BAG = "replica_office0.mcap"
-DEFAULT_REPLICA_SOURCE = Path("/work/shared/data/replica_office0")
+DEFAULT_REPLICA_SOURCE = BUNDLED_DIR.parents[1] / "shared" / "data" / "replica_office0"
 
 
 def bundled_bag(name: str = SYNTHETIC_BAG) -> Path:

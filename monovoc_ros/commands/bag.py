@@ -52,7 +52,7 @@ def register(subparsers) -> None:
         const="",
         default=None,
         metavar="PATH",
-        help="also write replica_office0.mcap (from PATH, default /work/shared/data/replica_office0)",
+        help="also write replica_office0.mcap (from PATH, default ../shared/data/replica_office0)",
     )
     m.add_argument("--no-synthetic", action="store_true", help="skip synthetic_room.mcap")
     m.add_argument("--out-dir", default=None, help="output folder (default: the repository's bags/)")

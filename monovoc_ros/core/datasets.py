@@ -2,7 +2,7 @@
 
 Layouts read by ``open_sequence`` (conventions in core.camera: poses are camera-to-world, OpenCV axes):
 
-``plain`` (what ``write_plain`` writes; ``/work/shared/data/replica_office0`` is one)
+``plain`` (what ``write_plain`` writes; ``../shared/data/replica_office0`` is one)
     rgb/NNNNNN.(jpg|png)   optional; any size (the RGB camera is the mask camera rescaled)
     masks/NNNNNN.png       palette-colored instance masks, (255, 255, 255) = void; RGB or indexed PNG
     traj.txt               one row-major 4x4 camera-to-world matrix per line, one line per mask
