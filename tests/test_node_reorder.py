@@ -23,8 +23,18 @@ def test_a_burst_of_one_topic_waits_for_the_others():
         for role in ("mask", "camera_info", "pose"):
             out += r.add(role, msg(s))
     stamps = [m.stamp for _, m in out]
-    assert stamps == sorted(stamps) and len(out) == 157  # the last keyframe's pose is still held
+    assert stamps == sorted(stamps) and len(out) == 160  # every topic delivered stamp 40: nothing waits
     assert [role for role, m in out[:4]] == ["image", "mask", "camera_info", "pose"]
+
+
+def test_a_keyframe_goes_as_soon_as_its_last_message_arrives():
+    now = [0.0]
+    r = StampReorder(ROLES, max_wait_s=0.5, clock=lambda: now[0])
+    for s in (1, 2):
+        assert [r.add(role, msg(s)) for role in ("pose", "camera_info", "image")] == [[], [], []] and len(r) == 3
+        released = r.add("mask", msg(s))
+        # The mask completes stamp s: all four go at once (no waiting for stamp s + 1 or for max_wait_s).
+        assert sorted(m.stamp for _, m in released) == [s] * 4 and len(r) == 0
 
 
 def test_stale_heads_are_released_in_stamp_order():
@@ -65,10 +75,16 @@ def test_a_topic_that_is_still_delivering_is_waited_for():
         now[0] += 0.1
         out += r.add("mask", msg(s))
     assert [(role, m.stamp) for role, m in out[:4]] == [("image", 1), ("mask", 1), ("image", 2), ("mask", 2)]
-    assert len(out) == 79 and [m.stamp for _, m in out] == sorted(m.stamp for _, m in out)
-    # The last mask waits for an image of a later stamp; once the images have been silent (and the mask has
-    # waited) for max_wait_s it goes.
+    assert len(out) == 80 and [m.stamp for _, m in out] == sorted(m.stamp for _, m in out) and len(r) == 0
+
+
+def test_a_head_waits_for_a_silent_topic_at_most_max_wait_s():
+    now = [0.0]
+    r = StampReorder(("image", "mask"), max_wait_s=0.5, clock=lambda: now[0])
+    r.add("image", msg(1))
+    released = r.add("mask", msg(2))  # the image of stamp 2 might still come: the mask waits for it
+    assert [m.stamp for _, m in released] == [1] and len(r) == 1
     now[0] += 0.4
     assert r.due() == []
-    now[0] += 0.2
-    assert [(role, m.stamp) for role, m in r.due()] == [("mask", 40)]
+    now[0] += 0.2  # the images have been silent (and the mask has waited) for max_wait_s: it goes
+    assert [(role, m.stamp) for role, m in r.due()] == [("mask", 2)]

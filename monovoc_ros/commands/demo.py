@@ -133,10 +133,18 @@ def _session(client, alive, bag, out, n_keyframes, queries, rate, top_k, timeout
     save = client.service(SaveMap, f"{NAMESPACE}/save_map", timeout, alive)
     how = "as fast as possible" if rate is None else f"at {rate:g}x the recorded rate"
     print(f"[demo] replaying {bag} ({n_keyframes} keyframes) {how}", flush=True)
-    start = time.monotonic()
-    played = replay(bag, fast=rate is None, rate=rate or 1.0, wait_subscribers=1, wait_timeout=timeout)
+    started: list[float] = []  # when the node had subscribed to every topic and publishing began
+    played = replay(
+        bag,
+        fast=rate is None,
+        rate=rate or 1.0,
+        wait_subscribers=1,
+        wait_timeout=timeout,
+        on_started=lambda: started.append(time.monotonic()),
+    )
     if played.unacked:
         raise DemoError(f"the node did not acknowledge messages on {played.unacked}")
+    start = started[0]
     replay_s = time.monotonic() - start
 
     diag = client.wait_diagnostics(lambda d: settled(d, n_keyframes), timeout, alive, "every keyframe integrated")

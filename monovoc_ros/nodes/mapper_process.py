@@ -39,7 +39,7 @@ def settled(values: Mapping[str, str], masks_sent: int) -> bool:
     """Diagnostics say every sent mask reached the node and every keyframe made of them left the queue."""
     done = int(values["keyframes_processed"]) + int(values["keyframes_dropped"])
     return (
-        int(values["messages_received.mask"]) >= masks_sent
+        int(values.get("messages_received.mask", 0)) >= masks_sent
         and int(values["inputs_waiting"]) == 0
         and int(values["queue_length"]) == 0
         and done >= int(values["keyframes_received"])

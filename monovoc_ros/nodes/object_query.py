@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,8 @@ from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase, ObjectDatabaseError, load_object_index
 from monovoc_ros.objects.index import LIVE_OBJECTS_PER_REFRESH, UP_AXES, IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
+
+REFRESH_DEFER_S = 5.0  # longest time embedding waits while keyframes are queued for the worker
 
 # (name, default, description): declared on the node next to its own parameters.
 PARAMETERS: tuple[tuple[str, Any, str], ...] = (
@@ -133,6 +136,7 @@ class ObjectQueryComponent:
         self._stopping = threading.Event()
         self.backend_error: str | None = None
         self.queries_answered = 0
+        self._last_refresh = time.monotonic()
         self.queries_failed = 0
         self.group = MutuallyExclusiveCallbackGroup()  # queries never wait for the mapper's groups
         self.service = node.create_service(TextQuery, "query", self._on_query, callback_group=self.group)
@@ -236,6 +240,8 @@ class ObjectQueryComponent:
             self._wake.clear()
             if self._stopping.is_set():
                 break
+            if self._yield_to_mapping():
+                continue
             pending, self._pending = self._pending, None
             try:
                 self._refresh(pending)
@@ -251,9 +257,21 @@ class ObjectQueryComponent:
             return
         report = index.refresh(**geometry, max_objects=self.settings.max_objects_per_refresh)
         self.backend_error = None
-        # Keep going in bounded chunks until everything is embedded or a newer result arrives.
+        self._last_refresh = time.monotonic()
+        # Keep going in bounded chunks until everything is embedded, a newer result arrives or keyframes wait.
         while report.pending and not self._stopping.is_set() and self._pending is None and index is self.index:
+            if self._yield_to_mapping():
+                return
             report = index.refresh(max_objects=self.settings.max_objects_per_refresh)
+            self._last_refresh = time.monotonic()
+
+    def _yield_to_mapping(self) -> bool:
+        """True while keyframes wait for the worker, for up to REFRESH_DEFER_S since the last refresh: on two
+        cores the encoder halved the mapping rate (62 -> 130-150 ms per keyframe) during a burst, so the
+        backlog goes first and the objects catch up after it."""
+        worker = getattr(self.node, "worker", None)
+        busy = worker is not None and worker.queue.keyframes > 0
+        return busy and time.monotonic() - self._last_refresh < REFRESH_DEFER_S
 
     def _backend_failed(self, exc: Exception) -> None:
         message = str(exc)

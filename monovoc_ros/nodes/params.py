@@ -45,7 +45,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("frame_convention", "optical", "pose of the camera optical frame ('optical') or of a REP-103 body frame ('body')"),
     ParameterSpec("sync_tolerance_s", 0.02, "max stamp difference (s) between a mask and its image / camera_info / pose"),
     ParameterSpec("sync_max_pending", 32, "messages buffered per input stream while waiting for their partners"),
-    ParameterSpec("reorder_wait_s", 0.5, "max time a message waits for the other topics so all reach the synchronizer in stamp order"),
+    ParameterSpec("reorder_wait_s", 3.0, "max time a message waits for the other topics so all reach the synchronizer in stamp order"),
     ParameterSpec("use_image", True, "subscribe to `image` (RGB is only needed by object views; SCD needs mask + pose)"),
     ParameterSpec("rectified", False, "CameraInfo describes rectified images: use P instead of K"),
     ParameterSpec("allow_distortion", False, "accept CameraInfo with non-zero distortion (ignored: pinhole rendering)"),

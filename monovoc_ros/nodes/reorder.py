@@ -5,13 +5,17 @@ replayed with --fast, a backlog after a network hiccup) the executor can hand ov
 one topic before the first of another. The assembler's synchronizer buffers only `sync_max_pending`
 decoded messages per topic, so such a skew lost keyframes (measured: 64 of 96 in a burst of 96).
 
-`StampReorder` keeps the raw messages (compressed, cheap) per topic and releases the oldest head only
-once every topic has a message waiting, so the synchronizer sees the streams merged by stamp. A message
+`StampReorder` keeps the raw messages (compressed, cheap) per topic and releases the oldest head once
+every other topic has a message waiting or has already delivered that stamp (each topic is in order, so
+nothing older can come from it), so the synchronizer sees the streams merged by stamp and a keyframe goes
+on as soon as its last message arrives. A message
 is released anyway once it has waited `max_wait_s` and every topic it waits for has been silent for
 `max_wait_s` (a topic that stopped, or that will never send this stamp), or when a topic holds
 `max_buffered` messages, so nothing waits forever. A topic that is still delivering is only behind: at
 start-up, while the node loaded its models, the masks of a --fast replay ran more than 0.5 s behind the
-images, and a wait counted from the image's arrival alone lost 23 of 60 keyframes. Per-topic order is
+images, and a wait counted from the image's arrival alone lost 23 of 60 keyframes; on two busy cores one
+topic's callbacks also stalled for more than 0.5 s while another's ran (a backlog lost up to half its
+keyframes), hence the 3 s default. Per-topic order is
 never changed: out-of-order and duplicate stamps still reach the assembler as sent, and are rejected there.
 """
 
@@ -29,7 +33,7 @@ class StampReorder:
     def __init__(
         self,
         roles: Sequence[str],
-        max_wait_s: float = 0.5,
+        max_wait_s: float = 3.0,
         max_buffered: int = 1000,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -41,6 +45,8 @@ class StampReorder:
         self._queues: dict[str, deque[tuple[int | None, float, Any]]] = {r: deque() for r in self.roles}
         self._rank = {r: i for i, r in enumerate(self.roles)}
         self._last_arrival = dict.fromkeys(self.roles, -float("inf"))
+        self._passed: dict[str, int | None] = dict.fromkeys(self.roles)  # newest stamp each topic delivered
+        self.released_early = 0  # messages let go without their partners (waited too long, or overflow)
 
     def __len__(self) -> int:
         return sum(len(q) for q in self._queues.values())
@@ -54,15 +60,25 @@ class StampReorder:
         now = self._clock()
         self._queues[role].append((stamp, now, msg))
         self._last_arrival[role] = now
+        if stamp is not None:
+            passed = self._passed[role]
+            self._passed[role] = stamp if passed is None else max(passed, stamp)
         return self.due()
 
     def due(self) -> list[tuple[str, Any]]:
-        """Messages that may go now: the oldest head while every topic has one; stale or overflowing heads."""
+        """Messages that may go now: the oldest head once every other topic has a head or has delivered its
+        stamp already (nothing older can come: each topic is in order); stale or overflowing heads."""
         out = []
         while True:
             heads = {r: q[0] for r, q in self._queues.items() if q}
             if not heads:
                 return out
+            role = min(heads, key=lambda r: (heads[r][0] if heads[r][0] is not None else -1, self._rank[r]))
+            oldest = heads[role][0]
+            missing = [r for r in self.roles if r not in heads]
+            if oldest is not None and all(self._passed[r] is not None and self._passed[r] >= oldest for r in missing):
+                out.append((role, self._queues[role].popleft()[2]))
+                continue
             now = self._clock()
             # Waiting ends max_wait_s after the later of the head's arrival and the last message of the
             # topics it waits for.
@@ -70,13 +86,14 @@ class StampReorder:
             forced = [r for r, (stamp, arrived, _) in heads.items()
                       if stamp is None or now - max(arrived, heard) >= self.max_wait_s
                       or len(self._queues[r]) > self.max_buffered]  # fmt: skip
-            if len(heads) < len(self.roles) and not forced:
+            if not forced:
                 return out
             # Even when a head is forced out, the oldest of all heads goes first: stamp order is kept.
-            role = min(heads, key=lambda r: (heads[r][0] if heads[r][0] is not None else -1, self._rank[r]))
             out.append((role, self._queues[role].popleft()[2]))
+            self.released_early += 1
 
     def clear(self) -> None:
         for q in self._queues.values():
             q.clear()
         self._last_arrival = dict.fromkeys(self.roles, -float("inf"))
+        self._passed = dict.fromkeys(self.roles)

@@ -347,6 +347,7 @@ class SemanticMapperNode(Node):
         snapshot = self.stats.snapshot()
         snapshot["queue_length"] = self.worker.queue.keyframes
         snapshot["inputs_waiting"] = len(self._reorder)
+        snapshot["inputs_released_early"] = self._reorder.released_early
         with self._ingest_lock:
             sync = self.assembler.sync.stats
             extra: dict[str, Any] = {f"sync_unmatched.{r}": n for r, n in sync.unmatched.items()}

@@ -119,6 +119,22 @@ def _plane(ox, oy, oz, dx, dy, dz, p):
     return t, p[3], p[4], p[5]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _outside_sphere(ox, oy, oz, dx, dy, dz, a, sphere, limit):
+    """Whether the ray misses the bounding sphere (x, y, z, r), or enters it only beyond parameter `limit`:
+    the primitive inside can then not be hit before `limit`. An infinite radius bounds everything."""
+    rad = sphere[3]
+    if rad == np.inf:
+        return False
+    rx, ry, rz = ox - sphere[0], oy - sphere[1], oz - sphere[2]
+    b = rx * dx + ry * dy + rz * dz
+    disc = b * b - a * (rx * rx + ry * ry + rz * rz - rad * rad)
+    if disc < 0.0:
+        return True
+    sq = np.sqrt(disc)
+    return -b + sq <= 0.0 or (-b - sq) / a > limit * (1.0 + 1e-9) + 1e-9
+
+
 @numba.njit(cache=True, nogil=True)
 def _cast_kernel(origin, dirs, kinds, params, spheres, out_t, out_prim, out_n):
     ox, oy, oz = origin[0], origin[1], origin[2]
@@ -129,16 +145,8 @@ def _cast_kernel(origin, dirs, kinds, params, spheres, out_t, out_prim, out_n):
         for k in range(kinds.shape[0]):
             # Skip a primitive whose bounding sphere the ray misses, or enters beyond the current best hit:
             # it cannot win, so results equal the reference's exactly.
-            rad = spheres[k, 3]
-            if rad < np.inf:
-                rx, ry, rz = ox - spheres[k, 0], oy - spheres[k, 1], oz - spheres[k, 2]
-                b = rx * dx + ry * dy + rz * dz
-                disc = b * b - a * (rx * rx + ry * ry + rz * rz - rad * rad)
-                if disc < 0.0:
-                    continue
-                sq = np.sqrt(disc)
-                if -b + sq <= 0.0 or (-b - sq) / a > best * (1.0 + 1e-9) + 1e-9:
-                    continue
+            if _outside_sphere(ox, oy, oz, dx, dy, dz, a, spheres[k], best):
+                continue
             kind = kinds[k]
             if kind == 0:
                 t, nx, ny, nz = _box(ox, oy, oz, dx, dy, dz, params[k])

@@ -18,7 +18,15 @@ import numba
 import numpy as np
 
 from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.synthetic.raycast import _box, _cylinder, _plane, _sphere, bounding_spheres, cast_rays
+from monovoc_ros.core.synthetic.raycast import (
+    _box,
+    _cylinder,
+    _outside_sphere,
+    _plane,
+    _sphere,
+    bounding_spheres,
+    cast_rays,
+)
 
 NEAR_PLANE = 0.2  # metres: the rasterizer's near plane (METHOD section 2)
 DEPTH_TOLERANCE = 0.005  # metres along the ray: how much nearer than the point the first hit may be
@@ -36,16 +44,8 @@ def _occluded(ox, oy, oz, dx, dy, dz, limit, kinds, params, spheres):
     """Whether any primitive is hit at ray parameter T_MIN < t < limit (any hit will do: no sorting)."""
     a = dx * dx + dy * dy + dz * dz
     for k in range(kinds.shape[0]):
-        rad = spheres[k, 3]
-        if rad < np.inf:  # the bounding sphere must be entered before the limit
-            rx, ry, rz = ox - spheres[k, 0], oy - spheres[k, 1], oz - spheres[k, 2]
-            b = rx * dx + ry * dy + rz * dz
-            disc = b * b - a * (rx * rx + ry * ry + rz * rz - rad * rad)
-            if disc < 0.0:
-                continue
-            sq = np.sqrt(disc)
-            if -b + sq <= 0.0 or (-b - sq) / a > limit * (1.0 + 1e-9) + 1e-9:
-                continue
+        if _outside_sphere(ox, oy, oz, dx, dy, dz, a, spheres[k], limit):
+            continue
         kind = kinds[k]
         if kind == 0:
             t = _box(ox, oy, oz, dx, dy, dz, params[k])[0]
