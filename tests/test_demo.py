@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from monovoc_ros import offline
 from monovoc_ros.bags import sequence_to_bag
+from monovoc_ros.cli import main
 from monovoc_ros.commands.eval import bag_frames, score
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.embed import default_model_dir
@@ -48,9 +48,11 @@ def test_demo_replays_a_bag_into_the_live_node_and_matches_offline_mapping(tmp_p
     assert "sofa" in [o["label"] for o in sofa["objects"]]
     assert "query: 'a sofa'" in run.stdout and "score" in run.stdout
 
-    # The same bag mapped offline: identical labels, and the live cloud scores what the offline map does.
-    mapper, stats = offline.map_bag(str(bag))
-    assert stats.keyframes == N_KEYFRAMES
+    # The same bag mapped offline (`monovoc map --bag`): identical labels, and the live cloud scores what the
+    # offline map does.
+    assert main(["map", "--bag", str(bag), "-o", str(tmp_path / "offline"), "--quiet"]) == 0
+    assert json.loads((tmp_path / "offline" / "summary.json").read_text())["keyframes"] == N_KEYFRAMES
+    mapper = load_snapshot(tmp_path / "offline")
     expected = mapper.result()
     saved = load_snapshot(summary["map_directory"])
     np.testing.assert_array_equal(saved.result().object_ids, expected.object_ids)

@@ -103,14 +103,15 @@ def run(args: argparse.Namespace) -> int:
     if args.bag:
         from monovoc_ros.bags import bag_labels
 
-        labels, name = bag_labels(args.bag), Path(args.bag).name
-        index = _object_index(args, labels)
-        hook = index.keyframe_listener if index is not None else None
-        mapper, stats = offline.map_bag(args.bag, config, progress=not args.quiet, on_keyframe=hook)
+        sequence, name, labels = None, Path(args.bag).name, bag_labels(args.bag)
     else:
         sequence = offline.open_source(args.source, args.layout, **source_options(args))
-        name, index = sequence.name, _object_index(args, sequence.labels())
-        hook = index.keyframe_listener if index is not None else None
+        name, labels = sequence.name, sequence.labels()
+    index = _object_index(args, labels)
+    hook = index.keyframe_listener if index is not None else None
+    if sequence is None:
+        mapper, stats = offline.map_bag(args.bag, config, progress=not args.quiet, on_keyframe=hook)
+    else:
         mapper, stats = offline.map_sequence(
             sequence, config, max_keyframes=args.max_keyframes, progress=not args.quiet, on_keyframe=hook
         )
