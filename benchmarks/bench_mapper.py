@@ -44,7 +44,7 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
     mask_topic = topic_names()["mask"]
     n = info.topics[mask_topic].count
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
-    first_log = min(m.log_time_ns for m in iter_messages(bag))
+    first_log = info.start_ns
     params = {"publish_rate_hz": publish_rate, "diagnostics_period_s": 0.2, "queue_size": max(32, n)}
     with (
         MapperProcess(params, work / f"node-{'fast' if fast else 'rate'}.log", module) as node,

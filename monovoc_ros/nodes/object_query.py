@@ -163,7 +163,9 @@ class ObjectQueryComponent:
         worker = getattr(node, "worker", None)
         if worker is not None:
             worker.add_reset_listener(self._on_reset)
-            self._wrap_persistence(worker)
+            # objects.db is written with every snapshot and read back with load_map.
+            worker.add_save_listener(self._on_saved)
+            worker.add_load_listener(self._on_loaded)
         params = getattr(node, "params", None)
         if params is not None and params.resume and params.map_directory:
             self._restore(params.map_directory)
@@ -174,25 +176,14 @@ class ObjectQueryComponent:
         self._thread.start()
         self._highlighter.start()
 
-    def _wrap_persistence(self, worker: Any) -> None:
-        # The worker has no save/load hooks: wrap its bound methods on this instance so that objects.db is
-        # written with every snapshot (service, periodic, final) and read back with load_map.
-        save, load = worker.save, worker.load
+    def _on_saved(self, directory: str, info: Any, mapper: Any) -> None:
+        self.save(directory, snapshot=info.path.name, keyframes=info.keyframes, mapper=mapper)
 
-        def save_with_objects(directory: str):
-            info = save(directory)
-            self.save(directory, snapshot=info.path.name, keyframes=info.keyframes, mapper=worker.mapper)
-            return info
-
-        def load_with_objects(path: str):
-            mapper = load(path)
-            if Path(path).is_dir():
-                self._restore(path)
-            else:
-                self._replace_index(None)
-            return mapper
-
-        worker.save, worker.load = save_with_objects, load_with_objects
+    def _on_loaded(self, path: str) -> None:
+        if Path(path).is_dir():
+            self._restore(path)
+        else:
+            self._replace_index(None)
 
     def stop(self) -> None:
         self._stopping.set()

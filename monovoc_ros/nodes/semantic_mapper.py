@@ -18,6 +18,7 @@ Extending it (e.g. an object database / text-query service) without editing the 
         node.add_keyframe_listener(lambda keyframe, mapper: ...)   # worker thread, after each keyframe
         node.add_result_listener(lambda mapper, result: ...)       # worker thread, before each publish
         node.add_diagnostics_source(lambda: {"my.key": 1})         # timer thread, into /diagnostics
+        node.worker.add_save_listener(lambda directory, info, mapper: ...)  # after every snapshot
         node.create_service(TextQuery, "query", handler, callback_group=node.callback_groups["services"])
         # inside a handler: node.submit(lambda mapper: ...).result(timeout) reads the mapper in order
 

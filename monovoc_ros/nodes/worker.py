@@ -233,6 +233,8 @@ class MapWorker:
         self._last_publish = -float("inf")
         self._last_save = time.monotonic()
         self._on_reset: list[Callable[[], None]] = []
+        self._on_save: list[Callable[[str, SnapshotInfo, SemanticMapper], None]] = []
+        self._on_load: list[Callable[[str], None]] = []
         self._refresh_map_stats()
 
     # ------------------------------------------------------------------ public API (any thread)
@@ -251,6 +253,14 @@ class MapWorker:
     def add_reset_listener(self, fn: Callable[[], None]) -> None:
         """fn() runs on the worker thread after a reset (the node clears its keyframe assembler)."""
         self._on_reset.append(fn)
+
+    def add_save_listener(self, fn: Callable[[str, SnapshotInfo, SemanticMapper], None]) -> None:
+        """fn(directory, info, mapper) runs on the worker thread after every snapshot (service, periodic, final)."""
+        self._on_save.append(fn)
+
+    def add_load_listener(self, fn: Callable[[str], None]) -> None:
+        """fn(path) runs on the worker thread after load (a snapshot directory or a PLY file)."""
+        self._on_load.append(fn)
 
     def submit_keyframe(self, keyframe: Keyframe) -> Keyframe | None:
         """Queues a keyframe; returns the one dropped to make room (already counted), if any."""
@@ -315,6 +325,8 @@ class MapWorker:
         if Path(directory).resolve() == _resolved(self.settings.map_directory):
             self._unsaved = False
             self._last_save = time.monotonic()
+        for fn in self._on_save:
+            fn(directory, info, self._mapper)
         return info
 
     def load(self, path: str) -> SemanticMapper:
@@ -333,6 +345,8 @@ class MapWorker:
         self._mapper = mapper
         self._changed(unsaved=p.resolve() != _resolved(self.settings.map_directory))
         self.log.info(f"loaded {source}: {len(mapper.gaussians)} Gaussians")
+        for fn in self._on_load:
+            fn(path)
         return mapper
 
     def reset(self, keep_gaussians: bool) -> None:
