@@ -15,6 +15,7 @@ from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
+from tests.evidence import assert_same_evidence
 from tests.rosutil import (
     DiagnosticsMonitor,
     MessageCollector,
@@ -156,8 +157,7 @@ def test_bad_messages_are_counted_and_change_nothing(tmp_path):
         assert f"rejected ({reason})" in log, reason
     saved = load_snapshot(tmp_path / "saved")
     np.testing.assert_array_equal(saved.state.stamps_ns, [kf.stamp_ns for kf in keyframes])
-    np.testing.assert_allclose(saved.state.color_sum, reference.state.color_sum, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(saved.state.weight_sum, reference.state.weight_sum, rtol=1e-12, atol=1e-12)
+    assert_same_evidence(saved.state, reference.state, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(saved.palette_builder.ids, reference.palette_builder.ids)
     expected_ids = reference.result().object_ids
     np.testing.assert_array_equal(cloud.object_ids, expected_ids[expected_ids != UNOBSERVED_ID])

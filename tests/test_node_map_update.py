@@ -13,6 +13,7 @@ import msg_adapters as ma
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
+from tests.evidence import assert_same_evidence
 from tests.rosutil import (
     DiagnosticsMonitor,
     RosClientNode,
@@ -61,7 +62,7 @@ def test_map_update_carries_evidence_by_id(tmp_path):
     before = reference.state
     report = reference.update_gaussians(updated)
     assert report.by == "ids" and report.dropped > 0
-    mid_weights = reference.state.weight_sum.copy()  # integrate() adds in place
+    mid_weights = reference.state.total_weight.copy()  # integrate() adds in place
     for keyframe in keyframes[8:]:
         reference.integrate(keyframe)
 
@@ -97,15 +98,13 @@ def test_map_update_carries_evidence_by_id(tmp_path):
     old_index = {int(i): k for k, i in enumerate(before.ids)}
     kept = np.array([int(i) in old_index for i in updated.ids])
     src = np.array([old_index[int(i)] for i in updated.ids[kept]])
-    np.testing.assert_array_equal(mid.weight_sum[kept], before.weight_sum[src])
-    np.testing.assert_array_equal(mid.color_sum[kept], before.color_sum[src])
-    assert np.all(mid.weight_sum[~kept] == 0) and (~kept).sum() == 2000
+    assert_same_evidence(mid, before, rows=kept, expected_rows=src)
+    assert np.all(mid.total_weight[~kept] == 0) and (~kept).sum() == 2000
     moved = kept.copy()
     moved[kept] = np.any(updated.means[kept] != scene.gaussians.means[src], axis=1)
-    assert moved.sum() > 1000 and np.all(mid.weight_sum[moved] == before.weight_sum[src[moved[kept]]])
-    np.testing.assert_array_equal(mid.weight_sum, mid_weights)
+    assert moved.sum() > 1000 and np.all(mid.total_weight[moved] == before.total_weight[src[moved[kept]]])
+    np.testing.assert_array_equal(mid.total_weight, mid_weights)
 
     final = load_snapshot(tmp_path / "final")
-    np.testing.assert_allclose(final.state.color_sum, reference.state.color_sum, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(final.state.weight_sum, reference.state.weight_sum, rtol=1e-12, atol=1e-12)
+    assert_same_evidence(final.state, reference.state, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(final.result().object_ids, reference.result().object_ids)

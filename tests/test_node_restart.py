@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.map_store import current_snapshot, load_snapshot
-from monovoc_ros.core.state import SemanticState
+from monovoc_ros.core.votes import VoteState
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
+from tests.evidence import assert_same_evidence
 from tests.rosutil import (
     DiagnosticsMonitor,
     RosClientNode,
@@ -35,7 +36,7 @@ def snapshot_stamps(map_dir) -> list[int]:
     for _ in range(5):
         try:
             snap = current_snapshot(map_dir)
-            return [] if snap is None else SemanticState.load(snap / "state.npz").stamps_ns.tolist()
+            return [] if snap is None else VoteState.load(snap / "state.npz").stamps_ns.tolist()
         except (OSError, ValueError):
             continue
     return []
@@ -95,8 +96,7 @@ def test_kill_9_loses_only_the_keyframes_since_the_last_snapshot(tmp_path):
     expected_stamps = stamps[:6] + stamps[9:]
     assert final.state.stamps_ns.tolist() == expected_stamps
     offline = offline_mapper(scene.gaussians, [kf for kf in keyframes if kf.stamp_ns in set(expected_stamps)])
-    np.testing.assert_allclose(final.state.color_sum, offline.state.color_sum, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(final.state.weight_sum, offline.state.weight_sum, rtol=1e-12, atol=1e-12)
+    assert_same_evidence(final.state, offline.state, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(final.state.ids, offline.state.ids)
     for key, value in offline.palette_builder.to_arrays().items():
         np.testing.assert_array_equal(final.palette_builder.to_arrays()[key], value)

@@ -16,6 +16,7 @@ from monovoc_ros.core.map_store import current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped, same_geometry
+from tests.evidence import assert_same_evidence
 
 CAM = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
 
@@ -129,7 +130,7 @@ def test_worker_integrates_in_order_like_an_offline_mapper():
     offline = SemanticMapper(plane_map())
     for stamp in (1, 2, 3, 4):
         offline.integrate(keyframe(stamp, shift=stamp))
-    np.testing.assert_array_equal(state.color_sum, offline.state.color_sum)
+    assert_same_evidence(state, offline.state)
     np.testing.assert_array_equal(state.stamps_ns, [1, 2, 3, 4])
     assert seen == [(1, 1), (2, 2), (3, 3), (4, 4)]
     assert worker.stats.keyframes_processed == 4
@@ -144,13 +145,13 @@ def test_duplicate_stamps_are_counted_and_change_nothing():
     worker.start()
     try:
         drain(worker)
-        weights = worker.submit(lambda m: m.state.weight_sum.copy()).result(5)
+        weights = worker.submit(lambda m: m.state.total_weight.copy()).result(5)
     finally:
         worker.stop()
     assert worker.stats.rejected["duplicate_stamp"] == 1 and worker.stats.keyframes_processed == 1
     offline = SemanticMapper(plane_map())
     offline.integrate(keyframe(5))
-    np.testing.assert_array_equal(weights, offline.state.weight_sum)
+    np.testing.assert_array_equal(weights, offline.state.total_weight)
     assert any("already in the map" in msg for _, msg in log.lines)
 
 
@@ -179,9 +180,9 @@ def test_map_update_by_ids_and_unchanged_maps_are_skipped():
     try:
         drain(worker)
         moved = GaussianMap(old.means[::-1] + [0.5, 0, 0], old.scales, old.quats, old.opacities, ids=old.ids[::-1])
-        before = worker.submit(lambda m: m.state.weight_sum.copy()).result(5)
+        before = worker.submit(lambda m: m.state.total_weight.copy()).result(5)
         worker.submit_map(moved)
-        after = worker.submit(lambda m: m.state.weight_sum.copy()).result(5)
+        after = worker.submit(lambda m: m.state.total_weight.copy()).result(5)
     finally:
         worker.stop()
     assert worker.stats.maps_unchanged == 1 and worker.stats.map_updates == 1

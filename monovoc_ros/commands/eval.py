@@ -124,8 +124,13 @@ def run(args: argparse.Namespace) -> int:
     palette = mapper.palette_builder.build()
     report: dict = {"map": str(args.map_dir), "source": name, "frames": len(frames), "point_size": args.point_size}
     figure_rows = None
+    if mapper.config.semantic_mode == "vote":
+        # Votes are labelled by argmax; the metric only snapped non-palette pixels while mapping.
+        metrics = (mapper.config.metric,)
     for metric in metrics:
-        result = label_gaussians(mapper.state, palette, metric)
+        result = (
+            mapper.result() if mapper.config.semantic_mode == "vote" else label_gaussians(mapper.state, palette, metric)
+        )
         entry: dict = {}
         for protocol in protocols:
             scores, rendered = score(mapper.gaussians, result.object_ids, frames, protocol, args.point_size)

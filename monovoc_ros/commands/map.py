@@ -8,14 +8,14 @@ from dataclasses import asdict
 from pathlib import Path
 
 from monovoc_ros.core.map_store import save_snapshot
-from monovoc_ros.core.mapping import VOID_POLICIES, MapperConfig
+from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
 from monovoc_ros.core.objects import summarize_objects
 from monovoc_ros.core.quantize import METRICS
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
 
 
 def add_mapper_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--impl", choices=IMPLEMENTATIONS, default="numba", help="SCD rasterizer (default numba)")
+    parser.add_argument("--impl", choices=IMPLEMENTATIONS, default="numba", help="rasterizer (default numba)")
     parser.add_argument("--device", default=None, help="torch device for --impl torch (e.g. cuda)")
     parser.add_argument("--metric", choices=METRICS, default="cmc", help="palette quantization metric (default cmc)")
     parser.add_argument(
@@ -30,6 +30,26 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
         choices=VOID_POLICIES,
         default="skip",
         help="white (void) mask pixels: skip = no evidence (default); include = evidence for white",
+    )
+    parser.add_argument(
+        "--semantic-mode",
+        choices=SEMANTIC_MODES,
+        default=MapperConfig.semantic_mode,
+        help="vote = per-object weighted votes; scd = the paper's color deblending "
+        f"(default {MapperConfig.semantic_mode})",
+    )
+    parser.add_argument(
+        "--vote-slots",
+        type=int,
+        default=MapperConfig.vote_slots,
+        help=f"objects kept per Gaussian in vote mode (default {MapperConfig.vote_slots})",
+    )
+    parser.add_argument(
+        "--min-snap-margin",
+        type=float,
+        default=MapperConfig.min_snap_margin,
+        help="vote mode: margin below which a non-palette mask color adds no evidence "
+        f"(default {MapperConfig.min_snap_margin})",
     )
 
 
@@ -66,6 +86,9 @@ def mapper_config(args: argparse.Namespace) -> MapperConfig:
         metric=args.metric,
         void_policy=args.void_policy,
         weight_power=args.weight_power,
+        semantic_mode=args.semantic_mode,
+        vote_slots=args.vote_slots,
+        min_snap_margin=args.min_snap_margin,
     )
 
 

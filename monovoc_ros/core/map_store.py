@@ -29,6 +29,7 @@ from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.palette import PaletteBuilder
 from monovoc_ros.core.ply import save_semantic_ply
 from monovoc_ros.core.state import SemanticState
+from monovoc_ros.core.votes import VoteState
 
 FORMAT_VERSION = 1
 _KEEP = 2
@@ -160,21 +161,28 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
         if meta.get("format_version") != FORMAT_VERSION:
             raise MapStoreError(f"{snap}: unsupported format_version {meta.get('format_version')}")
         gaussians = _load_map(snap / "gaussians.npz")
-        state = SemanticState.load(snap / "state.npz")
+        # Snapshots from before semantic_mode used SCD, and before weight_power the paper's k = 1.
+        saved = {"weight_power": 1, "semantic_mode": "scd", **meta["config"]}
+        store = VoteState if saved["semantic_mode"] == "vote" else SemanticState
+        state = store.load(snap / "state.npz")
         with np.load(snap / "palette.npz") as arrays:
             builder = PaletteBuilder.from_arrays(dict(arrays))
     except (OSError, KeyError, ValueError) as exc:
         raise MapStoreError(f"{snap}: unreadable snapshot ({exc})") from exc
-    if len(state.weight_sum) != len(gaussians):
-        raise MapStoreError(f"{snap}: state has {len(state.weight_sum)} Gaussians, map has {len(gaussians)}")
-    saved = {"weight_power": 1, **meta["config"]}  # snapshots from before weight_power used the paper's 1
-    if config is not None and config.weight_power != saved["weight_power"] and len(state.stamps_ns):
-        raise MapStoreError(
-            f"{snap}: its evidence was accumulated with weight_power {saved['weight_power']}, not "
-            f"{config.weight_power}: the two cannot be mixed (reset the map or keep weight_power)"
-        )
+    if len(state) != len(gaussians):
+        raise MapStoreError(f"{snap}: state has {len(state)} Gaussians, map has {len(gaussians)}")
+    if isinstance(state, VoteState):
+        saved["vote_slots"] = state.slots
+    if config is not None and len(state.stamps_ns):
+        for name in ("semantic_mode", "weight_power", "vote_slots"):
+            if name in saved and getattr(config, name) != saved[name] and (name != "vote_slots" or store is VoteState):
+                raise MapStoreError(
+                    f"{snap}: its evidence was accumulated with {name} {saved[name]!r}, not "
+                    f"{getattr(config, name)!r}: the two cannot be mixed (reset the map or keep {name})"
+                )
     mapper = SemanticMapper(gaussians, config or MapperConfig(**saved))
-    mapper.state = state
+    if len(state.stamps_ns) or type(state) is type(mapper.state):
+        mapper.state = state
     mapper.palette_builder = builder
     mapper.map_version = int(meta.get("map_version", 0))
     return mapper

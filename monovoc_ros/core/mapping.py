@@ -1,7 +1,9 @@
 """The semantic mapper: keyframes in, per-Gaussian object labels out (no ROS).
 
-One class drives the whole method for a Gaussian map: SCD accumulation per keyframe, the palette seen
-so far, quantization, and map updates from the SLAM front-end. The offline `monovoc map` command and the
+One class drives the whole method for a Gaussian map: per keyframe either per-object votes
+(`semantic_mode` "vote", the default: core.votes) or the paper's SCD color sums with palette
+quantization ("scd": core.state, core.quantize), the palette seen so far, and map updates from the
+SLAM front-end. The offline `monovoc map` command and the
 live `semantic_mapper` node both wrap this class, so a bag processed offline and the same bag replayed
 through the node give the same semantic map.
 """
@@ -15,12 +17,15 @@ import numpy as np
 
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_RGB, Palette, PaletteBuilder
+from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
+from monovoc_ros.core.pixel_labels import pixel_labels
 from monovoc_ros.core.quantize import METRICS, Quantization, confidence, quantize
-from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS, accumulate
-from monovoc_ros.core.state import SemanticState, reindex_by_position
+from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS, accumulate, accumulate_votes
+from monovoc_ros.core.state import GaussianEvidence, SemanticState, reindex_by_position
+from monovoc_ros.core.votes import DEFAULT_SLOTS, VoteState
 
 VOID_POLICIES = ("skip", "include")
+SEMANTIC_MODES = ("vote", "scd")
 
 
 class DuplicateKeyframeError(ValueError):
@@ -41,6 +46,13 @@ class MapperConfig:
     # Exponent k of the evidence weights w_ip^k (core.raster.WEIGHT_POWERS): 1 is the paper's SCD; 4 cut
     # the labelling errors at object boundaries most (README, "Choices").
     weight_power: int = 4
+    # "vote": per-object weighted votes (METHOD section 8); "scd": the paper's color deblending + CMC.
+    semantic_mode: str = "vote"
+    # Objects kept per Gaussian in vote mode (the rest pooled as "other"; exact up to this many).
+    vote_slots: int = DEFAULT_SLOTS
+    # Vote mode: a pixel whose color is no palette color is snapped to the nearest one (with `metric`)
+    # when the relative margin (d2 - d1) / (d2 + d1) of its two nearest palette colors is at least this.
+    min_snap_margin: float = 0.2
 
     def __post_init__(self) -> None:
         if self.impl not in IMPLEMENTATIONS:
@@ -51,6 +63,18 @@ class MapperConfig:
             raise ValueError(f"void_policy must be one of {VOID_POLICIES}, got {self.void_policy!r}")
         if isinstance(self.weight_power, bool) or self.weight_power not in WEIGHT_POWERS:
             raise ValueError(f"weight_power must be one of {WEIGHT_POWERS}, got {self.weight_power!r}")
+        if self.semantic_mode not in SEMANTIC_MODES:
+            raise ValueError(f"semantic_mode must be one of {SEMANTIC_MODES}, got {self.semantic_mode!r}")
+        if isinstance(self.vote_slots, bool) or not isinstance(self.vote_slots, int) or not 1 <= self.vote_slots <= 16:
+            raise ValueError(f"vote_slots must be an integer in [1, 16], got {self.vote_slots!r}")
+        if not 0.0 <= float(self.min_snap_margin) <= 1.0:
+            raise ValueError(f"min_snap_margin must be in [0, 1], got {self.min_snap_margin!r}")
+
+    def empty_state(self, n: int, ids: np.ndarray | None) -> GaussianEvidence:
+        """The evidence store of this configuration's semantic mode for a map of n Gaussians."""
+        if self.semantic_mode == "vote":
+            return VoteState.zeros(n, self.vote_slots, ids)
+        return SemanticState.zeros(n, ids)
 
 
 @dataclass
@@ -59,6 +83,8 @@ class IntegrationReport:
     seconds: float
     n_visible: int
     valid_pixels: int
+    snapped_pixels: int = 0  # vote mode: non-palette pixels snapped to a palette color
+    ambiguous_pixels: int = 0  # vote mode: non-palette pixels left without evidence
 
 
 @dataclass
@@ -66,16 +92,16 @@ class SemanticResult:
     """The quantized semantic map at one moment."""
 
     palette: Palette
-    quantization: Quantization
     object_ids: np.ndarray  # (N,) uint32 packed palette color per Gaussian, UNOBSERVED_ID if unobserved
-    confidence: np.ndarray  # (N,) float32 in [0, 1], 0 where unobserved
+    confidence: np.ndarray  # (N,) float32 in [0, 1] (vote margin, or quantization margin), 0 where unobserved
     observed: np.ndarray  # (N,) bool
+    quantization: Quantization | None = None  # SCD mode only
 
     def object_rgb(self) -> np.ndarray:
-        """(N, 3) uint8 palette color per Gaussian; unobserved Gaussians are grey."""
+        """(N, 3) uint8 object color per Gaussian; unobserved Gaussians are grey."""
         rgb = np.full((len(self.object_ids), 3), 128, np.uint8)
-        known = self.quantization.index >= 0
-        rgb[known] = self.palette.colors[self.quantization.index[known]]
+        known = self.object_ids != UNOBSERVED_ID
+        rgb[known] = unpack_rgb(self.object_ids[known])
         return rgb
 
 
@@ -94,17 +120,19 @@ def label_gaussians(state: SemanticState, palette: Palette, metric: str) -> Sema
     object_ids = np.full(len(state), UNOBSERVED_ID, np.uint32)
     object_ids[known] = palette.ids[q.index[known]]
     conf = np.where(known, confidence(q), 0.0).astype(np.float32)
-    return SemanticResult(palette, q, object_ids, conf, state.observed.copy())
+    return SemanticResult(palette, object_ids, conf, state.observed.copy(), q)
 
 
 class SemanticMapper:
     def __init__(self, gaussians: GaussianMap, config: MapperConfig | None = None) -> None:
         self.config = config or MapperConfig()
         self.gaussians = gaussians
-        self.state = SemanticState.zeros(len(gaussians), ids=gaussians.ids)
+        self.state: GaussianEvidence = self.config.empty_state(len(gaussians), gaussians.ids)
         self.palette_builder = PaletteBuilder()
         self.map_version = 0  # bumped on every map update, so snapshots can skip rewriting an unchanged map
         self._result: SemanticResult | None = None
+        # Vote mode keeps every Gaussian's label and confidence and re-labels only what a keyframe touched.
+        self._labels: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def n_keyframes(self) -> int:
@@ -115,6 +143,15 @@ class SemanticMapper:
         if self.state.has_stamp(keyframe.stamp_ns):
             raise DuplicateKeyframeError(f"keyframe stamp {keyframe.stamp_ns} was already integrated")
         start = time.perf_counter()
+        if self.config.semantic_mode == "vote":
+            report = self._integrate_votes(keyframe)
+        else:
+            report = self._integrate_scd(keyframe)
+        self._result = None
+        report.seconds = time.perf_counter() - start
+        return report
+
+    def _integrate_scd(self, keyframe: Keyframe) -> IntegrationReport:
         valid = None
         if self.config.void_policy == "skip":
             valid = np.any(keyframe.mask != np.array(VOID_RGB, np.uint8), axis=2)
@@ -131,18 +168,64 @@ class SemanticMapper:
         # Only after the kernel succeeded: a failure above leaves state and palette as they were.
         self.palette_builder.update(keyframe.mask)
         self.state.add(evidence, keyframe.stamp_ns)
-        self._result = None
+        h, w = keyframe.mask.shape[:2]
         return IntegrationReport(
-            stamp_ns=keyframe.stamp_ns,
-            seconds=time.perf_counter() - start,
-            n_visible=int(evidence.n_visible),
-            valid_pixels=int(valid.sum()) if valid is not None else keyframe.mask.shape[0] * keyframe.mask.shape[1],
+            keyframe.stamp_ns, 0.0, int(evidence.n_visible), int(valid.sum()) if valid is not None else h * w
+        )
+
+    def _integrate_votes(self, keyframe: Keyframe) -> IntegrationReport:
+        # The palette includes this mask, so its own objects are palette colors from the first sight.
+        builder = PaletteBuilder.from_arrays(self.palette_builder.to_arrays())
+        builder.update(keyframe.mask)
+        labelled = pixel_labels(
+            keyframe.mask,
+            builder.build(),
+            self.config.metric,
+            self.config.min_snap_margin,
+            include_void=self.config.void_policy == "include",
+        )
+        labels = labelled.labels
+        votes = accumulate_votes(
+            self.gaussians,
+            labels,
+            keyframe.intrinsics,
+            keyframe.cam_to_world,
+            weight_power=self.config.weight_power,
+            impl=self.config.impl,
+            device=self.config.device,
+        )
+        named = votes.labels >= 0
+        objects = np.where(named, labelled.objects[np.maximum(votes.labels, 0)], 0).astype(np.uint32)
+        # Void votes (void_policy include) name no object: they count against every object's margin.
+        void = named & (objects == VOID_ID)
+        pooled = votes.other + np.where(void, votes.weights, 0.0).sum(axis=1)
+        weights = np.where(named & ~void, votes.weights, 0.0)
+        self.state.add(votes.rows, objects, weights, pooled, keyframe.stamp_ns)
+        self.palette_builder = builder
+        if self._labels is not None:
+            ids, conf = self.state.labels(votes.rows)
+            self._labels[0][votes.rows] = ids
+            self._labels[1][votes.rows] = conf
+        return IntegrationReport(
+            keyframe.stamp_ns,
+            0.0,
+            int(votes.n_visible),
+            int((labels >= 0).sum()),
+            labelled.snapped_pixels,
+            labelled.ambiguous_pixels,
         )
 
     def result(self) -> SemanticResult:
-        """Quantized labels for every Gaussian (cached until the next keyframe or map update)."""
+        """Labels for every Gaussian (cached until the next keyframe or map update)."""
         if self._result is None:
-            self._result = label_gaussians(self.state, self.palette_builder.build(), self.config.metric)
+            palette = self.palette_builder.build()
+            if self.config.semantic_mode == "scd":
+                self._result = label_gaussians(self.state, palette, self.config.metric)
+            else:
+                if self._labels is None:
+                    self._labels = self.state.labels()
+                ids, conf = self._labels
+                self._result = SemanticResult(palette, ids.copy(), conf.copy(), ids != UNOBSERVED_ID)
         return self._result
 
     def update_gaussians(self, gaussians: GaussianMap) -> MapUpdateReport:
@@ -164,4 +247,5 @@ class SemanticMapper:
         self.state = state
         self.map_version += 1
         self._result = None
+        self._labels = None
         return MapUpdateReport(carried=carried, dropped=old_observed - carried, gaussians=len(gaussians), by=by)

@@ -32,12 +32,12 @@ import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-# Written into every saved file so that a foreign .npz is recognised as such.
-_FORMAT = "monovoc_semantic_state"
+# Written into every saved file (beside the store's FORMAT) so that a foreign .npz is recognised as such.
 _FORMAT_VERSION = 1
 
 
@@ -55,12 +55,167 @@ def _as_ids(ids: np.ndarray | None, n: int, what: str) -> np.ndarray | None:
     return ids
 
 
+class GaussianEvidence:
+    """What every per-Gaussian evidence store shares: per-Gaussian arrays (`ARRAYS`, first axis N),
+    optional stable Gaussian ids, the stamps of the integrated keyframes, atomic .npz files, and
+    carrying the evidence over to a new map (by id or by position)."""
+
+    FORMAT: ClassVar[str]
+    WHAT: ClassVar[str]
+    ARRAYS: ClassVar[tuple[str, ...]]
+    ids: np.ndarray | None
+    stamps_ns: np.ndarray
+
+    def _init_common(self, n: int) -> None:
+        stamps = np.zeros(0, np.int64) if self.stamps_ns is None else np.array(self.stamps_ns, dtype=np.int64)
+        name = type(self).__name__
+        if stamps.ndim != 1:
+            raise ValueError(f"{name}.stamps_ns: expected shape (K,), got {stamps.shape}")
+        if np.unique(stamps).size != stamps.size:
+            raise ValueError(f"{name}.stamps_ns: duplicate keyframe stamps")
+        self.ids = _as_ids(self.ids, n, f"{name}.ids")
+        self.stamps_ns = stamps
+
+    def empty_like(self, n: int, ids: np.ndarray | None) -> GaussianEvidence:
+        """A store of the same kind (and shape per Gaussian) for `n` Gaussians without evidence."""
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        return getattr(self, self.ARRAYS[0]).shape[0]
+
+    def has_stamp(self, stamp_ns: int) -> bool:
+        return bool(np.any(self.stamps_ns == np.int64(stamp_ns)))
+
+    def _check_new_stamp(self, stamp_ns: int) -> None:
+        if self.has_stamp(stamp_ns):
+            raise ValueError(f"keyframe stamp {int(stamp_ns)} was already integrated")
+
+    def _aligned_rows(self, other: GaussianEvidence) -> np.ndarray:
+        """Row of `other` for each row of this store (by id when both have ids, else by position);
+        raises when the two cannot be merged."""
+        if len(self) != len(other):
+            raise ValueError(f"cannot merge states of {len(self)} and {len(other)} Gaussians")
+        shared = np.intersect1d(self.stamps_ns, other.stamps_ns)
+        if shared.size:
+            raise ValueError(f"cannot merge: {shared.size} keyframe stamps are in both states (e.g. {shared[0]})")
+        take = np.arange(len(self))
+        if self.ids is not None and other.ids is not None and len(self):
+            order = np.argsort(other.ids)
+            pos = np.searchsorted(other.ids, self.ids, sorter=order).clip(0, len(self) - 1)
+            take = order[pos]
+            if not np.array_equal(other.ids[take], self.ids):
+                raise ValueError("cannot merge: the states have different Gaussian ids (reindex one first)")
+        return take
+
+    @property
+    def total_weight(self) -> np.ndarray:
+        """(N,) float64 sum of every evidence weight a Gaussian received."""
+        raise NotImplementedError
+
+    @property
+    def evidence_nbytes(self) -> int:
+        """Bytes of the per-Gaussian evidence arrays alone."""
+        return sum(getattr(self, name).nbytes for name in self.ARRAYS)
+
+    @property
+    def nbytes(self) -> int:
+        ids = 0 if self.ids is None else self.ids.nbytes
+        return self.evidence_nbytes + self.stamps_ns.nbytes + ids
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Writes an .npz atomically: a reader sees the old file or the new one, never a partial one."""
+        path = Path(path)
+        arrays = {
+            "format": np.array(self.FORMAT),
+            "format_version": np.array(_FORMAT_VERSION, np.int64),
+            "stamps_ns": self.stamps_ns,
+        }
+        arrays.update({name: getattr(self, name) for name in self.ARRAYS})
+        if self.ids is not None:
+            arrays["ids"] = self.ids
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, **arrays)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        _fsync_dir(path.parent)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike):
+        """Reads a file written by `save` (bit-exact). A missing file raises FileNotFoundError; a corrupt
+        or foreign file (another kind of evidence included) raises ValueError naming the file."""
+        path = Path(path)
+        what = f"{path}: unreadable {cls.WHAT}"
+        try:
+            data = np.load(path, allow_pickle=False)
+        except FileNotFoundError:
+            raise
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{what} ({exc})") from exc
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError(f"{path}: not a {cls.WHAT} file (not an .npz archive)")
+        try:
+            with data:
+                if "format" not in data.files or str(data["format"]) != cls.FORMAT:
+                    found = str(data["format"]) if "format" in data.files else None
+                    raise ValueError(f"not a {cls.WHAT} file (format {found!r}, expected {cls.FORMAT!r})")
+                version = int(data["format_version"]) if "format_version" in data.files else None
+                if version != _FORMAT_VERSION:
+                    raise ValueError(f"unsupported format_version {version} (expected {_FORMAT_VERSION})")
+                missing = {*cls.ARRAYS, "stamps_ns"} - set(data.files)
+                if missing:
+                    raise ValueError(f"missing arrays {sorted(missing)}")
+                arrays = {k: data[k] for k in (*cls.ARRAYS, "stamps_ns")}
+                ids = data["ids"] if "ids" in data.files else None
+        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{what} ({exc})") from exc
+        try:
+            return cls(**arrays, ids=ids)
+        except ValueError as exc:
+            raise ValueError(f"{path}: inconsistent {cls.WHAT} ({exc})") from exc
+
+    def carried_over(self, source_rows: np.ndarray, new_ids: np.ndarray | None) -> GaussianEvidence:
+        """A store for a new map whose Gaussian j takes this store's row source_rows[j] (-1: none)."""
+        out = self.empty_like(source_rows.size, new_ids)
+        out.stamps_ns = self.stamps_ns.copy()
+        hit = source_rows >= 0
+        for name in self.ARRAYS:
+            getattr(out, name)[hit] = getattr(self, name)[source_rows[hit]]
+        return out
+
+    def reindexed_by_ids(self, new_ids: np.ndarray) -> GaussianEvidence:
+        """This evidence carried over to a map with Gaussian ids `new_ids` (see the module docstring)."""
+        if self.ids is None:
+            raise ValueError("reindexed_by_ids: this state has no Gaussian ids (use reindex_by_position)")
+        new_ids = np.asarray(new_ids)
+        if new_ids.ndim != 1:
+            raise ValueError(f"new_ids: expected shape (N,), got {new_ids.shape}")
+        new_ids = _as_ids(new_ids, new_ids.shape[0], "new_ids")
+        source = np.full(new_ids.size, -1, np.int64)
+        if len(self) and new_ids.size:
+            order = np.argsort(self.ids)
+            pos = np.searchsorted(self.ids, new_ids, sorter=order).clip(0, len(self) - 1)
+            old = order[pos]
+            hit = self.ids[old] == new_ids
+            source[hit] = old[hit]
+        return self.carried_over(source, new_ids)
+
+
 @dataclass(eq=False)
-class SemanticState:
+class SemanticState(GaussianEvidence):
     color_sum: np.ndarray  # (N, 3) float64, sum_p w_ip y_p
     weight_sum: np.ndarray  # (N,) float64, sum_p w_ip
     ids: np.ndarray | None = None  # (N,) int64 stable Gaussian ids (None when the map has none)
     stamps_ns: np.ndarray | None = None  # (K,) int64 stamps of the integrated keyframes, in order of arrival
+
+    FORMAT: ClassVar[str] = "monovoc_semantic_state"
+    WHAT: ClassVar[str] = "semantic state"
+    ARRAYS: ClassVar[tuple[str, ...]] = ("color_sum", "weight_sum")
 
     def __post_init__(self) -> None:
         color_sum = np.array(self.color_sum, dtype=np.float64)  # a copy: the state owns its arrays
@@ -70,15 +225,9 @@ class SemanticState:
         n = color_sum.shape[0]
         if weight_sum.shape != (n,):
             raise ValueError(f"SemanticState.weight_sum: expected shape ({n},), got {weight_sum.shape}")
-        stamps = np.zeros(0, np.int64) if self.stamps_ns is None else np.array(self.stamps_ns, dtype=np.int64)
-        if stamps.ndim != 1:
-            raise ValueError(f"SemanticState.stamps_ns: expected shape (K,), got {stamps.shape}")
-        if np.unique(stamps).size != stamps.size:
-            raise ValueError("SemanticState.stamps_ns: duplicate keyframe stamps")
         self.color_sum = color_sum
         self.weight_sum = weight_sum
-        self.ids = _as_ids(self.ids, n, "SemanticState.ids")
-        self.stamps_ns = stamps
+        self._init_common(n)
 
     @classmethod
     def zeros(cls, n: int, ids: np.ndarray | None = None) -> SemanticState:
@@ -87,11 +236,8 @@ class SemanticState:
             raise ValueError(f"SemanticState.zeros: n must be >= 0, got {n}")
         return cls(np.zeros((int(n), 3)), np.zeros(int(n)), ids, None)
 
-    def __len__(self) -> int:
-        return self.weight_sum.shape[0]
-
-    def has_stamp(self, stamp_ns: int) -> bool:
-        return bool(np.any(self.stamps_ns == np.int64(stamp_ns)))
+    def empty_like(self, n: int, ids: np.ndarray | None) -> SemanticState:
+        return SemanticState.zeros(n, ids)
 
     def add(self, evidence, stamp_ns: int) -> None:
         """Adds one keyframe's evidence (any object with `color_sum` (N, 3) and `weight_sum` (N,)).
@@ -110,8 +256,7 @@ class SemanticState:
             raise ValueError("evidence contains NaN or infinite values")
         if np.any(weight < 0):
             raise ValueError("evidence.weight_sum has negative weights")
-        if self.has_stamp(stamp_ns):
-            raise ValueError(f"keyframe stamp {int(stamp_ns)} was already integrated")
+        self._check_new_stamp(stamp_ns)
         self.color_sum += color
         self.weight_sum += weight
         self.stamps_ns = np.append(self.stamps_ns, np.int64(stamp_ns))
@@ -123,23 +268,11 @@ class SemanticState:
         state's order); otherwise by position (sizes must be equal). Shared stamps raise: that
         keyframe's evidence would be counted twice.
         """
-        if len(self) != len(other):
-            raise ValueError(f"cannot merge states of {len(self)} and {len(other)} Gaussians")
-        shared = np.intersect1d(self.stamps_ns, other.stamps_ns)
-        if shared.size:
-            raise ValueError(f"cannot merge: {shared.size} keyframe stamps are in both states (e.g. {shared[0]})")
-        color, weight = other.color_sum, other.weight_sum
-        if self.ids is not None and other.ids is not None and len(self):
-            order = np.argsort(other.ids)
-            pos = np.searchsorted(other.ids, self.ids, sorter=order).clip(0, len(self) - 1)
-            take = order[pos]
-            if not np.array_equal(other.ids[take], self.ids):
-                raise ValueError("cannot merge: the states have different Gaussian ids (reindex one first)")
-            color, weight = color[take], weight[take]
+        take = self._aligned_rows(other)
         ids = self.ids if self.ids is not None else other.ids
         return SemanticState(
-            self.color_sum + color,
-            self.weight_sum + weight,
+            self.color_sum + other.color_sum[take],
+            self.weight_sum + other.weight_sum[take],
             None if ids is None else ids.copy(),
             np.concatenate([self.stamps_ns, other.stamps_ns]),
         )
@@ -149,92 +282,15 @@ class SemanticState:
         """(N,) bool: Gaussians with any evidence."""
         return self.weight_sum > 0
 
+    @property
+    def total_weight(self) -> np.ndarray:
+        return self.weight_sum
+
     def colors(self) -> np.ndarray:
         """(N, 3) float64 deblended colors s_hat = color_sum / weight_sum; NaN rows where unobserved."""
         out = np.full_like(self.color_sum, np.nan)
         seen = self.observed
         out[seen] = self.color_sum[seen] / self.weight_sum[seen, None]
-        return out
-
-    @property
-    def nbytes(self) -> int:
-        ids = 0 if self.ids is None else self.ids.nbytes
-        return self.color_sum.nbytes + self.weight_sum.nbytes + self.stamps_ns.nbytes + ids
-
-    def save(self, path: str | os.PathLike) -> None:
-        """Writes an .npz atomically: a reader sees the old file or the new one, never a partial one."""
-        path = Path(path)
-        arrays = {
-            "format": np.array(_FORMAT),
-            "format_version": np.array(_FORMAT_VERSION, np.int64),
-            "color_sum": self.color_sum,
-            "weight_sum": self.weight_sum,
-            "stamps_ns": self.stamps_ns,
-        }
-        if self.ids is not None:
-            arrays["ids"] = self.ids
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **arrays)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        _fsync_dir(path.parent)
-
-    @classmethod
-    def load(cls, path: str | os.PathLike) -> SemanticState:
-        """Reads a file written by `save` (bit-exact). A missing file raises FileNotFoundError; a corrupt
-        or foreign file raises ValueError naming the file."""
-        path = Path(path)
-        try:
-            data = np.load(path, allow_pickle=False)
-        except FileNotFoundError:
-            raise
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-            raise ValueError(f"{path}: unreadable semantic state ({exc})") from exc
-        if not isinstance(data, np.lib.npyio.NpzFile):
-            raise ValueError(f"{path}: not a semantic state file (not an .npz archive)")
-        try:
-            with data:
-                if "format" not in data.files or str(data["format"]) != _FORMAT:
-                    raise ValueError(f"not a semantic state file (no format={_FORMAT!r} entry)")
-                version = int(data["format_version"]) if "format_version" in data.files else None
-                if version != _FORMAT_VERSION:
-                    raise ValueError(f"unsupported format_version {version} (expected {_FORMAT_VERSION})")
-                missing = {"color_sum", "weight_sum", "stamps_ns"} - set(data.files)
-                if missing:
-                    raise ValueError(f"missing arrays {sorted(missing)}")
-                arrays = {k: data[k] for k in ("color_sum", "weight_sum", "stamps_ns")}
-                ids = data["ids"] if "ids" in data.files else None
-        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-            raise ValueError(f"{path}: unreadable semantic state ({exc})") from exc
-        try:
-            return cls(arrays["color_sum"], arrays["weight_sum"], ids, arrays["stamps_ns"])
-        except ValueError as exc:
-            raise ValueError(f"{path}: inconsistent semantic state ({exc})") from exc
-
-    def reindexed_by_ids(self, new_ids: np.ndarray) -> SemanticState:
-        """This evidence carried over to a map with Gaussian ids `new_ids` (see the module docstring)."""
-        if self.ids is None:
-            raise ValueError("reindexed_by_ids: this state has no Gaussian ids (use reindex_by_position)")
-        new_ids = np.asarray(new_ids)
-        if new_ids.ndim != 1:
-            raise ValueError(f"new_ids: expected shape (N,), got {new_ids.shape}")
-        new_ids = _as_ids(new_ids, new_ids.shape[0], "new_ids")
-        out = SemanticState.zeros(new_ids.size, new_ids)
-        out.stamps_ns = self.stamps_ns.copy()
-        if len(self) == 0 or new_ids.size == 0:
-            return out
-        order = np.argsort(self.ids)
-        pos = np.searchsorted(self.ids, new_ids, sorter=order).clip(0, len(self) - 1)
-        old = order[pos]
-        hit = self.ids[old] == new_ids
-        out.color_sum[hit] = self.color_sum[old[hit]]
-        out.weight_sum[hit] = self.weight_sum[old[hit]]
         return out
 
 
@@ -281,13 +337,13 @@ def mutual_nearest(old_means: np.ndarray, new_means: np.ndarray, tolerance: floa
 
 
 def reindex_by_position(
-    state: SemanticState,
+    state: GaussianEvidence,
     old_means: np.ndarray,
     new_means: np.ndarray,
     tolerance: float = 0.01,
     *,
     new_ids: np.ndarray | None = None,
-) -> SemanticState:
+) -> GaussianEvidence:
     """`state` (of the map with Gaussian centres `old_means`) carried over to a map with centres
     `new_means` by mutual nearest neighbours within `tolerance` metres; the rest start at zero.
 
@@ -298,10 +354,4 @@ def reindex_by_position(
     old_means = _as_means(old_means, "old_means")
     if old_means.shape[0] != len(state):
         raise ValueError(f"old_means has {old_means.shape[0]} points but the state has {len(state)} Gaussians")
-    match = mutual_nearest(old_means, new_means, tolerance)
-    out = SemanticState.zeros(match.size, new_ids)
-    out.stamps_ns = state.stamps_ns.copy()
-    hit = match >= 0
-    out.color_sum[hit] = state.color_sum[match[hit]]
-    out.weight_sum[hit] = state.weight_sum[match[hit]]
-    return out
+    return state.carried_over(mutual_nearest(old_means, new_means, tolerance), new_ids)

@@ -57,7 +57,10 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("device", "", "torch device when impl is 'torch' (e.g. 'cuda'); empty = default"),
     ParameterSpec("metric", "cmc", "palette quantization color distance: cmc, ciede2000, cie94, cam16ucs, din99o, rgb"),
     ParameterSpec("void_policy", "skip", "white (void) mask pixels: 'skip' (no evidence) or 'include' (white is a color)"),
-    ParameterSpec("weight_power", 4, "exponent k of the SCD evidence weights w^k: 1 = the paper's SCD, 4 = fewest boundary errors (1..4)"),
+    ParameterSpec("semantic_mode", "vote", "per-Gaussian evidence: 'vote' (per-object weighted votes) or 'scd' (the paper's color deblending + palette quantization)"),
+    ParameterSpec("weight_power", 4, "exponent k of the evidence weights w^k: 1 = the paper's SCD, 4 = fewest boundary errors (1..4)"),
+    ParameterSpec("vote_slots", 4, "vote mode: objects kept per Gaussian (exact up to this many; the rest pooled) (1..16)"),
+    ParameterSpec("min_snap_margin", 0.2, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence"),
     ParameterSpec("reassociation_tolerance", 0.01, "map updates without ids: max distance (m) for evidence to follow a Gaussian"),
     ParameterSpec("queue_size", 32, "keyframes waiting for the worker; when full the oldest is dropped (counted)"),
     # Outputs
@@ -143,6 +146,9 @@ class NodeParams:
                 void_policy=v["void_policy"],
                 reassociation_tolerance=float(v["reassociation_tolerance"]),
                 weight_power=v["weight_power"],
+                semantic_mode=v["semantic_mode"],
+                vote_slots=v["vote_slots"],
+                min_snap_margin=float(v["min_snap_margin"]),
             )
         except ValueError as exc:
             raise ParameterError(str(exc).replace(" must be", ": must be", 1)) from None

@@ -116,7 +116,7 @@ def measure_memory(index, mapper=None) -> MemoryReport:
     emb = sum(np.asarray(r.embedding).nbytes + np.asarray(r.image_embedding).nbytes for r in records)
     accumulators = 0
     if mapper is not None:
-        accumulators = int(mapper.state.color_sum.nbytes + mapper.state.weight_sum.nbytes)
+        accumulators = mapper.state.evidence_nbytes
         n = n or len(mapper.gaussians)
     dim = int(np.asarray(records[0].embedding).size) if records else 0
     return MemoryReport(

@@ -19,6 +19,7 @@ from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.raster.inputs import (
     check_background,
     check_colors,
+    check_labels,
     check_mask,
     check_valid,
     check_view,
@@ -32,7 +33,20 @@ IMPLEMENTATIONS = ("numba", "torch", "reference")
 WEIGHT_POWERS = (1, 2, 3, 4)
 _MODULES = {"numba": "numba_impl", "torch": "torch_impl", "reference": "reference"}
 
-__all__ = ["IMPLEMENTATIONS", "WEIGHT_POWERS", "Evidence", "Rendering", "accumulate", "render"]
+# Labels kept per Gaussian and keyframe by accumulate_votes (the rest is pooled as "other").
+EVIDENCE_SLOTS = 8
+
+__all__ = [
+    "EVIDENCE_SLOTS",
+    "IMPLEMENTATIONS",
+    "WEIGHT_POWERS",
+    "Evidence",
+    "Rendering",
+    "VoteEvidence",
+    "accumulate",
+    "accumulate_votes",
+    "render",
+]
 
 
 @dataclass
@@ -40,6 +54,17 @@ class Evidence:
     color_sum: np.ndarray  # (N, 3) float64: sum_p w_ip^k * y_p
     weight_sum: np.ndarray  # (N,) float64: sum_p w_ip^k
     n_visible: int  # Gaussians that survived culling for this camera
+
+
+@dataclass
+class VoteEvidence:
+    """One keyframe's votes, for the Gaussians it sees (vote_tables has the exact definition)."""
+
+    rows: np.ndarray  # (V,) int64 map index of each visible Gaussian
+    labels: np.ndarray  # (V, E) int32 keyframe label of each kept entry, -1 where unused
+    weights: np.ndarray  # (V, E) float64 sum_p w_ip^k [label_p == label], heaviest first
+    other: np.ndarray  # (V,) float64 votes for labels not kept
+    n_visible: int
 
 
 @dataclass
@@ -90,6 +115,32 @@ def accumulate(
         gmap, mask, view, valid, bg, int(weight_power), **_device_kwargs(impl, device)
     )
     return Evidence(color_sum, weight_sum, int(n_visible))
+
+
+def accumulate_votes(
+    gmap: GaussianMap,
+    labels: np.ndarray,
+    intrinsics: Intrinsics,
+    cam_to_world: np.ndarray,
+    *,
+    weight_power: int = 1,
+    slots: int = EVIDENCE_SLOTS,
+    impl: str = "numba",
+    device: str | None = None,
+) -> VoteEvidence:
+    """Vote evidence of one keyframe in one rasterization pass: per Gaussian i and label o,
+    sum_p w_ip^k [label_p == o] (METHOD.md section 8). `labels` is (H, W) integer, -1 = no evidence."""
+    if isinstance(weight_power, bool) or weight_power not in WEIGHT_POWERS:
+        raise ValueError(f"weight_power must be one of {WEIGHT_POWERS}, got {weight_power!r}")
+    if int(slots) < 1:
+        raise ValueError(f"slots must be >= 1, got {slots}")
+    module = _module(impl, device)
+    view = check_view(gmap, intrinsics, cam_to_world)
+    labels = check_labels(labels, intrinsics)
+    rows, top_labels, top_weights, other, n_visible = module.accumulate_votes(
+        gmap, labels, view, int(weight_power), int(slots), **_device_kwargs(impl, device)
+    )
+    return VoteEvidence(rows, top_labels, top_weights, other, int(n_visible))
 
 
 def render(

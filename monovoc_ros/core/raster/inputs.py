@@ -54,6 +54,19 @@ def check_mask(mask: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     return mask
 
 
+def check_labels(labels: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """The labels as a C-contiguous (H, W) int32 array (-1 = no evidence)."""
+    labels = np.asarray(labels)
+    if labels.ndim != 2 or labels.dtype.kind not in "iu":
+        raise ValueError(f"labels: expected an (H, W) integer array, got shape {labels.shape} dtype {labels.dtype}")
+    h, w = labels.shape
+    if (w, h) != (intrinsics.width, intrinsics.height):
+        raise ValueError(f"labels are {w}x{h} but intrinsics are for {intrinsics.width}x{intrinsics.height}")
+    if labels.size and (labels.min() < -1 or labels.max() >= 1 << 24):
+        raise ValueError("labels: values must be in [-1, 2^24)")
+    return np.ascontiguousarray(labels, dtype=np.int32)
+
+
 def check_valid(valid: np.ndarray | None, intrinsics: Intrinsics) -> np.ndarray | None:
     if valid is None:
         return None

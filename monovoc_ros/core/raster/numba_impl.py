@@ -27,6 +27,9 @@ _LOCK = threading.Lock()
 _NO_VALID = np.ones((1, 1), dtype=np.bool_)
 _NO_COLORS = np.zeros((1, 3), dtype=np.float32)
 _ZERO_BG = np.zeros(3, dtype=np.float32)
+_NO_MASK = np.zeros((1, 1, 3), dtype=np.uint8)
+_NO_SLOTS = np.full((1, 1), -1, dtype=np.int8)
+_NO_TILES = np.zeros(1, dtype=np.int32)
 
 
 class Workspace:
@@ -128,11 +131,50 @@ def accumulate(
         nk.accumulate_tiles(
             b.rows, b.tile_start, b.tile_list, b.tile_slot, b.tile_order, b.grid[0], view.width, view.height, mask,
             scale, _NO_VALID if valid is None else valid, valid is not None,
-            _ZERO_BG if background is None else background, background is not None, np.int64(weight_power), pair_acc,
-            workers,
+            _ZERO_BG if background is None else background, background is not None, np.int64(weight_power),
+            False, _NO_SLOTS, pair_acc, _NO_TILES, workers,
         )  # fmt: skip
         nk.reduce_pairs(pair_acc, b.gauss_start, b.order, color_sum, weight_sum, workers)
         return color_sum, weight_sum, len(b.order)
+
+
+def tile_slots(labels: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Numba twin of votes.tile_slots_reference: (H, W) int8 slot map and (tiles, 4) int32 label table."""
+    gx, gy = tile_grid(width, height)
+    slot_map = np.empty((height, width), np.int8)
+    tile_labels = np.empty((gx * gy, 4), np.int32)
+    nk.tile_slots(np.ascontiguousarray(labels, np.int32), gx, gy, slot_map, tile_labels, numba.get_num_threads())
+    return slot_map, tile_labels
+
+
+def accumulate_votes(
+    gmap: GaussianMap, labels: np.ndarray, view: View, weight_power: int, slots: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Per visible Gaussian: map index, the `slots` heaviest labels and their votes, and the rest."""
+    n = len(gmap)
+    empty = (np.zeros(0, np.int64), np.zeros((0, slots), np.int32), np.zeros((0, slots)), np.zeros(0), 0)
+    if n == 0:
+        return empty
+    with _LOCK:
+        workers = numba.get_num_threads()
+        slot_map, tile_labels = tile_slots(labels, view.width, view.height)
+        b = bin_view(gmap, view, None, workers)
+        nv = len(b.order)
+        if nv == 0:
+            return empty
+        pair_acc = WORKSPACE.get("pair_acc", (len(b.tile_list), 4), np.float32)
+        pair_tile = WORKSPACE.get("pair_tile", (len(b.tile_list),), np.int32)
+        nk.accumulate_tiles(
+            b.rows, b.tile_start, b.tile_list, b.tile_slot, b.tile_order, b.grid[0], view.width, view.height,
+            _NO_MASK, np.float32(1.0), _NO_VALID, False, _ZERO_BG, False, np.int64(weight_power),
+            True, slot_map, pair_acc, pair_tile, workers,
+        )  # fmt: skip
+        out_labels = np.empty((nv, slots), np.int32)
+        out_weights = np.empty((nv, slots))
+        out_other = np.empty(nv)
+        nk.reduce_votes(pair_acc, pair_tile, tile_labels, b.gauss_start, b.order, out_labels, out_weights, out_other,
+                        workers)  # fmt: skip
+        return b.order.astype(np.int64), out_labels, out_weights, out_other, nv
 
 
 def render(

@@ -66,6 +66,8 @@ _FASTMATH = {"reassoc", "contract", "nsz"}
 _PIXELS = TILE * TILE
 _CHUNK = 4096  # Gaussians per work item of the per-Gaussian parallel loops
 _BLOCKS_PER_ROW = TILE // 4
+# Distinct labels one Gaussian can collect in one keyframe before the rest count as "other".
+_VOTE_BUFFER = 64
 # The ellipse used for culling tiles and blocks is padded so that float32 rounding in the pixel loop
 # can never reach a pixel the float64 cull dropped.
 _CULL_THR_REL = 1e-3
@@ -513,38 +515,71 @@ def _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T):
             break
 
 
+@njit(cache=True, nogil=True)
+def _load_slots(t, gx, width, height, slot_map, o0, o1, o2, o3):
+    """One-hot observations of a tile from its pixels' vote slots (slot_map: -1 = no evidence)."""
+    ox = (t % gx) * TILE
+    oy = (t // gx) * TILE
+    for blk in range(_PIXELS // 16):
+        bx = ox + (blk % _BLOCKS_PER_ROW) * 4
+        by = oy + (blk // _BLOCKS_PER_ROW) * 4
+        for lane in range(16):
+            k = blk * 16 + lane
+            x = bx + (lane & 3)
+            y = by + (lane >> 2)
+            s = slot_map[y, x] if (x < width and y < height) else np.int8(-1)
+            o0[k] = _F1 if s == 0 else _F0
+            o1[k] = _F1 if s == 1 else _F0
+            o2[k] = _F1 if s == 2 else _F0
+            o3[k] = _F1 if s == 3 else _F0
+
+
 @njit(cache=True, nogil=True, fastmath=_FASTMATH)
 def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, height, mask, scale, valid, has_valid,
-                     bg, has_bg, power, pair_acc):  # fmt: skip
+                     bg, has_bg, power, votes, slot_map, pair_acc, pair_tile):  # fmt: skip
+    """Per pair of tile t, sum_p w^power o_c(p) for four observation channels o_0..o_3.
+
+    SCD (votes False): o = (valid y_r, valid y_g, valid y_b, valid) with y = C - T_final b.
+    Votes (votes True): o_c = [slot_map(p) == c], the pixel's object slot in this tile; the tile of
+    every pair is recorded in pair_tile so that the reduction can name the slots' objects.
+    """
     px = np.empty(_PIXELS, np.float32)
     py = np.empty(_PIXELS, np.float32)
     T = np.empty(_PIXELS, np.float32)
-    y0 = np.empty(_PIXELS, np.float32)
-    y1 = np.empty(_PIXELS, np.float32)
-    y2 = np.empty(_PIXELS, np.float32)
-    val = np.empty(_PIXELS, np.float32)
+    o0 = np.empty(_PIXELS, np.float32)
+    o1 = np.empty(_PIXELS, np.float32)
+    o2 = np.empty(_PIXELS, np.float32)
+    o3 = np.empty(_PIXELS, np.float32)
     _tile_pixels(t, gx, px, py)
-    _load_observations(t, gx, width, height, mask, scale, valid, has_valid, y0, y1, y2, val)
     _reset_transmittance(t, gx, width, height, T)
     j0, j1 = tile_start[t], tile_start[t + 1]
-    if has_bg:
-        # y_p = C_p - T_final(p) b needs T_final before any weight is summed: one extra pass.
-        _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T)
+    if votes:
+        _load_slots(t, gx, width, height, slot_map, o0, o1, o2, o3)
+    else:
+        _load_observations(t, gx, width, height, mask, scale, valid, has_valid, o0, o1, o2, o3)
+        if has_bg:
+            # y_p = C_p - T_final(p) b needs T_final before any weight is summed: one extra pass.
+            _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T)
+            for k in range(_PIXELS):
+                tf = abs(T[k])
+                o0[k] -= tf * bg[0]
+                o1[k] -= tf * bg[1]
+                o2[k] -= tf * bg[2]
+            _reset_transmittance(t, gx, width, height, T)
+        # Validity folded into the observations: (w val)^k y = w^k (val y) for val in {0, 1}.
         for k in range(_PIXELS):
-            tf = abs(T[k])
-            y0[k] -= tf * bg[0]
-            y1[k] -= tf * bg[1]
-            y2[k] -= tf * bg[2]
-        _reset_transmittance(t, gx, width, height, T)
+            o0[k] *= o3[k]
+            o1[k] *= o3[k]
+            o2[k] *= o3[k]
     ox = (t % gx) * TILE
     oy = (t // gx) * TILE
     for j in range(j0, j1):
         r = tile_list[j]
         u, v, A, R, S, o = _footprint(rows, r)
-        acc_w = _F0
         acc_0 = _F0
         acc_1 = _F0
         acc_2 = _F0
+        acc_3 = _F0
         br0, br1 = _block_rows(rows, r, oy)
         for br in range(br0, br1 + 1):
             k0, k1 = _pixel_span(rows, r, ox, oy, br)
@@ -555,36 +590,39 @@ def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, heigh
                 go = nT >= _F_T_MIN
                 w = a * Tk if go else _F0
                 T[k] = nT if go else -abs(Tk)
-                w = w * val[k]
                 # w^power for power 1..4 by selects, which keep the loop vectorized (a pow call would not).
                 w2 = w * w
                 w = w if power == 1 else (w2 if power == 2 else (w2 * w if power == 3 else w2 * w2))
-                acc_w += w
-                acc_0 += w * y0[k]
-                acc_1 += w * y1[k]
-                acc_2 += w * y2[k]
+                acc_0 += w * o0[k]
+                acc_1 += w * o1[k]
+                acc_2 += w * o2[k]
+                acc_3 += w * o3[k]
         s = tile_slot[j]
-        pair_acc[s, 0] = acc_w
-        pair_acc[s, 1] = acc_0
-        pair_acc[s, 2] = acc_1
-        pair_acc[s, 3] = acc_2
+        pair_acc[s, 0] = acc_0
+        pair_acc[s, 1] = acc_1
+        pair_acc[s, 2] = acc_2
+        pair_acc[s, 3] = acc_3
+        if votes:
+            pair_tile[s] = t
         if (j - j0) % 32 == 31 and not _any_live(T):
             for rest in range(j + 1, j1):
                 pair_acc[tile_slot[rest], :] = _F0
+                if votes:
+                    pair_tile[tile_slot[rest]] = t
             break
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def accumulate_tiles(rows, tile_start, tile_list, tile_slot, tile_order, gx, width, height, mask, scale, valid,
-                     has_valid, bg, has_bg, power, pair_acc, n_workers):  # fmt: skip
-    """Per-pair partial sums (w^power, w^power y) of every tile; tiles are taken in `tile_order`, one at a time."""
+                     has_valid, bg, has_bg, power, votes, slot_map, pair_acc, pair_tile, n_workers):  # fmt: skip
+    """Per-pair partial sums of every tile (see _accumulate_tile); tiles are taken in `tile_order`, one at a time."""
     n = tile_order.shape[0]
     counter = np.zeros(1, np.int64)
     for _ in prange(n_workers):
         m = _fetch_add(counter, 0)
         while m < n:
             _accumulate_tile(tile_order[m], rows, tile_start, tile_list, tile_slot, gx, width, height, mask, scale,
-                             valid, has_valid, bg, has_bg, power, pair_acc)  # fmt: skip
+                             valid, has_valid, bg, has_bg, power, votes, slot_map, pair_acc, pair_tile)  # fmt: skip
             m = _fetch_add(counter, 0)
 
 
@@ -598,20 +636,131 @@ def reduce_pairs(pair_acc, gauss_start, order, color_sum, weight_sum, n_workers)
         c = _fetch_add(counter, 0)
         while c < n_chunks:
             for r in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
-                sw = 0.0
                 s0 = 0.0
                 s1 = 0.0
                 s2 = 0.0
+                sw = 0.0
                 for p in range(gauss_start[r], gauss_start[r + 1]):
-                    sw += pair_acc[p, 0]
-                    s0 += pair_acc[p, 1]
-                    s1 += pair_acc[p, 2]
-                    s2 += pair_acc[p, 3]
+                    s0 += pair_acc[p, 0]
+                    s1 += pair_acc[p, 1]
+                    s2 += pair_acc[p, 2]
+                    sw += pair_acc[p, 3]
                 i = order[r]
                 weight_sum[i] = sw
                 color_sum[i, 0] = s0
                 color_sum[i, 1] = s1
                 color_sum[i, 2] = s2
+            c = _fetch_add(counter, 0)
+
+
+# --- votes: tile slot tables and the per-Gaussian reduction --------------------------------------
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def tile_slots(labels, gx, gy, slot_map, tile_labels, n_workers):
+    """Each tile's object slots (see raster.votes): up to VOTE_TILE_SLOTS labels per tile, ordered by
+    pixel count (descending, then label); a tile with more labels keeps the first three and pools the
+    rest in slot 3 (label OTHER_LABEL). Writes every pixel's slot (-1 for label < 0) and the table."""
+    h, w = labels.shape
+    n_tiles = gx * gy
+    counter = np.zeros(1, np.int64)
+    for _ in prange(n_workers):
+        found = np.empty(_PIXELS, np.int32)
+        counts = np.empty(_PIXELS, np.int64)
+        t = _fetch_add(counter, 0)
+        while t < n_tiles:
+            ox = (t % gx) * TILE
+            oy = (t // gx) * TILE
+            n = 0
+            for y in range(oy, min(oy + TILE, h)):
+                for x in range(ox, min(ox + TILE, w)):
+                    lab = labels[y, x]
+                    if lab < 0:
+                        continue
+                    q = 0
+                    while q < n and found[q] != lab:
+                        q += 1
+                    if q == n:
+                        found[n] = lab
+                        counts[n] = 0
+                        n += 1
+                    counts[q] += 1
+            # Selection sort of the (few) labels: count descending, label ascending.
+            for a in range(n):
+                best = a
+                for b in range(a + 1, n):
+                    if counts[b] > counts[best] or (counts[b] == counts[best] and found[b] < found[best]):
+                        best = b
+                found[a], found[best] = found[best], found[a]
+                counts[a], counts[best] = counts[best], counts[a]
+            for c in range(4):
+                tile_labels[t, c] = found[c] if c < n else -1
+            if n > 4:
+                tile_labels[t, 3] = -2
+            for y in range(oy, min(oy + TILE, h)):
+                for x in range(ox, min(ox + TILE, w)):
+                    lab = labels[y, x]
+                    s = -1
+                    if lab >= 0:
+                        q = 0
+                        while found[q] != lab:
+                            q += 1
+                        s = q if q < 3 or n <= 4 else 3
+                    slot_map[y, x] = s
+            t = _fetch_add(counter, 0)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def reduce_votes(pair_acc, pair_tile, tile_labels, gauss_start, order, out_labels, out_weights, out_other, n_workers):
+    """Per Gaussian (depth rank r), the float64 votes of its pairs summed per label: the E heaviest
+    labels (weight descending, then label) in out_labels / out_weights (-1 / 0 when fewer), the rest
+    and the pooled slot 3 of crowded tiles in out_other."""
+    n = order.shape[0]
+    e = out_labels.shape[1]
+    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    counter = np.zeros(1, np.int64)
+    for _ in prange(n_workers):
+        labs = np.empty(_VOTE_BUFFER, np.int32)
+        wts = np.empty(_VOTE_BUFFER, np.float64)
+        c = _fetch_add(counter, 0)
+        while c < n_chunks:
+            for r in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
+                m = 0
+                other = 0.0
+                for p in range(gauss_start[r], gauss_start[r + 1]):
+                    t = pair_tile[p]
+                    for ch in range(4):
+                        wv = np.float64(pair_acc[p, ch])
+                        if wv <= 0.0:
+                            continue
+                        lab = tile_labels[t, ch]
+                        if lab < 0:
+                            other += wv
+                            continue
+                        q = 0
+                        while q < m and labs[q] != lab:
+                            q += 1
+                        if q == m:
+                            if m == _VOTE_BUFFER:
+                                other += wv
+                                continue
+                            labs[m] = lab
+                            wts[m] = 0.0
+                            m += 1
+                        wts[q] += wv
+                for a in range(min(m, e)):
+                    best = a
+                    for b in range(a + 1, m):
+                        if wts[b] > wts[best] or (wts[b] == wts[best] and labs[b] < labs[best]):
+                            best = b
+                    labs[a], labs[best] = labs[best], labs[a]
+                    wts[a], wts[best] = wts[best], wts[a]
+                for a in range(e):
+                    out_labels[r, a] = labs[a] if a < m else -1
+                    out_weights[r, a] = wts[a] if a < m else 0.0
+                for a in range(e, m):
+                    other += wts[a]
+                out_other[r] = other
             c = _fetch_add(counter, 0)
 
 

@@ -13,6 +13,7 @@ from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.raster.constants import ALPHA_MAX, ALPHA_MIN, DEPTH_MIN_COVERAGE, T_MIN, TILE
 from monovoc_ros.core.raster.inputs import View, check_view
 from monovoc_ros.core.raster.projection import Projection, project
+from monovoc_ros.core.raster.vote_tables import OTHER_LABEL, pixel_vote_labels, tile_slots_reference, top_entries
 
 # Refuses scenes whose dense weight matrix would not fit comfortably in memory.
 _MAX_MATRIX_ENTRIES = 50_000_000
@@ -101,3 +102,27 @@ def render(
     depth = np.where(coverage > DEPTH_MIN_COVERAGE, depth_sum / np.where(coverage > 0, coverage, 1.0), 0.0)
     h, w = view.height, view.width
     return image.reshape(h, w, 3), T.reshape(h, w), depth.reshape(h, w)
+
+
+def dense_votes(
+    weights: np.ndarray, labels: np.ndarray, width: int, height: int, n_labels: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per Gaussian votes (N, n_labels) and pooled "other" votes (N,) from dense weights (H*W, N)."""
+    slot_map, table = tile_slots_reference(labels, width, height)
+    vote = pixel_vote_labels(slot_map, table, width).reshape(-1)
+    dense = np.zeros((weights.shape[1], n_labels))
+    for lab in np.unique(vote[vote >= 0]):
+        dense[:, lab] = weights[vote == lab].sum(axis=0)
+    return dense, weights[vote == OTHER_LABEL].sum(axis=0)
+
+
+def accumulate_votes(
+    gmap: GaussianMap, labels: np.ndarray, view: View, weight_power: int, slots: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    proj = project_map(gmap, view)
+    weights, _ = composite(proj, view.width, view.height, gmap.opacities.astype(np.float64))
+    n_labels = int(labels.max()) + 1 if labels.size else 0
+    dense, other = dense_votes(weights**weight_power, labels, view.width, view.height, max(n_labels, 1))
+    rows = np.flatnonzero(proj.visible)
+    top_labels, top_weights, rest = top_entries(dense[rows], other[rows], slots)
+    return rows.astype(np.int64), top_labels, top_weights, rest, int(rows.size)

@@ -31,6 +31,7 @@ from monovoc_ros.core.raster.constants import (
 )
 from monovoc_ros.core.raster.inputs import View
 from monovoc_ros.core.raster.projection import jacobian_limits, tile_grid
+from monovoc_ros.core.raster.vote_tables import TILE_CHANNELS, tile_slots_reference, top_entries
 
 _PIXELS = TILE * TILE
 # Elements of one (tiles x pixels x Gaussians) chunk tensor; several such tensors are alive at once.
@@ -241,6 +242,36 @@ def accumulate(
     out_c[index] = color_sum.cpu().numpy()
     out_w[index] = weight_sum.cpu().numpy()
     return out_c, out_w, nv
+
+
+@torch.no_grad()
+def accumulate_votes(
+    gmap: GaussianMap, labels: np.ndarray, view: View, weight_power: int, slots: int, device: str | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Vote evidence (see vote_tables) with the tile channels as one-hot observations."""
+    n = len(gmap)
+    if n == 0:
+        resolve_device(device)
+        return np.zeros(0, np.int64), np.zeros((0, slots), np.int32), np.zeros((0, slots)), np.zeros(0), 0
+    dev, pairs, gx, gy, budget = _prepare(gmap, view, device)
+    nv = len(pairs.index)
+    slot_map, table = tile_slots_reference(labels, view.width, view.height)
+    n_labels = max(int(labels.max()) + 1 if labels.size else 0, 1)
+    slot_t = torch.tensor(slot_map.astype(np.int64), device=dev)
+    onehot = (slot_t[:, :, None] == torch.arange(TILE_CHANNELS, device=dev)[None, None, :]).float()
+    obs_t = _tile_layout(onehot, gx, gy)
+    # Column n_labels collects a crowded tile's pooled channel (and never-used channels, which get no weight).
+    table_t = torch.tensor(np.where(table >= 0, table, n_labels).astype(np.int64), device=dev)
+    dense = torch.zeros(nv * (n_labels + 1), dtype=torch.float64, device=dev)
+    for tiles, k in _chunks(pairs.tile_count, budget):
+        weights, _, rank, in_list = _composite(pairs, tiles, k, gx)
+        v_pair = torch.bmm((weights**weight_power).transpose(1, 2), obs_t[tiles])  # (n, k, 4)
+        column = table_t[tiles][:, None, :].expand(-1, k, -1)
+        key = rank[:, :, None] * (n_labels + 1) + column
+        dense.index_add_(0, key[in_list].reshape(-1), v_pair[in_list].reshape(-1).double())
+    dense_np = dense.reshape(nv, n_labels + 1).cpu().numpy()
+    top_labels, top_weights, rest = top_entries(dense_np[:, :n_labels], dense_np[:, n_labels], slots)
+    return pairs.index.cpu().numpy().astype(np.int64), top_labels, top_weights, rest, nv
 
 
 @torch.no_grad()

@@ -1,0 +1,57 @@
+"""Numba kernel that adds per-object votes into the bounded per-Gaussian slots of a VoteState.
+
+Plain twin: `votes.merge_slots_reference`. Per row the stored slots and the new entries are combined
+(equal objects add), ordered by votes (descending, then object id ascending), the first `m` kept and
+the rest added to "other"; exact whenever a row holds at most m objects.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+EMPTY = np.uint32(0xFFFFFFFF)
+
+
+@njit(cache=True, nogil=True)
+def merge_slots(objects, votes, other, rows, add_objects, add_votes, add_other):
+    """In place, for each v: row rows[v] of (objects, votes, other) += (add_objects[v], add_votes[v], add_other[v])."""
+    m = objects.shape[1]
+    e = add_objects.shape[1]
+    objs = np.empty(m + e, np.uint32)
+    wts = np.empty(m + e, np.float64)
+    for v in range(rows.shape[0]):
+        r = rows[v]
+        n = 0
+        for a in range(m):
+            if votes[r, a] > 0.0:
+                objs[n] = objects[r, a]
+                wts[n] = votes[r, a]
+                n += 1
+        for a in range(e):
+            w = add_votes[v, a]
+            if w <= 0.0:
+                continue
+            o = add_objects[v, a]
+            q = 0
+            while q < n and objs[q] != o:
+                q += 1
+            if q == n:
+                objs[n] = o
+                wts[n] = 0.0
+                n += 1
+            wts[q] += w
+        for a in range(min(n, m)):
+            best = a
+            for b in range(a + 1, n):
+                if wts[b] > wts[best] or (wts[b] == wts[best] and objs[b] < objs[best]):
+                    best = b
+            objs[a], objs[best] = objs[best], objs[a]
+            wts[a], wts[best] = wts[best], wts[a]
+        rest = add_other[v]
+        for a in range(m, n):
+            rest += wts[a]
+        for a in range(m):
+            objects[r, a] = objs[a] if a < n else EMPTY
+            votes[r, a] = wts[a] if a < n else 0.0
+        other[r] += rest
