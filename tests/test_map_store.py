@@ -101,3 +101,37 @@ def test_sigkill_during_repeated_saves_never_leaves_a_broken_map(tmp_path):
         assert len(restored.gaussians) == 60_000
         assert len(restored.state.stamps_ns) == restored.n_keyframes >= 1
         assert np.all(np.isfinite(restored.state.total_weight))
+
+
+def test_merge_command_of_two_halves_equals_the_whole(small_scene, tmp_path, capsys):
+    from monovoc_ros.cli import main
+
+    config = MapperConfig(vote_slots=8)
+    whole, halves = SemanticMapper(small_scene.gaussians, config), []
+    for part in ((0, 2, 4), (1, 3, 5)):
+        half = SemanticMapper(small_scene.gaussians, config)
+        for i in part:
+            half.integrate(small_scene.keyframe(i))
+            whole.integrate(small_scene.keyframe(i))
+        save_snapshot(half, tmp_path / f"half{part[0]}")
+        halves.append(half)
+    assert main(["merge", str(tmp_path / "half0"), str(tmp_path / "half1"), "-o", str(tmp_path / "merged")]) == 0
+    merged = load_snapshot(tmp_path / "merged")
+    assert '"keyframes": 6' in capsys.readouterr().out and merged.n_keyframes == 6
+    assert_same_evidence(merged.state, whole.state, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(merged.result().object_ids, whole.result().object_ids)
+    np.testing.assert_array_equal(merged.palette_builder.ids, whole.palette_builder.ids)
+    with pytest.raises(SystemExit, match="stamps are in both"):
+        main(["merge", str(tmp_path / "half0"), str(tmp_path / "half0"), "-o", str(tmp_path / "twice")])
+    scd = SemanticMapper(small_scene.gaussians, MapperConfig(semantic_mode="scd"))
+    scd.integrate(small_scene.keyframe(5))
+    with pytest.raises(ValueError, match="different semantic_mode"):
+        halves[0].merged(scd)
+
+
+def test_evidence_of_another_mode_or_slot_count_is_refused_on_resume(small_scene, tmp_path):
+    save_snapshot(mapped(small_scene), tmp_path)
+    for change in ({"semantic_mode": "scd"}, {"vote_slots": 6}, {"weight_power": 2}):
+        with pytest.raises(MapStoreError, match=next(iter(change))):
+            load_snapshot(tmp_path, MapperConfig(metric="ciede2000", **change))
+    assert load_snapshot(tmp_path, MapperConfig(metric="ciede2000", impl="reference")).n_keyframes == 3

@@ -26,6 +26,9 @@ from monovoc_ros.core.votes import DEFAULT_SLOTS, VoteState
 
 VOID_POLICIES = ("skip", "include")
 SEMANTIC_MODES = ("vote", "scd")
+# Vote mode: a thin color (no 3x3 region in the mask) is an object of that mask from this many pixels
+# on, when it is no blend of its neighbours (PaletteBuilder's thin rule, applied to one mask).
+MASK_THIN_MIN_PIXELS = 20
 
 
 class DuplicateKeyframeError(ValueError):
@@ -174,12 +177,13 @@ class SemanticMapper:
         )
 
     def _integrate_votes(self, keyframe: Keyframe) -> IntegrationReport:
-        # The palette includes this mask, so its own objects are palette colors from the first sight.
-        builder = PaletteBuilder.from_arrays(self.palette_builder.to_arrays())
-        builder.update(keyframe.mask)
+        # Labels come from this mask alone (its own palette), never from the history: a keyframe's
+        # votes do not depend on which keyframes came before, so maps merge exactly.
+        own = PaletteBuilder()
+        own.update(keyframe.mask)
         labelled = pixel_labels(
             keyframe.mask,
-            builder.build(),
+            own.build(thin_min_pixels=MASK_THIN_MIN_PIXELS),
             self.config.metric,
             self.config.min_snap_margin,
             include_void=self.config.void_policy == "include",
@@ -201,7 +205,7 @@ class SemanticMapper:
         pooled = votes.other + np.where(void, votes.weights, 0.0).sum(axis=1)
         weights = np.where(named & ~void, votes.weights, 0.0)
         self.state.add(votes.rows, objects, weights, pooled, keyframe.stamp_ns)
-        self.palette_builder = builder
+        self.palette_builder = self.palette_builder.merged(own)
         if self._labels is not None:
             ids, conf = self.state.labels(votes.rows)
             self._labels[0][votes.rows] = ids
@@ -227,6 +231,25 @@ class SemanticMapper:
                 ids, conf = self._labels
                 self._result = SemanticResult(palette, ids.copy(), conf.copy(), ids != UNOBSERVED_ID)
         return self._result
+
+    def merged(self, other: SemanticMapper) -> SemanticMapper:
+        """A mapper holding both mappers' evidence and palette counts: two robots or two bags of the
+        same Gaussian map. The evidence settings must agree and no keyframe may be in both."""
+        for name in ("semantic_mode", "weight_power", "vote_slots", "void_policy", "metric", "min_snap_margin"):
+            mine, theirs = getattr(self.config, name), getattr(other.config, name)
+            if mine != theirs and (name != "vote_slots" or self.config.semantic_mode == "vote"):
+                raise ValueError(f"cannot merge maps built with different {name} ({mine!r} vs {theirs!r})")
+        if len(self.gaussians) != len(other.gaussians) or not (
+            np.array_equal(self.gaussians.ids, other.gaussians.ids)
+            if self.gaussians.ids is not None and other.gaussians.ids is not None
+            else np.array_equal(self.gaussians.means, other.gaussians.means)
+        ):
+            raise ValueError("cannot merge maps of different Gaussian maps (same ids, or same means without ids)")
+        out = SemanticMapper(self.gaussians, self.config)
+        out.state = self.state.merged(other.state)
+        out.palette_builder = self.palette_builder.merged(other.palette_builder)
+        out.map_version = max(self.map_version, other.map_version)
+        return out
 
     def update_gaussians(self, gaussians: GaussianMap) -> MapUpdateReport:
         """Swaps in a new map from the SLAM front-end, carrying accumulated evidence over.
