@@ -32,6 +32,8 @@ from tests.rosutil import (
     wait_until,
 )
 
+pytestmark = pytest.mark.ros
+
 TYPES = {
     "/pose": PoseStamped,
     "/cloud": PointCloud2,
@@ -165,4 +167,25 @@ def test_record_format_rosbag2_refuses_an_existing_directory(tmp_path: Path) -> 
     assert list(existing.iterdir()) == []
 
 
-pytestmark = pytest.mark.ros
+def test_reader_takes_only_readable_single_file_rosbag2_directories(tmp_path: Path) -> None:
+    from monovoc_ros.bags import BagError
+    from monovoc_ros.bags.writer import Rosbag2Writer
+
+    with Rosbag2Writer(tmp_path / "ok") as writer:
+        writer.write("/pose", message("/pose", 0), 5)
+    assert bag_info(tmp_path / "ok").message_count == 1
+    info = yaml.safe_load((tmp_path / "ok" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["starting_time"] == {"nanoseconds_since_epoch": 5} and info["duration"] == {"nanoseconds": 0}
+    assert info["topics_with_message_count"][0]["topic_metadata"]["type_description_hash"] == type_hash(
+        "geometry_msgs/msg/PoseStamped"
+    )
+    split = tmp_path / "split"
+    split.mkdir()
+    (split / "metadata.yaml").write_text(
+        yaml.safe_dump({"rosbag2_bagfile_information": {"relative_file_paths": ["a_0.mcap", "a_1.mcap"]}})
+    )
+    with pytest.raises(BagError, match="only rosbag2 bags of one .mcap file"):
+        bag_info(split)
+    (split / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed")
+    with pytest.raises(BagError, match="unreadable metadata.yaml"):
+        bag_info(split)
