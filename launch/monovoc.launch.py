@@ -19,6 +19,7 @@ from launch.actions import DeclareLaunchArgument, ExecuteProcess
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackagePrefix, FindPackageShare
 
 PACKAGE = "monovoc_ros"
@@ -66,7 +67,11 @@ def generate_launch_description() -> LaunchDescription:
         parameters=[
             LaunchConfiguration("params_file"),
             LaunchConfiguration("query_params_file"),
-            {"use_sim_time": use_sim_time, "map_directory": LaunchConfiguration("map_directory")},
+            # Typed: launch would read map_directory:='' as YAML (null) and "false" is a bool.
+            {
+                "use_sim_time": ParameterValue(use_sim_time, value_type=bool),
+                "map_directory": ParameterValue(LaunchConfiguration("map_directory"), value_type=str),
+            },
         ],
         remappings=[
             ("image", LaunchConfiguration("image")),
@@ -95,7 +100,7 @@ def generate_launch_description() -> LaunchDescription:
         package="rviz2",
         executable="rviz2",
         arguments=["-d", PathJoinSubstitution([share, "rviz", "monovoc.rviz"])],
-        parameters=[{"use_sim_time": use_sim_time}],
+        parameters=[{"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
         condition=IfCondition(LaunchConfiguration("rviz")),
     )
     return LaunchDescription([*arguments, mapper, replay, rviz])
