@@ -171,7 +171,7 @@ def test_the_installed_node_answers_a_query_and_publishes_what_rviz_shows(worksp
             assert RVIZ.is_file() and wanted
 
             def published() -> dict[str, list[str]]:
-                from rclpy.exceptions import NodeNameNonExistentError
+                from rclpy.node import NodeNameNonExistentError
 
                 try:
                     return dict(client.node.get_publisher_names_and_types_by_node("semantic_mapper", "/monovoc"))
