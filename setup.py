@@ -1,8 +1,25 @@
-from glob import glob
+import os
 
 from setuptools import find_packages, setup
 
 package_name = "monovoc_ros"
+
+
+def share_tree(*folders: str) -> list[tuple[str, list[str]]]:
+    """(share/monovoc_ros/<dir>, [files]) for every directory under ``folders``.
+
+    data_files takes files only: a plain ``glob("config/*")`` also matched the directory
+    config/queries, which made ``colcon build`` (setup.py install_data) fail with
+    "can't copy 'config/queries': doesn't exist or not a regular file".
+    """
+    entries = []
+    for folder in folders:
+        for directory, subdirs, files in os.walk(folder):
+            subdirs[:] = sorted(d for d in subdirs if d != "__pycache__")
+            if files:
+                entries.append((f"share/{package_name}/{directory}", sorted(f"{directory}/{f}" for f in files)))
+    return entries
+
 
 setup(
     name=package_name,
@@ -11,7 +28,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", glob("config/*")),
+        # config/ (parameter files, query sets), launch/monovoc.launch.py, rviz/monovoc.rviz
+        *share_tree("config", "launch", "rviz"),
     ],
     install_requires=["setuptools"],
     package_data={"monovoc_ros.embed": ["data/*.txt"]},

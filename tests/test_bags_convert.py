@@ -24,7 +24,7 @@ from monovoc_ros.bags import (
 )
 from monovoc_ros.bags.bundled import SYNTHETIC_BAG, bundled_bag
 from monovoc_ros.bags.convert import MIN_START_NS
-from monovoc_ros.bags.schemas import deserialize_rosbags
+from monovoc_ros.bags.schemas import deserialize_rosbags, type_hash
 from monovoc_ros.cli import main as monovoc
 from monovoc_ros.core.datasets import open_sequence
 from monovoc_ros.core.gaussians import GaussianMap
@@ -249,6 +249,8 @@ def test_bundled_synthetic_bag() -> None:
         **{TOPICS[r]: n for r in ("pose", "camera_info", "image", "mask")},
     }
     assert len(bag_labels(path)) > 5
+    # Channels carry rosbag2 Jazzy's RIHS01 type hash (regenerate the bag if this fails after a change).
+    assert all(t.type_hash == type_hash(t.type_name) for t in info.topics.values())
     assembler = KeyframeAssembler()
     events = list(bag_events(path, assembler=assembler))
     assert isinstance(events[0], GaussianMap) and len(events[0]) > 1000

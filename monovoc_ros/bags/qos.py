@@ -23,9 +23,9 @@ class OfferedQos:
     depth: int = 10
 
 
-def qos_yaml(profiles: list[OfferedQos]) -> str:
-    """rosbag2-compatible YAML for ``offered_qos_profiles``."""
-    items = [
+def qos_items(profiles: list[OfferedQos]) -> list[dict]:
+    """The profiles as rosbag2 Jazzy writes them (a list of dicts with lower-case enum names)."""
+    return [
         {
             "history": "keep_last",
             "depth": int(p.depth),
@@ -39,7 +39,11 @@ def qos_yaml(profiles: list[OfferedQos]) -> str:
         }
         for p in profiles
     ]
-    return yaml.safe_dump(items, sort_keys=False)
+
+
+def qos_yaml(profiles: list[OfferedQos]) -> str:
+    """rosbag2-compatible YAML for ``offered_qos_profiles`` (MCAP channel metadata)."""
+    return yaml.safe_dump(qos_items(profiles), sort_keys=False)
 
 
 def _enum(value: object, names: dict[int, str]) -> str:

@@ -22,6 +22,7 @@ from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from monovoc_ros.bags.qos import OFFERED_QOS_KEY, OfferedQos, parse_qos_yaml
+from monovoc_ros.bags.schemas import TYPE_HASH_KEY
 
 
 class BagError(ValueError):
@@ -53,6 +54,7 @@ class TopicInfo:
     type_name: str
     count: int
     qos: list[OfferedQos]  # offered_qos_profiles recorded with the channel (may be empty)
+    type_hash: str = ""  # topic_type_hash recorded with the channel (RIHS01_...; "" when absent)
 
     @property
     def transient_local(self) -> bool:
@@ -98,10 +100,28 @@ class BagInfo:
         }
 
 
-def _open(path: str | os.PathLike):
+def bag_file(path: str | os.PathLike) -> Path:
+    """The MCAP file of ``path``: the file itself, or the one file of a rosbag2 bag directory
+    (``metadata.yaml``'s ``relative_file_paths``, e.g. what ``monovoc record --format rosbag2`` writes)."""
     path = Path(path)
+    if path.is_dir() and (path / "metadata.yaml").is_file():
+        import yaml
+
+        try:
+            info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+            files = [path / f for f in info["relative_file_paths"]]
+        except (yaml.YAMLError, OSError, KeyError, TypeError) as exc:
+            raise BagError(f"{path}: unreadable metadata.yaml ({exc})") from None
+        if len(files) != 1 or files[0].suffix != ".mcap":
+            raise BagError(f"{path}: only rosbag2 bags of one .mcap file are supported, got {files}")
+        path = files[0]
     if not path.is_file():
         raise BagError(f"{path}: no such bag file")
+    return path
+
+
+def _open(path: str | os.PathLike):
+    path = bag_file(path)
     return path, open(path, "rb")
 
 
@@ -248,7 +268,13 @@ def bag_info(path: str | os.PathLike) -> BagInfo:
         qos = parse_qos_yaml(channel.metadata.get(OFFERED_QOS_KEY, ""))
         info = topics.get(channel.topic)
         if info is None:
-            topics[channel.topic] = TopicInfo(channel.topic, schema.name if schema else "", counts.get(cid, 0), qos)
+            topics[channel.topic] = TopicInfo(
+                channel.topic,
+                schema.name if schema else "",
+                counts.get(cid, 0),
+                qos,
+                channel.metadata.get(TYPE_HASH_KEY, ""),
+            )
         else:  # several channels on one topic (e.g. two recordings merged)
             info.count += counts.get(cid, 0)
             info.qos += qos

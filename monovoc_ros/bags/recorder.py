@@ -5,6 +5,9 @@ taken from the graph and a QoS adapted to the publishers like rosbag2 does: reli
 publisher is best-effort, transient-local when every publisher is (so a latched map is recorded
 even if it was published before the recorder started). Channels carry the publishers' offered QoS.
 
+Output: one ``.mcap`` file (``bag_format="mcap"``) or a rosbag2 bag directory (``"rosbag2"``:
+``metadata.yaml`` + ``<name>_0.mcap``, what ``ros2 bag record -s mcap -o DIR`` writes).
+
 Log time: the receive time (``log_time="receive"``, as rosbag2), or the message's header stamp
 (``"header"``; read from the CDR without decoding, receive time for types without a header) which
 makes a recording of a replay line up with the source bag.
@@ -20,15 +23,15 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from monovoc_ros.bags import schemas
 from monovoc_ros.bags.qos import offered_from_endpoint, rclpy_profile
 from monovoc_ros.bags.rosnode import ros_node, spinning
-from monovoc_ros.bags.writer import BagWriter
+from monovoc_ros.bags.writer import BagWriter, Rosbag2Writer
 
 LOG_TIMES = ("receive", "header")
+BAG_FORMATS = ("mcap", "rosbag2")
 SUBSCRIPTION_DEPTH = 1000  # raw callbacks only append to the writer; this absorbs a --fast replay's bursts
 CHUNK_SIZE = 1024 * 1024  # a recorder killed hard loses at most its current (unwritten) chunk
 _POLL_S = 0.05
@@ -135,23 +138,28 @@ def record(
     node: Any = None,
     on_subscribed: Callable[[str, str], None] | None = None,
     on_ready: Callable[[], None] | None = None,
+    bag_format: str = "mcap",
 ) -> RecordSummary:
     """Records ``topics`` into ``out_path`` until ``duration`` seconds, ``count`` messages in all,
     ``stop_event`` or Ctrl-C; the bag is finalized in every case.
 
     ``on_ready()`` is called once the node is up, ``on_subscribed(topic, type_name)`` as each topic gets
     subscribed. ``node``: a node
-    that its owner spins (else an own node in a new context, spun here).
+    that its owner spins (else an own node in a new context, spun here). ``bag_format``: "mcap" (``out_path``
+    is the file) or "rosbag2" (``out_path`` is the bag directory, which must not exist yet).
     """
     if log_time not in LOG_TIMES:
         raise ValueError(f"log_time must be one of {LOG_TIMES}, got {log_time!r}")
+    if bag_format not in BAG_FORMATS:
+        raise ValueError(f"bag_format must be one of {BAG_FORMATS}, got {bag_format!r}")
     wanted = list(dict.fromkeys(_absolute(t) for t in topics))
     if not wanted:
         raise ValueError("record: no topics given")
     stop = stop_event or threading.Event()
     interrupted = False
     start = time.monotonic()
-    writer = BagWriter(out_path, compression=compression, canonical=False, chunk_size=CHUNK_SIZE)
+    writer_type = Rosbag2Writer if bag_format == "rosbag2" else BagWriter
+    writer = writer_type(out_path, compression=compression, canonical=False, chunk_size=CHUNK_SIZE)
     try:
         with ros_node("monovoc_record", node) as ros:
             recorder = _Recorder(ros, writer, log_time, stop, count)
@@ -173,7 +181,7 @@ def record(
         path=str(out_path),
         messages={t: recorder.counts[t] for t in wanted if t in recorder.subscriptions},
         seconds=time.monotonic() - start,
-        size_bytes=Path(out_path).stat().st_size,
+        size_bytes=writer.path.stat().st_size,
         missing=[t for t in wanted if t not in recorder.subscriptions],
         interrupted=interrupted,
     )

@@ -6,6 +6,11 @@ from rosbags' stock Jazzy typestore; types it does not know (``monovoc_interface
 installed) are registered from their ``.msg`` files under ``share/`` of the ament prefixes (the venv
 here, ``/opt/ros/jazzy`` on a robot), dependencies first.
 
+``type_hash`` gives a type's RIHS01 type-description hash (what rclpy advertises for an endpoint and
+rosbag2 Jazzy stores per channel as ``topic_type_hash``): from the ``.json`` type description that
+rosidl generates next to each ``.msg`` under ``share/``, else computed by rosbags from the definition
+(the two agree for every type used here; tests compare both with a live publisher's hash).
+
 rclpy's serializer leaves CDR alignment padding uninitialized, so the same message can serialize to
 different bytes. ``canonical_cdr`` re-serializes through rosbags (zeroed padding, ~4 ms for an 8 MB
 cloud), which makes converted bags byte-for-byte reproducible.
@@ -15,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import json
 import os
 import sys
 import threading
@@ -26,6 +32,7 @@ from rosbags.typesys.base import Nodetype
 
 SCHEMA_ENCODING = "ros2msg"
 MESSAGE_ENCODING = "cdr"
+TYPE_HASH_KEY = "topic_type_hash"  # MCAP channel metadata key of rosbag2 Jazzy (RIHS01_<sha256 hex>)
 _LOCK = threading.RLock()  # the typestore is shared by recorder callbacks
 
 
@@ -127,6 +134,24 @@ def message_definition(type_name: str) -> str:
     with _LOCK:
         text, _ = typestore().generate_msgdef(type_name, ros_version=2)
     return text
+
+
+@functools.cache
+def type_hash(type_name: str) -> str:
+    """``RIHS01_<64 hex>`` of ``pkg/msg/Type`` (see the module docstring for where it comes from)."""
+    type_name = normalize_type_name(type_name)
+    package, kind, name = type_name.split("/")
+    for share in _share_dirs():
+        path = share / package / kind / f"{name}.json"
+        if path.is_file():
+            try:
+                hashes = json.loads(path.read_text())["type_hashes"]
+                return next(h["hash_string"] for h in hashes if h["type_name"] == type_name)
+            except (ValueError, KeyError, TypeError, StopIteration):
+                break  # an unreadable description: compute the hash instead
+    type_name = ensure_registered(type_name)
+    with _LOCK:
+        return typestore().hash_rihs01(type_name)
 
 
 def canonical_cdr(data: bytes, type_name: str) -> bytes:

@@ -11,13 +11,20 @@ import threading
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "record",
-        help="record live ROS 2 topics into an MCAP bag",
+        help="record live ROS 2 topics into an MCAP bag or a rosbag2 bag directory",
         description="Subscribes (raw, types from the graph, QoS adapted to the publishers) to each topic once it "
         "has a publisher and writes a ROS 2 MCAP bag; stops on Ctrl-C, --duration or --count and finalizes the "
         "file. Prints a JSON summary.",
     )
     p.add_argument("topics", nargs="+", metavar="TOPIC")
-    p.add_argument("-o", "--out", required=True, help="output .mcap file")
+    p.add_argument("-o", "--out", required=True, help="output .mcap file, or bag directory with --format rosbag2")
+    p.add_argument(
+        "--format",
+        choices=("mcap", "rosbag2"),
+        default="mcap",
+        help="mcap: one .mcap file (default); rosbag2: a new directory with metadata.yaml and <name>_0.mcap, "
+        "as `ros2 bag record -s mcap` writes",
+    )
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--count", type=int, default=None, metavar="N", help="stop after N messages in all")
     p.add_argument(
@@ -54,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
             stop_event=stop,
             on_subscribed=subscribed,
             on_ready=ready,
+            bag_format=args.format,
         )
     except (LookupError, ValueError) as exc:
         print(f"monovoc record: {exc}", file=sys.stderr)
