@@ -72,6 +72,10 @@ class JpegMasks:
         return clean(i) if clean else self._seq.keyframe(i).mask
 
 
+def _second(item):
+    return item[1]
+
+
 def run(source: str, config_name: str, jpeg: int | None) -> dict:
     seq = offline.open_source(str(REPLICA) if source == "replica" else source)
     if jpeg:
@@ -88,7 +92,7 @@ def run(source: str, config_name: str, jpeg: int | None) -> dict:
         "miou": round(100 * float(result["miou"]), 2),
         "mismatch_nonwhite": round(100 * float(result["mismatch_nonwhite"]), 2),
         "objects": len(ious),
-        "worst_objects": {f"{k:06x}": round(100 * float(v), 1) for k, v in sorted(ious.items(), key=lambda kv: kv[1])[:5]},
+        "worst_objects": {f"{k:06x}": round(100 * float(v), 1) for k, v in sorted(ious.items(), key=_second)[:5]},
         "keyframes": stats.keyframes,
         "mapping_s": round(mapping_s, 1),
     }

@@ -4,7 +4,9 @@
 
 The node runs as a separate process (with the object database and query service unless --mapping-only),
 publishing its semantic cloud at most --publish-rate times a second (default 1, the node's default).
-Two runs, each on a fresh node:
+First, in this process, the labelling cost of a semantic-cloud update per semantic mode (``labelling``:
+votes re-label the Gaussians a keyframe touched; SCD re-quantizes every observed Gaussian). Then two
+runs, each on a fresh node:
 - ``fast``: the bag replayed as fast as possible (reliable, nothing lost): keyframes per second sustained
   from the first message to the last keyframe integrated, mean SCD ms per keyframe, keyframes dropped;
 - ``paced``: the bag at --rate times its recorded rate (10 Hz for the synthetic room): per keyframe, the latency
@@ -28,7 +30,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from monovoc_ros.bags import bag_info, iter_messages, replay, topic_names  # noqa: E402
+from monovoc_ros.bags import bag_events, bag_info, iter_messages, replay, topic_names  # noqa: E402
+from monovoc_ros.core.keyframe import Keyframe  # noqa: E402
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper  # noqa: E402
 from monovoc_ros.nodes.mapper_process import (  # noqa: E402
     MAPPING_ONLY,
     WITH_OBJECTS,
@@ -91,6 +95,26 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
         return out
 
 
+def _labelling(bag: Path, mode: str) -> dict:
+    """In this process: the labelling part of a semantic-cloud update (SemanticMapper.result after each
+    keyframe, what the node does before it packs a cloud) for each keyframe of the bag."""
+    events = list(bag_events(bag))
+    gaussians = next(e for e in events if not isinstance(e, Keyframe) and hasattr(e, "means"))
+    mapper = SemanticMapper(gaussians, MapperConfig(semantic_mode=mode))
+    times = []
+    for keyframe in (e for e in events if isinstance(e, Keyframe)):
+        mapper.integrate(keyframe)
+        start = time.perf_counter()
+        mapper.result()
+        times.append(1e3 * (time.perf_counter() - start))
+    times = times[1:]  # the first call compiles / loads kernels
+    return {
+        "gaussians": len(gaussians),
+        "ms_p50": round(float(np.median(times)), 2),
+        "ms_max": round(float(np.max(times)), 2),
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bag", default=str(REPO / "bags" / "synthetic_room.mcap"))
@@ -108,6 +132,7 @@ def main() -> int:
         "node": module,
         "cpus": os.cpu_count(),
         "publish_rate_hz": args.publish_rate,
+        "labelling": {mode: _labelling(bag, mode) for mode in ("vote", "scd")},
         "fast": _one_run(bag, module, True, work, args.publish_rate),
         "paced": {"rate": args.rate, **_one_run(bag, module, False, work, args.publish_rate, args.rate)},
         "loadavg": [round(x, 2) for x in os.getloadavg()],

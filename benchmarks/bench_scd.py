@@ -1,4 +1,4 @@
-"""Per-keyframe SCD accumulation time of the numba and torch rasterizers; prints one JSON object.
+"""Per-keyframe evidence time (SCD sums and votes) of the numba and torch rasterizers; prints one JSON object.
 
     python benchmarks/bench_scd.py                      # full run (several minutes on 2 cores)
     python benchmarks/bench_scd.py --quick              # smallest size and resolution, few repeats
@@ -89,27 +89,44 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_config(scene: str, impl: str, n: int, width: int, height: int, repeats: int) -> dict:
-    """One configuration in this process: warm-up, then `repeats` passes over the keyframes."""
-    from monovoc_ros.core.raster import accumulate
+def run_config(scene: str, impl: str, n: int, width: int, height: int, repeats: int, mode: str = "scd") -> dict:
+    """One configuration in this process: warm-up, then `repeats` passes over the keyframes.
+
+    mode "scd" times core.raster.accumulate (color sums); "vote" times core.raster.accumulate_votes on
+    the masks' pixel labels (made once per keyframe beforehand, as SemanticMapper does: `labels_ms`)."""
+    from monovoc_ros.core.pixel_labels import mask_labels
+    from monovoc_ros.core.raster import accumulate, accumulate_votes
 
     gmap, intrinsics, views = SCENES[scene](n, width, height)
     _ = gmap.covariances  # once per map, not per keyframe
     rss_before = _peak_rss_mb()
-    valid = [np.any(mask != 255, axis=2) for _, mask in views]
+    t0 = time.perf_counter()
+    if mode == "vote":
+        inputs = [mask_labels(mask)[0].labels for _, mask in views]
+    else:
+        inputs = [np.any(mask != 255, axis=2) for _, mask in views]
+    labels_ms = 1e3 * (time.perf_counter() - t0) / len(views)
+
+    def one(pose, mask, extra):
+        if mode == "vote":
+            return accumulate_votes(gmap, extra, intrinsics, pose, weight_power=4, impl=impl).n_visible
+        return accumulate(gmap, mask, intrinsics, pose, valid=extra, weight_power=4, impl=impl).n_visible
+
     visible = []
     t0 = time.perf_counter()
-    for (pose, mask), ok in zip(views, valid, strict=True):
-        visible.append(accumulate(gmap, mask, intrinsics, pose, valid=ok, impl=impl).n_visible)
+    for (pose, mask), extra in zip(views, inputs, strict=True):
+        visible.append(one(pose, mask, extra))
     warmup = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        for (pose, mask), ok in zip(views, valid, strict=True):
-            accumulate(gmap, mask, intrinsics, pose, valid=ok, impl=impl)
+        for (pose, mask), extra in zip(views, inputs, strict=True):
+            one(pose, mask, extra)
         times.append((time.perf_counter() - t0) / len(views))
     return {
         "scene": scene,
+        "mode": mode,
+        "labels_ms": round(labels_ms, 2) if mode == "vote" else None,
         "impl": impl,
         "gaussians": len(gmap),
         "resolution": f"{width}x{height}",
@@ -176,26 +193,28 @@ def main() -> None:
     parser.add_argument("--scene", choices=sorted(SCENES), default=None, help="default: replica if present")
     parser.add_argument("--impl", choices=("numba", "torch"), action="append", help="default: both")
     parser.add_argument("--repeats", type=int, default=None)
+    parser.add_argument("--mode", choices=("scd", "vote"), action="append", help="evidence kind; default: both")
     parser.add_argument("--config", help=argparse.SUPPRESS)  # scene,impl,n,width,height,repeats: in-process
     args = parser.parse_args()
     if args.config:
-        scene, impl, n, w, h, reps = args.config.split(",")
-        print(json.dumps(run_config(scene, impl, int(n), int(w), int(h), int(reps))))
+        scene, impl, n, w, h, reps, mode = args.config.split(",")
+        print(json.dumps(run_config(scene, impl, int(n), int(w), int(h), int(reps), mode)))
         return
     scene = args.scene or ("replica" if (REPLICA / "gaussians.ply").exists() else "synthetic")
     sizes = SIZES[:1] if args.quick else SIZES
     resolutions = RESOLUTIONS[:1] if args.quick else RESOLUTIONS
     report = {"scene": scene, "cpu_count": os.cpu_count(), "compile": compile_times(), "runs": []}
-    for impl in args.impl or ("numba", "torch"):
+    for impl, mode in ((i, m) for i in args.impl or ("numba", "torch") for m in args.mode or ("scd", "vote")):
         for w, h in resolutions:
             for n in sizes:
                 # The torch path exists for GPUs; on a CPU its large configurations get one repeat.
                 reps = args.repeats or (2 if args.quick else (7 if impl == "numba" else (3 if n <= 140_000 else 1)))
-                cmd = [sys.executable, __file__, "--config", f"{scene},{impl},{n},{w},{h},{reps}"]
+                cmd = [sys.executable, __file__, "--config", f"{scene},{impl},{n},{w},{h},{reps},{mode}"]
                 res = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(REPO)))
                 if res.returncode != 0:
                     tail = res.stderr.strip().splitlines()[-1:]
-                    report["runs"].append({"impl": impl, "gaussians": n, "resolution": f"{w}x{h}", "error": tail})
+                    failed = {"impl": impl, "mode": mode, "gaussians": n, "resolution": f"{w}x{h}", "error": tail}
+                    report["runs"].append(failed)
                     continue
                 report["runs"].append(json.loads(res.stdout.strip().splitlines()[-1]))
     report["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]

@@ -18,7 +18,7 @@ import numpy as np
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
-from monovoc_ros.core.pixel_labels import pixel_labels
+from monovoc_ros.core.pixel_labels import mask_labels
 from monovoc_ros.core.quantize import METRICS, Quantization, confidence, quantize
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS, accumulate, accumulate_votes
 from monovoc_ros.core.state import GaussianEvidence, SemanticState, reindex_by_position
@@ -26,9 +26,6 @@ from monovoc_ros.core.votes import DEFAULT_SLOTS, VoteState
 
 VOID_POLICIES = ("skip", "include")
 SEMANTIC_MODES = ("vote", "scd")
-# Vote mode: a thin color (no 3x3 region in the mask) is an object of that mask from this many pixels
-# on, when it is no blend of its neighbours (PaletteBuilder's thin rule, applied to one mask).
-MASK_THIN_MIN_PIXELS = 20
 
 
 class DuplicateKeyframeError(ValueError):
@@ -177,13 +174,8 @@ class SemanticMapper:
         )
 
     def _integrate_votes(self, keyframe: Keyframe) -> IntegrationReport:
-        # Labels come from this mask alone (its own palette), never from the history: a keyframe's
-        # votes do not depend on which keyframes came before, so maps merge exactly.
-        own = PaletteBuilder()
-        own.update(keyframe.mask)
-        labelled = pixel_labels(
+        labelled, own = mask_labels(
             keyframe.mask,
-            own.build(thin_min_pixels=MASK_THIN_MIN_PIXELS),
             self.config.metric,
             self.config.min_snap_margin,
             include_void=self.config.void_policy == "include",
@@ -199,7 +191,7 @@ class SemanticMapper:
             device=self.config.device,
         )
         named = votes.labels >= 0
-        objects = np.where(named, labelled.objects[np.maximum(votes.labels, 0)], 0).astype(np.uint32)
+        objects = np.append(labelled.objects, np.uint32(0))[votes.labels]  # label -1 -> 0, an unused entry
         # Void votes (void_policy include) name no object: they count against every object's margin.
         void = named & (objects == VOID_ID)
         pooled = votes.other + np.where(void, votes.weights, 0.0).sum(axis=1)

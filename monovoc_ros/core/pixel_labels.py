@@ -6,6 +6,7 @@ palette color with the configured metric (CMC by default: the paper's quantizati
 pixel) unless the two nearest palette colors are too close to decide (relative margin
 ``(d2 - d1) / (d2 + d1)`` below `min_snap_margin`), in which case it adds no evidence. Void (pure
 white) pixels add no evidence. Colors are handled once per distinct color of the mask, not per pixel.
+`mask_labels` takes the palette of the mask itself (core.palette's region and thin rules).
 """
 
 from __future__ import annotations
@@ -14,8 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.palette import VOID_ID, Palette, pack_rgb
+from monovoc_ros.core.palette import VOID_ID, Palette, PaletteBuilder, pack_rgb
 from monovoc_ros.core.quantize import confidence, quantize
+
+# A thin color (no 3x3 region in the mask) is an object of that mask from this many pixels on, when it
+# is no blend of its neighbours (PaletteBuilder's thin rule, applied to one mask).
+MASK_THIN_MIN_PIXELS = 20
 
 
 @dataclass
@@ -60,3 +65,16 @@ def pixel_labels(
         objects = np.append(objects, np.uint32(VOID_ID))
     labels = compact[index][inverse].reshape(packed.shape)
     return PixelLabels(labels, objects.astype(np.uint32), snapped, ambiguous)
+
+
+def mask_labels(
+    mask: np.ndarray, metric: str = "cmc", min_snap_margin: float = 0.2, *, include_void: bool = False
+) -> tuple[PixelLabels, PaletteBuilder]:
+    """Labels of a mask against its own palette, and that mask's palette counts.
+
+    Labels come from the mask alone, never from the masks before it, so a keyframe's votes do not
+    depend on the order of keyframes and maps of the same scene merge exactly."""
+    own = PaletteBuilder()
+    own.update(mask)
+    palette = own.build(thin_min_pixels=MASK_THIN_MIN_PIXELS)
+    return pixel_labels(mask, palette, metric, min_snap_margin, include_void=include_void), own
