@@ -31,7 +31,7 @@ from monovoc_ros.core.raster.constants import (
 )
 from monovoc_ros.core.raster.inputs import View
 from monovoc_ros.core.raster.projection import jacobian_limits, tile_grid
-from monovoc_ros.core.raster.vote_tables import TILE_CHANNELS, tile_slots_reference, top_entries
+from monovoc_ros.core.raster.vote_tables import TILE_CHANNELS
 
 _PIXELS = TILE * TILE
 # Elements of one (tiles x pixels x Gaussians) chunk tensor; several such tensors are alive at once.
@@ -249,13 +249,15 @@ def accumulate_votes(
     gmap: GaussianMap, labels: np.ndarray, view: View, weight_power: int, slots: int, device: str | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Vote evidence (see vote_tables) with the tile channels as one-hot observations."""
+    from monovoc_ros.core.raster.numba_impl import tile_slots  # tested against vote_tables' plain twin
+
     n = len(gmap)
     if n == 0:
         resolve_device(device)
         return np.zeros(0, np.int64), np.zeros((0, slots), np.int32), np.zeros((0, slots)), np.zeros(0), 0
     dev, pairs, gx, gy, budget = _prepare(gmap, view, device)
     nv = len(pairs.index)
-    slot_map, table = tile_slots_reference(labels, view.width, view.height)
+    slot_map, table = tile_slots(labels, view.width, view.height)  # the shared tile rule (vote_tables)
     n_labels = max(int(labels.max()) + 1 if labels.size else 0, 1)
     slot_t = torch.tensor(slot_map.astype(np.int64), device=dev)
     onehot = (slot_t[:, :, None] == torch.arange(TILE_CHANNELS, device=dev)[None, None, :]).float()
@@ -269,8 +271,17 @@ def accumulate_votes(
         column = table_t[tiles][:, None, :].expand(-1, k, -1)
         key = rank[:, :, None] * (n_labels + 1) + column
         dense.index_add_(0, key[in_list].reshape(-1), v_pair[in_list].reshape(-1).double())
-    dense_np = dense.reshape(nv, n_labels + 1).cpu().numpy()
-    top_labels, top_weights, rest = top_entries(dense_np[:, :n_labels], dense_np[:, n_labels], slots)
+    dense = dense.reshape(nv, n_labels + 1)
+    named = dense[:, :n_labels]
+    # The heaviest labels on the device; only (V, slots) arrays travel back.
+    kept, index = torch.topk(named, min(slots, n_labels), dim=1)
+    rest = torch.clamp(named.sum(dim=1) - kept.sum(dim=1), min=0.0) + dense[:, n_labels]
+    top_weights = np.zeros((nv, slots))
+    top_labels = np.full((nv, slots), -1, np.int32)
+    kept_np, index_np = kept.cpu().numpy(), index.cpu().numpy()
+    top_weights[:, : kept_np.shape[1]] = np.where(kept_np > 0, kept_np, 0.0)
+    top_labels[:, : kept_np.shape[1]] = np.where(kept_np > 0, index_np, -1)
+    rest = rest.cpu().numpy()
     return pairs.index.cpu().numpy().astype(np.int64), top_labels, top_weights, rest, nv
 
 
