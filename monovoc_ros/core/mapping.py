@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from monovoc_ros.core.association import MASK_ID_MODES, Association, Associator, associate_keyframe
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
@@ -53,6 +54,9 @@ class MapperConfig:
     # Vote mode: a pixel whose color is no palette color is snapped to the nearest one (with `metric`)
     # when the relative margin (d2 - d1) / (d2 + d1) of its two nearest palette colors is at least this.
     min_snap_margin: float = 0.2
+    # "global": a mask color names the same object in every keyframe; "per_frame": segment ids hold for
+    # one mask only and are associated with the map's objects (core.association; vote mode only).
+    mask_ids: str = "global"
 
     def __post_init__(self) -> None:
         if self.impl not in IMPLEMENTATIONS:
@@ -69,6 +73,10 @@ class MapperConfig:
             raise ValueError(f"vote_slots must be an integer in [1, 16], got {self.vote_slots!r}")
         if not 0.0 <= float(self.min_snap_margin) <= 1.0:
             raise ValueError(f"min_snap_margin must be in [0, 1], got {self.min_snap_margin!r}")
+        if self.mask_ids not in MASK_ID_MODES:
+            raise ValueError(f"mask_ids must be one of {MASK_ID_MODES}, got {self.mask_ids!r}")
+        if self.mask_ids == "per_frame" and self.semantic_mode != "vote":
+            raise ValueError("mask_ids 'per_frame' needs semantic_mode 'vote' (association merges per-object votes)")
 
     def empty_state(self, n: int, ids: np.ndarray | None) -> GaussianEvidence:
         """The evidence store of this configuration's semantic mode for a map of n Gaussians."""
@@ -85,6 +93,8 @@ class IntegrationReport:
     valid_pixels: int
     snapped_pixels: int = 0  # vote mode: non-palette pixels snapped to a palette color
     ambiguous_pixels: int = 0  # vote mode: non-palette pixels left without evidence
+    association: Association | None = None  # mask_ids per_frame: how the segments were associated
+    keyframe: Keyframe | None = None  # the keyframe integrated (per_frame: its mask in object colors)
 
 
 @dataclass
@@ -133,6 +143,7 @@ class SemanticMapper:
         self._result: SemanticResult | None = None
         # Vote mode keeps every Gaussian's label and confidence and re-labels only what a keyframe touched.
         self._labels: tuple[np.ndarray, np.ndarray] | None = None
+        self.associator: Associator | None = Associator() if self.config.mask_ids == "per_frame" else None
 
     @property
     def n_keyframes(self) -> int:
@@ -143,13 +154,32 @@ class SemanticMapper:
         if self.state.has_stamp(keyframe.stamp_ns):
             raise DuplicateKeyframeError(f"keyframe stamp {keyframe.stamp_ns} was already integrated")
         start = time.perf_counter()
+        association = None
+        if self.associator is not None:
+            keyframe, association = self._associate(keyframe)
         if self.config.semantic_mode == "vote":
             report = self._integrate_votes(keyframe)
         else:
             report = self._integrate_scd(keyframe)
+        report.association, report.keyframe = association, keyframe
         self._result = None
         report.seconds = time.perf_counter() - start
         return report
+
+    def _associate(self, keyframe: Keyframe) -> tuple[Keyframe, Association]:
+        """Per-frame mask ids: the keyframe with its segments in the colors of the objects they were
+        associated with (core.association), after merging the objects the association found to be one."""
+        if self._labels is None:
+            self._labels = self.state.labels()
+        keyframe, association = associate_keyframe(
+            self.associator, self.gaussians, self._labels[0], keyframe,
+            metric=self.config.metric, min_snap_margin=self.config.min_snap_margin,
+        )  # fmt: skip
+        for keep, drop in association.merges:
+            rows = self.state.merge_objects(keep, drop)
+            self._labels[0][rows], self._labels[1][rows] = self.state.labels(rows)
+            self.palette_builder.merge_ids(keep, drop)
+        return keyframe, association
 
     def _integrate_scd(self, keyframe: Keyframe) -> IntegrationReport:
         valid = None
@@ -227,6 +257,8 @@ class SemanticMapper:
     def merged(self, other: SemanticMapper) -> SemanticMapper:
         """A mapper holding both mappers' evidence and palette counts: two robots or two bags of the
         same Gaussian map. The evidence settings must agree and no keyframe may be in both."""
+        if self.associator is not None or other.associator is not None:
+            raise ValueError("cannot merge maps built with per-frame mask ids (their object ids are their own)")
         for name in ("semantic_mode", "weight_power", "vote_slots", "void_policy", "metric", "min_snap_margin"):
             mine, theirs = getattr(self.config, name), getattr(other.config, name)
             if mine != theirs and (name != "vote_slots" or self.config.semantic_mode == "vote"):

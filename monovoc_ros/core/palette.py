@@ -214,6 +214,18 @@ class PaletteBuilder:
         out.n_masks += other.n_masks
         return out
 
+    def merge_ids(self, keep: int, drop: int) -> None:
+        """Counts of color `drop` move to color `keep` (two objects found to be one; `drop` disappears).
+        The mask count is the sum, so a mask that showed both counts twice."""
+        at = np.searchsorted(self.ids, np.uint32(drop))
+        if at >= self.ids.size or self.ids[at] != drop:
+            return
+        moved = {name: self.counts[name][at : at + 1].copy() for name in _COUNT_FIELDS}
+        self.ids = np.delete(self.ids, at)
+        for name in _COUNT_FIELDS:
+            self.counts[name] = np.delete(self.counts[name], at)
+        self._add(np.array([keep], np.uint32), *(moved[name] for name in _COUNT_FIELDS))
+
     def build(
         self,
         min_pixels: int = 1,

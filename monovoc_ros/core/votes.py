@@ -142,6 +142,22 @@ class VoteState(GaussianEvidence):
         out._merge(np.arange(len(self), dtype=np.int64), other.objects[take], other.votes[take], other.other[take])
         return out
 
+    def merge_objects(self, keep: int, drop: int) -> np.ndarray:
+        """Object `drop` becomes object `keep`, exactly: every Gaussian's votes for `drop` are added to its
+        votes for `keep` (as if every pixel that voted for `drop` had voted for `keep`). Returns the
+        (R,) int64 rows that changed. Exact for the votes held in slots (evicted ones are in "other")."""
+        keep, drop = int(keep), int(drop)
+        if not (0 <= keep <= 0xFFFFFF and 0 <= drop <= 0xFFFFFF) or keep == drop:
+            raise ValueError(f"merge_objects: need two distinct 24-bit object ids, got {keep:#x}, {drop:#x}")
+        rows = np.flatnonzero(((self.objects == drop) & (self.votes > 0)).any(axis=1))
+        objects = self.objects[rows]
+        objects[objects == drop] = keep
+        votes = self.votes[rows]
+        self.objects[rows] = EMPTY_SLOT
+        self.votes[rows] = 0.0
+        self._merge(rows.astype(np.int64), objects, votes, np.zeros(rows.size))
+        return rows
+
     @property
     def observed(self) -> np.ndarray:
         """(N,) bool: Gaussians with a vote for some object."""

@@ -1,0 +1,309 @@
+"""Masks whose ids hold for one frame only (`mask_ids: per_frame`): segments associated with map objects.
+
+SAM-style segmenters, detectors with masks and panoptic networks number their segments per image
+(METHOD.md section 9). Per keyframe, the map's current object labels are rendered into the view in
+one pass (core.label_render: per pixel the leading object, void included), and for every segment s
+and rendered object o the overlap C[s, o] (pixels of s where o leads) is counted over the pixels
+that both a segment and an object claim. Then:
+
+1. Match, one to one (Hungarian, scipy linear_sum_assignment), segments to objects by IoU
+   ``C[s, o] / (|s| + |o| - C[s, o])`` with sizes over those jointly claimed pixels, so that the
+   part of a segment the map has not seen yet (rendered void) does not count against a match.
+   Pairs below `min_iou` are never matched.
+2. A segment left unmatched that lies mostly inside one object (``C[s, o] >= part_share * |s|`` and
+   at least `part_coverage` of that object) is a piece of it (a split segment): it joins the object.
+3. Any other segment of at least `new_object_fraction` of the image seeds a new object with a fresh
+   display color (a packed 24-bit color never issued before, never white, black or the grey of
+   unobserved points); smaller ones add no evidence this keyframe.
+4. Objects are only ever matched by what is rendered: an object the view does not show (occluded,
+   out of view, unobserved) gets no evidence and keeps its id. The first keyframe renders nothing,
+   so its segments seed the objects.
+5. Two objects whose rendered regions both lie mostly (`merge_containment`) inside one segment were
+   "covered together"; when a pair was covered together in at least `merge_min_keyframes` keyframes
+   and more often than it was seen apart (matched to two different segments), the younger object is
+   merged into the older one: their votes add (VoteState.merge_objects), exactly.
+
+The result of a keyframe is its mask relabeled with object colors (unassigned pixels void), which
+the mapper integrates through the ordinary vote path, so everything downstream (palette, objects,
+views) sees a mask with global ids.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, pack_rgb, unpack_rgb
+
+MASK_ID_MODES = ("global", "per_frame")
+# Colors never issued to a new object: void white, black and the grey unobserved points are drawn in.
+_RESERVED = {VOID_ID, 0x000000, 0x808080}
+
+
+@dataclass
+class AssociationConfig:
+    min_iou: float = 0.25  # stage 1: least IoU of a segment-object match
+    part_share: float = 0.6  # stage 2: least share of the segment's claimed pixels inside the object
+    part_coverage: float = 0.2  # stage 2: least share of the object's rendered pixels the piece covers
+    new_object_fraction: float = 2e-4  # stage 3: least segment size (fraction of the image) for a new object
+    merge_containment: float = 0.6  # stage 5: share of an object's rendered region inside the one segment
+    merge_min_keyframes: int = 3  # stage 5: keyframes a pair must have been covered together
+
+    def __post_init__(self) -> None:
+        for name in ("min_iou", "part_share", "part_coverage", "new_object_fraction", "merge_containment"):
+            value = float(getattr(self, name))
+            if not 0.0 < value <= 1.0:
+                raise ValueError(f"association {name} must be in (0, 1], got {value!r}")
+        if int(self.merge_min_keyframes) < 1:
+            raise ValueError(f"association merge_min_keyframes must be >= 1, got {self.merge_min_keyframes!r}")
+
+
+def display_color(k: int) -> int:
+    """The k-th display color of the sequence new objects draw from (packed 24-bit), well spread in
+    hue (golden ratio) with saturation and value from a second low-discrepancy sequence."""
+    h = (k * 0.6180339887498949) % 1.0
+    s = 0.55 + 0.45 * ((k * 0.7548776662466927 + 0.3) % 1.0)
+    v = 0.55 + 0.45 * ((k * 0.5698402909980532 + 0.6) % 1.0)
+    i = int(h * 6.0) % 6
+    f = h * 6.0 - int(h * 6.0)
+    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
+    r, g, b = [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i]
+    rgb = np.array([[round(255 * r), round(255 * g), round(255 * b)]], np.uint8)
+    return int(pack_rgb(rgb)[0])
+
+
+@dataclass
+class Association:
+    """One keyframe's association."""
+
+    segment_objects: np.ndarray  # (S,) uint32 object id per segment, UNOBSERVED_ID = no evidence
+    matched: int = 0  # segments matched one to one to a rendered object
+    parts: int = 0  # segments joined to an object as a piece of it
+    new: int = 0  # segments that seeded a new object
+    skipped: int = 0  # segments too small to seed an object
+    rendered_objects: int = 0  # objects leading at least one pixel of the view
+    merges: list[tuple[int, int]] = field(default_factory=list)  # (kept, merged away) object ids
+    seconds: float = 0.0
+
+
+def overlap_counts(segments: np.ndarray, n_segments: int, rendered: np.ndarray, n_rendered: int) -> np.ndarray:
+    """(S, R) int64 pixel counts C[s, o] of segment s (labels (H, W) in [-1, S)) where rendered object
+    o leads (rendered (H, W) in [-1, R)); -1 pixels are left out."""
+    seg = segments.reshape(-1).astype(np.int64)
+    ren = rendered.reshape(-1).astype(np.int64)
+    both = (seg >= 0) & (ren >= 0)
+    flat = np.bincount(seg[both] * n_rendered + ren[both], minlength=n_segments * n_rendered)
+    return flat.reshape(n_segments, n_rendered)
+
+
+def overlap_counts_reference(segments: np.ndarray, n_segments: int, rendered: np.ndarray, n_rendered: int):
+    """Plain twin of overlap_counts."""
+    out = np.zeros((n_segments, n_rendered), np.int64)
+    for s, o in zip(segments.reshape(-1).tolist(), rendered.reshape(-1).tolist(), strict=True):
+        if s >= 0 and o >= 0:
+            out[s, o] += 1
+    return out
+
+
+class Associator:
+    """Per-frame segments to map objects (see the module docstring); keeps the issued ids and the
+    pair statistics between keyframes (and in snapshots: to_json / from_json)."""
+
+    def __init__(self, config: AssociationConfig | None = None) -> None:
+        self.config = config or AssociationConfig()
+        self.issued: list[int] = []  # object ids in the order they were issued
+        self._rank: dict[int, int] = {}  # object id -> its position in `issued`
+        self._next_color = 0
+        self.together: Counter[tuple[int, int]] = Counter()  # pair (older, younger): keyframes covered together
+        self.apart: Counter[tuple[int, int]] = Counter()  # pair: keyframes matched to two different segments
+        self.merged_into: dict[int, int] = {}  # merged-away id -> the id it became
+
+    # ------------------------------------------------------------------ ids
+
+    def _order(self, a: int, b: int) -> tuple[int, int]:
+        """The pair as (older, younger) by issue order."""
+        far = len(self.issued)
+        return (a, b) if self._rank.get(a, far) < self._rank.get(b, far) else (b, a)
+
+    def new_object(self, taken: set[int] | None = None) -> int:
+        """A fresh object id: the next display color not issued yet (nor in `taken`)."""
+        while True:
+            color = display_color(self._next_color)
+            self._next_color += 1
+            if color not in self._rank and color not in _RESERVED and (taken is None or color not in taken):
+                self._rank[color] = len(self.issued)
+                self.issued.append(color)
+                return color
+
+    def resolve(self, object_id: int) -> int:
+        """The live id an object id stands for now (following merges)."""
+        while object_id in self.merged_into:
+            object_id = self.merged_into[object_id]
+        return object_id
+
+    # ------------------------------------------------------------------ association
+
+    def associate(self, segments: np.ndarray, n_segments: int, rendered: np.ndarray, rendered_ids: np.ndarray):
+        """Object id per segment. `segments` (H, W) int32 segment index (-1 = none), `rendered` (H, W)
+        int32 index into `rendered_ids` ((R,) uint32 object ids) of the leading object (-1 = void).
+        Updates the pair statistics and returns an Association whose `merges` the caller must apply
+        to the evidence (merged-away ids never come back)."""
+        start = time.perf_counter()
+        cfg = self.config
+        n_rendered = len(rendered_ids)
+        out = np.full(n_segments, UNOBSERVED_ID, np.uint32)
+        report = Association(out)
+        seg_pixels = np.bincount(segments.reshape(-1)[segments.reshape(-1) >= 0], minlength=n_segments)
+        if n_rendered:
+            C = overlap_counts(segments, n_segments, rendered, n_rendered)
+        else:
+            C = np.zeros((n_segments, 0), np.int64)
+        seg_claimed = C.sum(axis=1)  # (S,) pixels of s where some object leads
+        obj_claimed = C.sum(axis=0)  # (R,) pixels of o inside some segment
+        report.rendered_objects = int((obj_claimed > 0).sum())
+        min_pixels = max(1, int(round(cfg.new_object_fraction * segments.size)))
+        matched_obj = np.full(n_segments, -1, np.int64)  # stage-1 object index per segment
+        if n_rendered and n_segments:
+            union = seg_claimed[:, None] + obj_claimed[None, :] - C
+            iou = np.divide(C, union, out=np.zeros(C.shape), where=union > 0)
+            from scipy.optimize import linear_sum_assignment
+
+            rows, cols = linear_sum_assignment(-iou)
+            ok = iou[rows, cols] >= cfg.min_iou
+            matched_obj[rows[ok]] = cols[ok]
+            out[rows[ok]] = rendered_ids[cols[ok]]
+            report.matched = int(ok.sum())
+        for s in np.flatnonzero(matched_obj < 0):
+            if n_rendered and seg_claimed[s] > 0:
+                o = int(np.argmax(C[s]))
+                if C[s, o] >= cfg.part_share * seg_claimed[s] and C[s, o] >= cfg.part_coverage * obj_claimed[o]:
+                    out[s] = rendered_ids[o]
+                    report.parts += 1
+                    continue
+            if seg_pixels[s] >= min_pixels:
+                out[s] = self.new_object()
+                report.new += 1
+            else:
+                report.skipped += 1
+        if n_rendered and n_segments:
+            report.merges = self._pair_statistics(C, obj_claimed, matched_obj, rendered_ids, min_pixels)
+            for keep, drop in report.merges:
+                out[out == drop] = keep
+        report.seconds = time.perf_counter() - start
+        return report
+
+    def _pair_statistics(self, C, obj_claimed, matched_obj, rendered_ids, min_pixels) -> list[tuple[int, int]]:
+        cfg = self.config
+        visible = obj_claimed >= min_pixels
+        inside = (C >= cfg.merge_containment * obj_claimed[None, :]) & visible[None, :]  # (S, R)
+        for s in np.flatnonzero(inside.sum(axis=1) >= 2):
+            objs = [int(rendered_ids[o]) for o in np.flatnonzero(inside[s])]
+            for i, a in enumerate(objs):
+                for b in objs[i + 1 :]:
+                    self.together[self._order(a, b)] += 1
+        seen = sorted(int(rendered_ids[o]) for o in matched_obj[matched_obj >= 0] if visible[o])
+        for i, a in enumerate(seen):
+            for b in seen[i + 1 :]:
+                self.apart[self._order(a, b)] += 1
+        merges = []
+        for pair, n in list(self.together.items()):
+            keep, drop = pair
+            if n >= cfg.merge_min_keyframes and n > self.apart.get(pair, 0):
+                if keep in self.merged_into or drop in self.merged_into:
+                    continue
+                merges.append((keep, drop))
+                self._forget(drop, keep)
+        return merges
+
+    def _forget(self, drop: int, keep: int) -> None:
+        """Pair statistics after `drop` became `keep`: pairs with drop are dropped (keep's own stay)."""
+        self.merged_into[drop] = keep
+        for table in (self.together, self.apart):
+            for pair in [p for p in table if drop in p]:
+                del table[pair]
+
+    # ------------------------------------------------------------------ keyframes
+
+    def relabel_mask(self, segments: np.ndarray, segment_objects: np.ndarray) -> np.ndarray:
+        """(H, W, 3) uint8 mask with each segment's pixels in its object's color, the rest void."""
+        table = np.append(segment_objects, np.uint32(UNOBSERVED_ID))  # index -1 -> no evidence
+        ids = table[segments]
+        ids = np.where(ids == UNOBSERVED_ID, np.uint32(VOID_ID), ids)
+        return unpack_rgb(ids.astype(np.uint32))
+
+    # ------------------------------------------------------------------ persistence
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {
+                "config": asdict(self.config),
+                "issued": self.issued,
+                "next_color": self._next_color,
+                "together": [[a, b, n] for (a, b), n in sorted(self.together.items())],
+                "apart": [[a, b, n] for (a, b), n in sorted(self.apart.items())],
+                "merged_into": sorted(self.merged_into.items()),
+            }
+        )
+
+    @classmethod
+    def from_json(cls, text: str) -> Associator:
+        data = json.loads(text)
+        out = cls(AssociationConfig(**data["config"]))
+        out.issued = [int(o) for o in data["issued"]]
+        out._rank = {o: i for i, o in enumerate(out.issued)}
+        out._next_color = int(data["next_color"])
+        out.together = Counter({(int(a), int(b)): int(n) for a, b, n in data["together"]})
+        out.apart = Counter({(int(a), int(b)): int(n) for a, b, n in data["apart"]})
+        out.merged_into = {int(a): int(b) for a, b in data["merged_into"]}
+        return out
+
+
+def rendered_object_index(gaussian_ids: np.ndarray, issued: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) int32 compact index of each Gaussian's object (-1 = unobserved) and (R,) uint32 the ids.
+
+    With every id among `issued` (the per-frame case) a binary search over the issued ids replaces
+    sorting the Gaussians' ids."""
+    known = gaussian_ids != UNOBSERVED_ID
+    table = np.unique(np.asarray(issued, np.uint32))
+    if table.size:
+        pos = np.searchsorted(table, gaussian_ids).clip(0, table.size - 1)
+        if np.array_equal(table[pos][known], gaussian_ids[known]):
+            return np.where(known, pos, -1).astype(np.int32), table
+    ids, index = np.unique(gaussian_ids[known], return_inverse=True)
+    compact = np.full(len(gaussian_ids), -1, np.int32)
+    compact[known] = index
+    return compact, ids.astype(np.uint32)
+
+
+def associate_keyframe(
+    associator: Associator,
+    gaussians,
+    gaussian_ids: np.ndarray,
+    keyframe,
+    *,
+    metric: str = "cmc",
+    min_snap_margin: float = 0.2,
+):
+    """One keyframe of per-frame segments: its segments (the mask's own palette, core.pixel_labels),
+    the map's labels `gaussian_ids` (N,) rendered into its view, the association, and the keyframe
+    with its mask relabeled in object colors. Returns (keyframe, Association)."""
+    from dataclasses import replace
+
+    from monovoc_ros.core.label_render import render_label_weights
+    from monovoc_ros.core.pixel_labels import mask_labels
+
+    start = time.perf_counter()
+    labelled, _ = mask_labels(keyframe.mask, metric, min_snap_margin)
+    compact, ids = rendered_object_index(gaussian_ids, associator.issued)
+    if ids.size:
+        rendered = render_label_weights(gaussians, compact, keyframe.intrinsics, keyframe.cam_to_world).labels
+    else:
+        rendered = np.full(labelled.labels.shape, -1, np.int32)
+    report = associator.associate(labelled.labels, len(labelled.objects), rendered, ids)
+    mask = associator.relabel_mask(labelled.labels, report.segment_objects)
+    report.seconds = time.perf_counter() - start
+    return replace(keyframe, mask=mask), report

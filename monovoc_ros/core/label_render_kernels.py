@@ -1,0 +1,101 @@
+"""Numba tile kernel of `label_render`: per pixel, the compositing weight of each object label, one pass.
+
+It walks the same binned, depth-sorted tile lists as the rasterizer's `render_tiles` (the same
+alpha, transmittance and stopping rule, so the weights are the rasterizer's w_ip) but, instead of
+blending colors, adds each Gaussian's weight to its label's entry in a small per-pixel table. The
+Gaussian's label index travels in the red channel of its packed row (a float32 holds integers below
+2^24 exactly; -1 = unlabeled, which occludes but names nothing). Plain twin:
+`label_render.render_label_weights_reference`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from monovoc_ros.core.raster.constants import TILE
+from monovoc_ros.core.raster.numba_kernels import (
+    _F_T_MIN,
+    ROW_RED,
+    _alpha,
+    _any_live,
+    _block_rows,
+    _fetch_add,
+    _footprint,
+    _pixel_span,
+    _reset_transmittance,
+    _tile_pixels,
+)
+
+_PIXELS = TILE * TILE
+_F0 = np.float32(0.0)
+_F1 = np.float32(1.0)
+# Distinct labels a pixel keeps; a further label's weight is lost (counted as void). A pixel's
+# compositing weight is nearly all in its first few labels, so 6 is exact in practice.
+LABEL_SLOTS = 6
+
+
+@njit(cache=True, nogil=True)
+def _label_tile(t, rows, tile_start, tile_list, gx, width, height, out_label, out_weight):
+    px = np.empty(_PIXELS, np.float32)
+    py = np.empty(_PIXELS, np.float32)
+    T = np.empty(_PIXELS, np.float32)
+    lab = np.full((_PIXELS, LABEL_SLOTS), -1, np.int32)
+    wt = np.zeros((_PIXELS, LABEL_SLOTS), np.float32)
+    _tile_pixels(t, gx, px, py)
+    _reset_transmittance(t, gx, width, height, T)
+    ox = (t % gx) * TILE
+    oy = (t // gx) * TILE
+    j0, j1 = tile_start[t], tile_start[t + 1]
+    for j in range(j0, j1):
+        r = tile_list[j]
+        u, v, A, R, S, o = _footprint(rows, r)
+        label = np.int32(rows[r, ROW_RED])
+        br0, br1 = _block_rows(rows, r, oy)
+        for br in range(br0, br1 + 1):
+            k0, k1 = _pixel_span(rows, r, ox, oy, br)
+            for k in range(k0, k1):
+                a = _alpha(px[k], py[k], u, v, A, R, S, o)
+                Tk = T[k]
+                nT = Tk * (_F1 - a)
+                go = nT >= _F_T_MIN
+                w = a * Tk if go else _F0
+                T[k] = nT if go else -abs(Tk)
+                if label >= 0 and w > _F0:
+                    for s in range(LABEL_SLOTS):
+                        if lab[k, s] == label:
+                            wt[k, s] += w
+                            break
+                        if lab[k, s] < 0:
+                            lab[k, s] = label
+                            wt[k, s] = w
+                            break
+        if (j - j0) % 32 == 31 and not _any_live(T):
+            break
+    for k in range(_PIXELS):
+        x = int(px[k])
+        y = int(py[k])
+        if x < width and y < height:
+            # Void (unlabeled Gaussians plus the background's final transmittance) competes as one label.
+            total = _F0
+            for s in range(LABEL_SLOTS):
+                total += wt[k, s]
+            best = np.int32(-1)
+            best_w = _F1 - total
+            for s in range(LABEL_SLOTS):
+                if lab[k, s] >= 0 and wt[k, s] > best_w:
+                    best = lab[k, s]
+                    best_w = wt[k, s]
+            out_label[y, x] = best
+            out_weight[y, x] = best_w
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def label_tiles(rows, tile_start, tile_list, tile_order, gx, width, height, out_label, out_weight, n_workers):
+    n = tile_order.shape[0]
+    counter = np.zeros(1, np.int64)
+    for _ in prange(n_workers):
+        m = _fetch_add(counter, 0)
+        while m < n:
+            _label_tile(tile_order[m], rows, tile_start, tile_list, gx, width, height, out_label, out_weight)
+            m = _fetch_add(counter, 0)

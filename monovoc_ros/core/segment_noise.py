@@ -1,0 +1,153 @@
+"""What a real segmenter does to masks, applied to masks with global ids (for tests and figures).
+
+- `shuffle_ids`: every color of one mask renumbered at random (a SAM-style segmenter's per-image
+  numbering): the segments stay, their ids hold for this mask only.
+- `segment_noise`: per segment, with the stated probabilities, merged with an adjacent segment,
+  split in two by a straight cut through its centroid, or (when smaller than `small_fraction` of the
+  image) dropped to void.
+- `CorruptedMasks`: a sequence wrapper (any dataset folder or the synthetic room) whose keyframe masks
+  went through both, deterministically per keyframe index; `clean_mask` stays the original mask, so
+  evaluation compares with the reference.
+
+Void (pure white) pixels stay void; new colors are never white.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from monovoc_ros.core.palette import VOID_ID, pack_rgb, unpack_rgb
+
+
+def _random_colors(n: int, rng: np.random.Generator, avoid: np.ndarray | None = None) -> np.ndarray:
+    """(n,) distinct packed colors, none white, none in `avoid`."""
+    out: list[int] = []
+    banned = {VOID_ID} | (set(avoid.tolist()) if avoid is not None else set())
+    while len(out) < n:
+        for c in rng.integers(0, 0xFFFFFF, 2 * (n - len(out)) + 4).tolist():
+            if c not in banned and len(out) < n:
+                banned.add(c)
+                out.append(c)
+    return np.array(out, np.uint32)
+
+
+def shuffle_ids(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(H, W, 3) uint8 mask with every non-void color replaced by a random color of its own."""
+    packed = pack_rgb(mask)
+    colors, inverse = np.unique(packed, return_inverse=True)
+    new = _random_colors(colors.size, rng)
+    new[colors == VOID_ID] = VOID_ID
+    return unpack_rgb(new[inverse].reshape(packed.shape))
+
+
+def _adjacent_pairs(labels: np.ndarray) -> np.ndarray:
+    """(P, 2) distinct unordered pairs of labels (>= 0) that touch horizontally or vertically."""
+    a = np.concatenate([labels[:, :-1].ravel(), labels[:-1, :].ravel()])
+    b = np.concatenate([labels[:, 1:].ravel(), labels[1:, :].ravel()])
+    keep = (a != b) & (a >= 0) & (b >= 0)
+    pairs = np.sort(np.stack([a[keep], b[keep]], axis=1), axis=1)
+    return np.unique(pairs, axis=0) if len(pairs) else np.zeros((0, 2), labels.dtype)
+
+
+@dataclass(frozen=True)
+class NoiseRates:
+    merge: float = 0.0  # probability that a segment is merged with one adjacent segment
+    split: float = 0.0  # probability that a segment is cut in two
+    drop: float = 0.0  # probability that a small segment is dropped to void
+    small_fraction: float = 0.002  # "small": fewer pixels than this fraction of the image
+
+    def __post_init__(self) -> None:
+        for name in ("merge", "split", "drop", "small_fraction"):
+            if not 0.0 <= float(getattr(self, name)) <= 1.0:
+                raise ValueError(f"segment noise {name} must be in [0, 1], got {getattr(self, name)!r}")
+
+    @property
+    def any(self) -> bool:
+        return self.merge > 0 or self.split > 0 or self.drop > 0
+
+
+def segment_noise(mask: np.ndarray, rates: NoiseRates, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """The mask with segments merged, split and dropped at `rates`, and the counts of each."""
+    packed = pack_rgb(mask)
+    colors, inverse = np.unique(packed, return_inverse=True)
+    labels = inverse.reshape(packed.shape).astype(np.int64)
+    void = np.flatnonzero(colors == VOID_ID)
+    if void.size:
+        labels[labels == void[0]] = -1
+    n = colors.size
+    table = np.arange(n)  # label -> label it became (merges)
+    counts = {"merged": 0, "split": 0, "dropped": 0}
+    if rates.merge > 0:
+        pairs = _adjacent_pairs(labels)
+        taken = np.zeros(n, bool)
+        for s in rng.permutation(n).tolist():
+            if taken[s] or colors[s] == VOID_ID or rng.random() >= rates.merge:
+                continue
+            mates = np.concatenate([pairs[pairs[:, 0] == s, 1], pairs[pairs[:, 1] == s, 0]])
+            mates = mates[~taken[mates]]
+            if mates.size:
+                t = int(rng.choice(mates))
+                table[t] = s
+                taken[[s, t]] = True
+                counts["merged"] += 1
+        labels = np.where(labels >= 0, table[np.maximum(labels, 0)], -1)
+    out = np.where(labels >= 0, colors[np.maximum(labels, 0)], np.uint32(VOID_ID)).astype(np.uint32)
+    sizes = np.bincount(labels[labels >= 0], minlength=n)
+    small = rates.small_fraction * labels.size
+    fresh = _random_colors(n, rng, colors)
+    for s in np.flatnonzero(sizes).tolist():
+        if sizes[s] < small and rates.drop > 0 and rng.random() < rates.drop:
+            out[labels == s] = VOID_ID
+            counts["dropped"] += 1
+        elif sizes[s] >= 2 and rates.split > 0 and rng.random() < rates.split:
+            ys, xs = np.nonzero(labels == s)
+            angle = rng.uniform(0, np.pi)
+            side = (xs - xs.mean()) * np.cos(angle) + (ys - ys.mean()) * np.sin(angle) > 0
+            if side.any() and not side.all():
+                out[ys[side], xs[side]] = fresh[s]
+                counts["split"] += 1
+    return unpack_rgb(out), counts
+
+
+class CorruptedMasks:
+    """A sequence whose keyframe masks went through `segment_noise` and then (with `shuffled`) a per-frame
+    renumbering, deterministically per keyframe index and `seed`; `clean_mask` is the original."""
+
+    def __init__(self, sequence, *, shuffled: bool = True, rates: NoiseRates | None = None, seed: int = 0) -> None:
+        self._seq, self.shuffled, self.rates, self.seed = sequence, bool(shuffled), rates or NoiseRates(), int(seed)
+
+    def __getattr__(self, name):
+        return getattr(self._seq, name)
+
+    def __len__(self) -> int:
+        return len(self._seq)
+
+    def keyframe(self, i: int):
+        kf = self._seq.keyframe(i)
+        rng = np.random.default_rng([self.seed, i])
+        mask = kf.mask
+        if self.rates.any:
+            mask, _ = segment_noise(mask, self.rates, rng)
+        if self.shuffled:
+            mask = shuffle_ids(mask, rng)
+        return replace(kf, mask=mask)
+
+    def clean_mask(self, i: int) -> np.ndarray:
+        clean = getattr(self._seq, "clean_mask", None)
+        return clean(i) if clean else self._seq.keyframe(i).mask
+
+
+def parse_mask_noise(spec: str) -> tuple[bool, NoiseRates]:
+    """'shuffled', 'shuffled,merge=0.1,split=0.1', 'merge=0.1' ... -> (shuffled, rates)."""
+    shuffled, values = False, {}
+    for item in filter(None, (part.strip() for part in spec.split(","))):
+        if item == "shuffled":
+            shuffled = True
+            continue
+        name, eq, value = item.partition("=")
+        if not eq or name not in ("merge", "split", "drop", "small"):
+            raise ValueError(f"mask noise: expected shuffled, merge=P, split=P, drop=P or small=F, got {item!r}")
+        values["small_fraction" if name == "small" else name] = float(value)
+    return shuffled, NoiseRates(**values)
