@@ -137,4 +137,4 @@ def _integrate(mapper: SemanticMapper, keyframe: Keyframe, stats: RunStats, on_k
     stats.keyframes += 1
     stats.seconds.append(report.seconds)
     if on_keyframe is not None:
-        on_keyframe(keyframe, mapper)
+        on_keyframe(report.keyframe or keyframe, mapper)  # per-frame mask ids: the mask in object colors

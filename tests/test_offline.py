@@ -11,6 +11,7 @@ from monovoc_ros.cli import main
 from monovoc_ros.core.datasets import write_plain
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.mapping import MapperConfig
+from monovoc_ros.core.segment_noise import CorruptedMasks
 from monovoc_ros.core.synthetic import SceneConfig, generate_scene
 from monovoc_ros.ingest import Rejection
 from monovoc_ros.offline import map_events, map_sequence
@@ -109,3 +110,31 @@ def test_bag_event_driver_waits_for_the_map_and_applies_updates(scene):
     np.testing.assert_allclose(mapper.state.total_weight, expect + second.state.total_weight, rtol=1e-12)
     with pytest.raises(ValueError, match="no Gaussian map"):
         map_events(keyframes[:1], MapperConfig())
+
+
+def test_map_per_frame_on_shuffled_masks_and_eval_matches_instances(scene, tmp_path, capsys):
+    data = tmp_path / "seq"
+    write_plain(scene, data)
+    out = tmp_path / "map"
+    args = ["map", str(data), "-o", str(out), "--quiet", "--mask-ids", "per-frame", "--mask-noise", "shuffled"]
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["config"]["mask_ids"] == "per_frame" and summary["objects"] >= 15
+    mapper = load_snapshot(out)
+    assert mapper.associator is not None and len(mapper.associator.issued) >= summary["objects"]
+    # Deterministic, and the snapshot carries the association (issued ids, pair statistics).
+    direct, _ = map_sequence(CorruptedMasks(scene, shuffled=True), MapperConfig(mask_ids="per_frame"))
+    assert direct.associator.to_json() == mapper.associator.to_json()
+    np.testing.assert_array_equal(mapper.result().object_ids, direct.result().object_ids)
+    report_path = tmp_path / "eval.json"
+    assert main(["eval", str(out), str(data), "--every", "2", "--protocols", "splats", "-o", str(report_path)]) == 0
+    splats = json.loads(report_path.read_text())["cmc"]["splats"]
+    assert splats["miou"] > 0.6 and splats["matched_objects"] >= 15
+    assert abs(splats["map_objects"] - splats["reference_objects"]) <= 0.2 * splats["reference_objects"]
+    assert "per-frame ids, splats: matched mIoU" in capsys.readouterr().out
+    global_out = tmp_path / "global"
+    assert main(["map", str(data), "-o", str(global_out), "--quiet"]) == 0
+    assert (
+        main(["eval", str(global_out), str(data), "--every", "2", "--protocols", "splats", "-o", str(report_path)]) == 0
+    )
+    assert splats["miou"] >= json.loads(report_path.read_text())["cmc"]["splats"]["miou"] - 0.03

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.commands.map import add_source_options, source_options
+from monovoc_ros.commands.map import add_source_options, open_source_args
 from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
+from monovoc_ros.core.instance_eval import UNMATCHED_ID, score_matched
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.mapping import label_gaussians
 from monovoc_ros.core.palette import UNOBSERVED_ID, pack_rgb
@@ -42,13 +43,11 @@ def register(subparsers) -> None:
 
 def _frames(args: argparse.Namespace):
     """(name, frames [(intrinsics, pose, reference mask)], labels {id: name}, ground truth ids or None)."""
-    from monovoc_ros import offline
-
     if args.bag:
         from monovoc_ros.bags import bag_labels
 
         return Path(args.bag).name, bag_frames(args.bag, args.every), label_names(bag_labels(args.bag)), None
-    seq = offline.open_source(args.source, args.layout, **source_options(args))
+    seq = open_source_args(args)
     return sequence_frames(seq, args.every, args.max_keyframes)
 
 
@@ -96,6 +95,18 @@ def score(gaussians, object_ids, frames, protocol: str, point_size: float) -> tu
     return evaluator.result(), rendered
 
 
+def _instances(match, object_ids: np.ndarray) -> dict:
+    """The instance-matching figures of a per-frame map (core.instance_eval)."""
+    return {
+        "matched_objects": len(match.mapping),
+        "map_objects": match.objects,
+        "map_objects_all": int(np.unique(object_ids[object_ids != UNOBSERVED_ID]).size),
+        "reference_objects": match.reference_objects,
+        "merges": match.merges,
+        "splits": match.splits,
+    }
+
+
 def _public(result: dict, names: dict[int, str]) -> dict:
     per_object = {
         f"{oid:06x}": {"name": names.get(int(oid), ""), "iou": round(float(iou), 4)}
@@ -132,14 +143,22 @@ def run(args: argparse.Namespace) -> int:
             mapper.result() if mapper.config.semantic_mode == "vote" else label_gaussians(mapper.state, palette, metric)
         )
         entry: dict = {}
+        object_ids = result.object_ids
         for protocol in protocols:
             scores, rendered = score(mapper.gaussians, result.object_ids, frames, protocol, args.point_size)
             entry[protocol] = _public(scores, names)
+            if mapper.config.mask_ids == "per_frame":
+                # The map's ids are its own: score after matching its objects to the reference instances.
+                scores, match = score_matched(rendered, [pack_rgb(f[2]) for f in frames])
+                entry[protocol] = {**_public(scores, names), **_instances(match, result.object_ids)}
+                known = np.unique(result.object_ids)
+                mapped = np.array([match.mapping.get(int(i), UNMATCHED_ID) for i in known], np.uint32)
+                object_ids = np.where(result.observed, mapped[np.searchsorted(known, result.object_ids)], UNOBSERVED_ID)
             if metric == mapper.config.metric and figure_rows is None:
                 figure_rows = (protocol, rendered, scores)
         if truth is not None and len(truth) == len(mapper.gaussians):
             observed = result.observed & (truth != UNOBSERVED_ID)
-            entry["gaussian_accuracy"] = round(float((result.object_ids[observed] == truth[observed]).mean()), 4)
+            entry["gaussian_accuracy"] = round(float((object_ids[observed] == truth[observed]).mean()), 4)
         report[metric] = entry
     if truth is not None and len(truth) == len(mapper.gaussians):
         report["ground_truth_labels"] = {
@@ -152,6 +171,13 @@ def run(args: argparse.Namespace) -> int:
     if figure_rows is not None:
         write_figure(figure, frames, figure_rows, names, mapper.config.metric)
     print(_table(report, metrics, protocols))
+    if mapper.config.mask_ids == "per_frame":
+        for protocol in protocols:
+            e = report[mapper.config.metric][protocol]
+            print(
+                f"per-frame ids, {protocol}: matched mIoU {100 * e['miou']:.2f}%, {e['map_objects']} objects "
+                f"({e['reference_objects']} reference), {e['merges']} merges, {e['splits']} splits"
+            )
     print(f"report: {out}\nfigure: {figure}")
     return 0
 

@@ -51,6 +51,13 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
         help="vote mode: margin below which a non-palette mask color adds no evidence "
         f"(default {MapperConfig.min_snap_margin})",
     )
+    parser.add_argument(
+        "--mask-ids",
+        choices=("global", "per-frame"),
+        default="global",
+        help="global = a mask color names the same object in every keyframe (default); per-frame = "
+        "segment ids hold for one mask only and are associated with the map's objects",
+    )
 
 
 def add_source_options(parser: argparse.ArgumentParser) -> None:
@@ -65,6 +72,13 @@ def add_source_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--masks", help="mask folder (nice-slam / hislam2 layouts)")
     parser.add_argument("--rgb", help="RGB folder (hislam2 layout)")
     parser.add_argument("--max-keyframes", type=int, default=None)
+    parser.add_argument(
+        "--mask-noise",
+        default=None,
+        help="corrupt the input masks as a segmenter would: 'shuffled' (every mask renumbered), "
+        "merge=P, split=P, drop=P, small=F, comma-separated (core.segment_noise; references stay clean)",
+    )
+    parser.add_argument("--noise-seed", type=int, default=0, help="seed of --mask-noise (default 0)")
 
 
 def _object_index(args: argparse.Namespace, labels: list[dict]):
@@ -89,11 +103,25 @@ def mapper_config(args: argparse.Namespace) -> MapperConfig:
         semantic_mode=args.semantic_mode,
         vote_slots=args.vote_slots,
         min_snap_margin=args.min_snap_margin,
+        mask_ids=args.mask_ids.replace("-", "_"),
     )
 
 
 def source_options(args: argparse.Namespace) -> dict:
     return {k: getattr(args, k) for k in ("gaussians", "masks", "rgb") if getattr(args, k)}
+
+
+def open_source_args(args: argparse.Namespace):
+    """The sequence SOURCE names, its masks corrupted by --mask-noise when given."""
+    from monovoc_ros import offline
+
+    sequence = offline.open_source(args.source, args.layout, **source_options(args))
+    if getattr(args, "mask_noise", None):
+        from monovoc_ros.core.segment_noise import CorruptedMasks, parse_mask_noise
+
+        shuffled, rates = parse_mask_noise(args.mask_noise)
+        sequence = CorruptedMasks(sequence, shuffled=shuffled, rates=rates, seed=args.noise_seed)
+    return sequence
 
 
 def register(subparsers) -> None:
@@ -128,8 +156,10 @@ def run(args: argparse.Namespace) -> int:
 
         sequence, name, labels = None, Path(args.bag).name, bag_labels(args.bag)
     else:
-        sequence = offline.open_source(args.source, args.layout, **source_options(args))
+        sequence = open_source_args(args)
         name, labels = sequence.name, sequence.labels()
+    if config.mask_ids == "per_frame":
+        labels = []  # a labels file names global mask colors, which per-frame masks do not have
     index = _object_index(args, labels)
     hook = index.keyframe_listener if index is not None else None
     if sequence is None:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monovoc_ros.core.association import Associator
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.palette import PaletteBuilder
@@ -118,6 +119,8 @@ def save_snapshot(mapper: SemanticMapper, map_dir: str | os.PathLike, *, export_
     palette_path = partial / "palette.npz"
     with open(palette_path, "wb") as fh:
         np.savez(fh, **mapper.palette_builder.to_arrays())
+    if mapper.associator is not None:  # per-frame mask ids: issued object ids and pair statistics
+        (partial / "association.json").write_text(mapper.associator.to_json())
     meta = {
         "format_version": FORMAT_VERSION,
         "created_unix": time.time(),
@@ -167,6 +170,8 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
         state = store.load(snap / "state.npz")
         with np.load(snap / "palette.npz") as arrays:
             builder = PaletteBuilder.from_arrays(dict(arrays))
+        path = snap / "association.json"
+        association = Associator.from_json(path.read_text()) if path.exists() else None
     except (OSError, KeyError, ValueError) as exc:
         raise MapStoreError(f"{snap}: unreadable snapshot ({exc})") from exc
     if len(state) != len(gaussians):
@@ -174,7 +179,7 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
     if isinstance(state, VoteState):
         saved["vote_slots"] = state.slots
     if config is not None and len(state.stamps_ns):
-        for name in ("semantic_mode", "weight_power", "vote_slots"):
+        for name in ("semantic_mode", "weight_power", "vote_slots", "mask_ids"):
             if name in saved and getattr(config, name) != saved[name] and (name != "vote_slots" or store is VoteState):
                 raise MapStoreError(
                     f"{snap}: its evidence was accumulated with {name} {saved[name]!r}, not "
@@ -184,6 +189,8 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
     if len(state.stamps_ns) or type(state) is type(mapper.state):
         mapper.state = state
     mapper.palette_builder = builder
+    if mapper.associator is not None and association is not None:
+        mapper.associator = association
     mapper.map_version = int(meta.get("map_version", 0))
     return mapper
 

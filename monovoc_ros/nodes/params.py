@@ -61,6 +61,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("weight_power", 4, "exponent k of the evidence weights w^k: 1 = the paper's SCD, 4 = fewest boundary errors (1..4)"),
     ParameterSpec("vote_slots", 4, "vote mode: objects kept per Gaussian (exact up to this many; the rest pooled) (1..16)"),
     ParameterSpec("min_snap_margin", 0.2, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence"),
+    ParameterSpec("mask_ids", "global", "mask ids: 'global' (a color names the same object in every mask) or 'per_frame' (segmenter ids per image, associated with the map's objects; vote mode)"),
     ParameterSpec("reassociation_tolerance", 0.01, "map updates without ids: max distance (m) for evidence to follow a Gaussian"),
     ParameterSpec("queue_size", 32, "keyframes waiting for the worker; when full the oldest is dropped (counted)"),
     # Outputs
@@ -149,6 +150,7 @@ class NodeParams:
                 semantic_mode=v["semantic_mode"],
                 vote_slots=v["vote_slots"],
                 min_snap_margin=float(v["min_snap_margin"]),
+                mask_ids=v["mask_ids"],
             )
         except ValueError as exc:
             raise ParameterError(str(exc).replace(" must be", ": must be", 1)) from None

@@ -419,8 +419,9 @@ class MapWorker:
             self.stats.ms_per_keyframe_total += ms
             self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, keyframe.stamp_ns)
         self._changed()
+        integrated = report.keyframe or keyframe  # per-frame mask ids: the mask in object colors
         for fn in self._keyframe_listeners:
-            self._guarded(fn, keyframe, mapper)
+            self._guarded(fn, integrated, mapper)
 
     def _apply_map(self, gaussians: GaussianMap, name: str) -> None:
         if self._mapper is None:
