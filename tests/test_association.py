@@ -249,3 +249,55 @@ def test_mapper_per_frame_on_shuffled_masks_matches_global_ids(small_room):
     assert matched["miou"] >= same["miou"] - 0.03
     with pytest.raises(ValueError, match="per-frame"):
         a.merged(b)
+
+
+def test_label_histogram_leads_merges_and_round_trips():
+    from monovoc_ros.core.segment_labels import LabelHistogram, SegmentLabel
+
+    h = LabelHistogram()
+    h.add_keyframe((SegmentLabel(1, "chair", 0.9), SegmentLabel(2, "table", 0.5), SegmentLabel(9, "x")), {1: 10, 2: 20})
+    h.add(10, "sofa", 0.6)
+    h.add(10, "sofa", 0.6)
+    h.add(20, "table", 0.2)
+    assert h.leading() == {10: "sofa", 20: "table"}
+    h.merge_objects(20, 10)
+    assert h.leading() == {20: "sofa"} and h.scores[20]["chair"] == pytest.approx(0.9)
+    assert LabelHistogram.from_json(h.to_json()).scores == h.scores
+    with pytest.raises(ValueError):
+        SegmentLabel(VOID_ID, "wall")
+
+
+def test_segment_labels_follow_shuffled_segments():
+    from monovoc_ros.core.segment_labels import palette_segments, relabel_segments
+
+    seg = blocks()
+    mask = unpack_rgb((0x101010 * (seg + 1)).astype(np.uint32))
+    names = {0x101010 * (i + 1): f"class{i}" for i in range(6)}
+    segments = palette_segments(mask, names)
+    shuffled = shuffle_ids(mask, np.random.default_rng(0))
+    moved = relabel_segments(segments, pack_rgb(mask), pack_rgb(shuffled))
+    new_of = {
+        int(pack_rgb(mask)[y, x]): int(pack_rgb(shuffled)[y, x])
+        for y, x in ((0, 0), (0, 25), (0, 45), (25, 0), (25, 25), (25, 45))
+    }
+    assert {s.id: s.class_name for s in moved} == {new_of[k]: v for k, v in names.items()}
+
+
+def test_mapper_gathers_segment_labels_per_object(small_room):
+    from monovoc_ros.core.segment_noise import PaletteSegments
+
+    seq = CorruptedMasks(PaletteSegments(small_room), shuffled=True, seed=2)
+    mapper = SemanticMapper(seq.load_gaussians(), MapperConfig(mask_ids="per_frame"))
+    for i in range(len(seq)):
+        mapper.integrate(seq.keyframe(i))
+    labels = mapper.object_labels()
+    names = {i: o.class_name for i, o in enumerate(small_room.objects)}
+    ids = mapper.result().object_ids
+    right = total = 0
+    for oid in np.unique(ids[ids != UNOBSERVED_ID]).tolist():
+        truth = small_room.gaussian_object[ids == oid]
+        truth = truth[truth >= 0]
+        if truth.size >= 50:
+            total += 1
+            right += labels.get(oid) == names[int(np.bincount(truth).argmax())]
+    assert total >= 15 and right >= 0.9 * total

@@ -138,3 +138,26 @@ def test_map_per_frame_on_shuffled_masks_and_eval_matches_instances(scene, tmp_p
         main(["eval", str(global_out), str(data), "--every", "2", "--protocols", "splats", "-o", str(report_path)]) == 0
     )
     assert splats["miou"] >= json.loads(report_path.read_text())["cmc"]["splats"]["miou"] - 0.03
+
+
+def test_segment_labels_from_a_folder_and_from_labels_reach_the_snapshot(scene, tmp_path):
+    from monovoc_ros.core.datasets import open_sequence
+    from monovoc_ros.core.segment_labels import SegmentLabel, write_segments
+
+    data = tmp_path / "seq"
+    write_plain(scene, data)
+    first = sorted((data / "masks").iterdir())[0]
+    (data / "segments").mkdir()
+    write_segments(data / "segments" / f"{first.stem}.json", (SegmentLabel(0x123456, "lamp", 0.7),))
+    seq = open_sequence(str(data))
+    assert seq.keyframe(0).segments == (SegmentLabel(0x123456, "lamp", 0.7),) and seq.keyframe(1).segments is None
+    (data / "segments" / f"{first.stem}.json").write_text('[{"class_name": "lamp"}]')
+    with pytest.raises(ValueError, match="color"):
+        seq.keyframe(0)
+    (data / "segments" / f"{first.stem}.json").unlink()
+    out = tmp_path / "map"
+    args = ["map", str(data), "-o", str(out), "--quiet", "--mask-ids", "per-frame", "--mask-noise", "shuffled"]
+    assert main([*args, "--segments-from-labels"]) == 0
+    labels = load_snapshot(out).object_labels()
+    names = {e["class_name"] for e in scene.labels()}
+    assert len(labels) >= 15 and set(labels.values()) <= names

@@ -79,6 +79,12 @@ def add_source_options(parser: argparse.ArgumentParser) -> None:
         "merge=P, split=P, drop=P, small=F, comma-separated (core.segment_noise; references stay clean)",
     )
     parser.add_argument("--noise-seed", type=int, default=0, help="seed of --mask-noise (default 0)")
+    parser.add_argument(
+        "--segments-from-labels",
+        action="store_true",
+        help="give every keyframe the segment class names a perfect segmenter would (from the source's "
+        "labels.json), before --mask-noise",
+    )
 
 
 def _object_index(args: argparse.Namespace, labels: list[dict]):
@@ -116,6 +122,10 @@ def open_source_args(args: argparse.Namespace):
     from monovoc_ros import offline
 
     sequence = offline.open_source(args.source, args.layout, **source_options(args))
+    if getattr(args, "segments_from_labels", False):
+        from monovoc_ros.core.segment_noise import PaletteSegments
+
+        sequence = PaletteSegments(sequence)
     if getattr(args, "mask_noise", None):
         from monovoc_ros.core.segment_noise import CorruptedMasks, parse_mask_noise
 

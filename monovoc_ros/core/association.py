@@ -87,7 +87,9 @@ class Association:
     skipped: int = 0  # segments too small to seed an object
     rendered_objects: int = 0  # objects leading at least one pixel of the view
     merges: list[tuple[int, int]] = field(default_factory=list)  # (kept, merged away) object ids
-    seconds: float = 0.0
+    seconds: float = 0.0  # the whole association of the keyframe (associate_keyframe), or the matching alone
+    segment_seconds: float = 0.0  # associate_keyframe: the mask's segments (pixel labels)
+    render_seconds: float = 0.0  # associate_keyframe: the map's labels rendered into the view
 
 
 def overlap_counts(segments: np.ndarray, n_segments: int, rendered: np.ndarray, n_rendered: int) -> np.ndarray:
@@ -298,12 +300,25 @@ def associate_keyframe(
 
     start = time.perf_counter()
     labelled, _ = mask_labels(keyframe.mask, metric, min_snap_margin)
+    segmented = time.perf_counter()
     compact, ids = rendered_object_index(gaussian_ids, associator.issued)
     if ids.size:
         rendered = render_label_weights(gaussians, compact, keyframe.intrinsics, keyframe.cam_to_world).labels
     else:
         rendered = np.full(labelled.labels.shape, -1, np.int32)
+    drawn = time.perf_counter()
     report = associator.associate(labelled.labels, len(labelled.objects), rendered, ids)
     mask = associator.relabel_mask(labelled.labels, report.segment_objects)
+    segments = keyframe.segments
+    if segments:  # the segment labels follow their segments to the objects
+        from monovoc_ros.core.segment_labels import SegmentLabel
+
+        table = dict(zip(labelled.objects.tolist(), report.segment_objects.tolist(), strict=True))
+        segments = tuple(
+            SegmentLabel(table[s.id], s.class_name, s.score)
+            for s in segments
+            if table.get(s.id, UNOBSERVED_ID) != UNOBSERVED_ID
+        )
     report.seconds = time.perf_counter() - start
-    return replace(keyframe, mask=mask), report
+    report.segment_seconds, report.render_seconds = segmented - start, drawn - segmented
+    return replace(keyframe, mask=mask, segments=segments), report

@@ -40,6 +40,7 @@ import json
 import os
 import re
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -327,9 +328,18 @@ class PlainSequence(Sequence):
         i = self._index(i)
         rgb = read_rgb(self.rgb_files[i]) if self.rgb_files is not None else None
         mask_path = self.mask_files[i]
-        return _make_keyframe(
+        keyframe = _make_keyframe(
             i, self.stamps_ns[i], self.poses[i], self.intrinsics, read_mask(mask_path), rgb, mask_path
         )
+        segments_path = self.root / "segments" / f"{mask_path.stem}.json"
+        if segments_path.exists():  # a segmenter's class names per segment (core.segment_labels)
+            from monovoc_ros.core.segment_labels import read_segments
+
+            try:
+                keyframe = replace(keyframe, segments=read_segments(segments_path))
+            except (ValueError, KeyError, TypeError) as exc:
+                raise SequenceError(f"{segments_path}: {exc}") from None
+        return keyframe
 
     def load_gaussians(self) -> GaussianMap | None:
         return _maybe_ply(self.gaussians_path)

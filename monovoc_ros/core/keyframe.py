@@ -17,6 +17,8 @@ class Keyframe:
     intrinsics: Intrinsics  # for the mask's resolution
     mask: np.ndarray  # (H, W, 3) uint8 palette-colored segmentation; (255, 255, 255) = void
     rgb: np.ndarray | None = None  # (H', W', 3) uint8 RGB image, may differ in size from the mask
+    # Class names a segmenter gave the mask's segments (core.segment_labels.SegmentLabel), if any.
+    segments: tuple | None = None
 
     def __post_init__(self) -> None:
         if self.mask.ndim != 3 or self.mask.shape[2] != 3 or self.mask.dtype != np.uint8:

@@ -29,6 +29,7 @@ from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.palette import PaletteBuilder
 from monovoc_ros.core.ply import save_semantic_ply
+from monovoc_ros.core.segment_labels import LabelHistogram
 from monovoc_ros.core.state import SemanticState
 from monovoc_ros.core.votes import VoteState
 
@@ -121,6 +122,8 @@ def save_snapshot(mapper: SemanticMapper, map_dir: str | os.PathLike, *, export_
         np.savez(fh, **mapper.palette_builder.to_arrays())
     if mapper.associator is not None:  # per-frame mask ids: issued object ids and pair statistics
         (partial / "association.json").write_text(mapper.associator.to_json())
+    if mapper.segment_labels.scores:
+        (partial / "segment_labels.json").write_text(mapper.segment_labels.to_json())
     meta = {
         "format_version": FORMAT_VERSION,
         "created_unix": time.time(),
@@ -172,6 +175,8 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
             builder = PaletteBuilder.from_arrays(dict(arrays))
         path = snap / "association.json"
         association = Associator.from_json(path.read_text()) if path.exists() else None
+        path = snap / "segment_labels.json"
+        segment_labels = LabelHistogram.from_json(path.read_text()) if path.exists() else LabelHistogram()
     except (OSError, KeyError, ValueError) as exc:
         raise MapStoreError(f"{snap}: unreadable snapshot ({exc})") from exc
     if len(state) != len(gaussians):
@@ -189,6 +194,7 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
     if len(state.stamps_ns) or type(state) is type(mapper.state):
         mapper.state = state
     mapper.palette_builder = builder
+    mapper.segment_labels = segment_labels
     if mapper.associator is not None and association is not None:
         mapper.associator = association
     mapper.map_version = int(meta.get("map_version", 0))

@@ -22,6 +22,7 @@ from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, 
 from monovoc_ros.core.pixel_labels import mask_labels
 from monovoc_ros.core.quantize import METRICS, Quantization, confidence, quantize
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS, accumulate, accumulate_votes
+from monovoc_ros.core.segment_labels import LabelHistogram
 from monovoc_ros.core.state import GaussianEvidence, SemanticState, reindex_by_position
 from monovoc_ros.core.votes import DEFAULT_SLOTS, VoteState
 
@@ -144,6 +145,7 @@ class SemanticMapper:
         # Vote mode keeps every Gaussian's label and confidence and re-labels only what a keyframe touched.
         self._labels: tuple[np.ndarray, np.ndarray] | None = None
         self.associator: Associator | None = Associator() if self.config.mask_ids == "per_frame" else None
+        self.segment_labels = LabelHistogram()  # per object, the class names its segments were given
 
     @property
     def n_keyframes(self) -> int:
@@ -162,6 +164,8 @@ class SemanticMapper:
         else:
             report = self._integrate_scd(keyframe)
         report.association, report.keyframe = association, keyframe
+        if keyframe.segments:  # a segment's id is now its object's id
+            self.segment_labels.add_keyframe(keyframe.segments, {s.id: s.id for s in keyframe.segments})
         self._result = None
         report.seconds = time.perf_counter() - start
         return report
@@ -179,6 +183,7 @@ class SemanticMapper:
             rows = self.state.merge_objects(keep, drop)
             self._labels[0][rows], self._labels[1][rows] = self.state.labels(rows)
             self.palette_builder.merge_ids(keep, drop)
+            self.segment_labels.merge_objects(keep, drop)
         return keyframe, association
 
     def _integrate_scd(self, keyframe: Keyframe) -> IntegrationReport:
@@ -240,6 +245,10 @@ class SemanticMapper:
             labelled.snapped_pixels,
             labelled.ambiguous_pixels,
         )
+
+    def object_labels(self) -> dict[int, str]:
+        """Object id -> the leading class name its segments were given (core.segment_labels)."""
+        return self.segment_labels.leading()
 
     def result(self) -> SemanticResult:
         """Labels for every Gaussian (cached until the next keyframe or map update)."""

@@ -132,11 +132,38 @@ class CorruptedMasks:
             mask, _ = segment_noise(mask, self.rates, rng)
         if self.shuffled:
             mask = shuffle_ids(mask, rng)
-        return replace(kf, mask=mask)
+        segments = kf.segments
+        if segments:  # the segmenter's names follow the renumbered, merged and split segments
+            from monovoc_ros.core.segment_labels import relabel_segments
+
+            segments = relabel_segments(segments, pack_rgb(kf.mask), pack_rgb(mask))
+        return replace(kf, mask=mask, segments=segments)
 
     def clean_mask(self, i: int) -> np.ndarray:
         clean = getattr(self._seq, "clean_mask", None)
         return clean(i) if clean else self._seq.keyframe(i).mask
+
+
+class PaletteSegments:
+    """A sequence whose keyframes carry the segment labels a perfect segmenter would give: every mask
+    color that the sequence's labels.json names gets its class name (score 1)."""
+
+    def __init__(self, sequence) -> None:
+        self._seq = sequence
+        self.names = {int(pack_rgb(np.array(e["color"], np.uint8).reshape(1, 3))[0]): str(e.get("class_name", ""))
+                      for e in sequence.labels() if str(e.get("class_name", "")).strip()}  # fmt: skip
+
+    def __getattr__(self, name):
+        return getattr(self._seq, name)
+
+    def __len__(self) -> int:
+        return len(self._seq)
+
+    def keyframe(self, i: int):
+        from monovoc_ros.core.segment_labels import palette_segments
+
+        kf = self._seq.keyframe(i)
+        return replace(kf, segments=palette_segments(kf.mask, self.names))
 
 
 def parse_mask_noise(spec: str) -> tuple[bool, NoiseRates]:

@@ -43,7 +43,9 @@ class SemanticOutputs:
             summaries: list[ObjectSummary] = []
             observations = np.zeros(0, np.int64)
             stamp = self._node.get_clock().now().nanoseconds
+            labels = self.labels
         else:
+            labels = {**mapper.object_labels(), **self.labels}  # labels_file first, then segment labels
             known = result.object_ids != UNOBSERVED_ID
             points, rgb = mapper.gaussians.means[known], result.object_rgb()[known]
             ids, conf = result.object_ids[known], result.confidence[known]
@@ -55,11 +57,11 @@ class SemanticOutputs:
             )
         header = dict(frame_id=self.frame_id, stamp=stamp)
         self.cloud.publish(ma.semantic_cloud_from_arrays(points, rgb, ids, conf, **header))
-        self.objects.publish(self._objects(summaries, observations, header))
+        self.objects.publish(self._objects(summaries, observations, header, labels))
         self.markers.publish(
             ma.object_markers(
                 np.array([s.id for s in summaries], np.int64),
-                [self.labels.get(s.id, "") for s in summaries],
+                [labels.get(s.id, "") for s in summaries],
                 np.array([s.centroid for s in summaries]).reshape(-1, 3),
                 np.array([s.extent for s in summaries]).reshape(-1, 3),
                 np.array([s.rgb for s in summaries], np.uint8).reshape(-1, 3),
@@ -69,7 +71,9 @@ class SemanticOutputs:
         )
         return len(summaries)
 
-    def _objects(self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict) -> Any:
+    def _objects(
+        self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict, labels: dict[int, str]
+    ) -> Any:
         from monovoc_interfaces.msg import SemanticObjectArray
 
         out = SemanticObjectArray(header=ma.make_header(header["frame_id"], header["stamp"]))
@@ -80,7 +84,7 @@ class SemanticOutputs:
                     centroid=s.centroid,
                     bbox_min=s.bbox_min,
                     bbox_max=s.bbox_max,
-                    label=self.labels.get(s.id, ""),
+                    label=labels.get(s.id, ""),
                     num_gaussians=s.num_gaussians,
                     num_observations=int(seen),
                 )

@@ -158,6 +158,7 @@ class ObjectIndex:
         self._snapshot: tuple[tuple[ObjectRecord, ...], np.ndarray] = ((), np.zeros((0, 0), np.float32))
         self._summaries: dict[int, ObjectSummary] = {}
         self._observations: dict[int, int] = {}
+        self.segment_labels: dict[int, str] = {}  # object id -> the segmenter's class (refresh(mapper))
         self._floor = 0.0
         self._upright: dict[int, tuple[np.ndarray, float]] = {}  # id -> (extent with height last, height)
         self._up_sum = np.zeros(3)  # sum of the keyframes' camera up directions (up_axis "auto")
@@ -258,6 +259,7 @@ class ObjectIndex:
         with self._refresh_lock:
             if mapper is not None:
                 gaussians, result = mapper.gaussians, mapper.result()
+                self.segment_labels = mapper.object_labels()
             if (gaussians is None) != (result is None):
                 raise ValueError("refresh needs both gaussians and result (or a mapper)")
             if gaussians is not None:
@@ -336,6 +338,8 @@ class ObjectIndex:
         labels = self.config.labels or {}
         if oid in labels:
             return labels[oid], "given"
+        if oid in self.segment_labels:  # the segmenter's leading class for the object
+            return self.segment_labels[oid], "given"
         if oid not in self._imagenet_label:
             self._imagenet_label[oid] = best_class_name(self._image_emb[oid], backend)
         return self._imagenet_label[oid], "imagenet"

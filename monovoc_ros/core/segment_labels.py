@@ -1,0 +1,125 @@
+"""Class names from a segmenter, per segment and frame, gathered per map object.
+
+A segmenter that names its segments (a detector with masks, an open-vocabulary segmenter) gives per
+segment of one mask its color (or packed id) in that mask, a class name and a score. A keyframe
+carries them as `Keyframe.segments`; dataset folders give them as ``segments/<mask stem>.json``
+(``[{"color": [r, g, b], "class_name": "chair", "score": 0.9}, ...]``, or ``"id": 0xRRGGBB`` in
+place of the color). The mapper adds each named segment's score to a per-object histogram under the
+object the segment was integrated as (the segment's own color with global mask ids, its associated
+object with per-frame ids; core.association), and an object's label is its leading class. Merged
+objects add their histograms.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from monovoc_ros.core.palette import VOID_ID, pack_rgb
+
+
+@dataclass(frozen=True)
+class SegmentLabel:
+    id: int  # the segment's packed color (0xRRGGBB) in its mask
+    class_name: str
+    score: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not 0 <= int(self.id) <= 0xFFFFFF or int(self.id) == VOID_ID:
+            raise ValueError(f"segment id must be a 24-bit color other than white, got {self.id!r}")
+        if not str(self.class_name).strip():
+            raise ValueError("segment class_name must not be empty")
+        if not (np.isfinite(self.score) and 0.0 <= float(self.score) <= 1.0):
+            raise ValueError(f"segment score must be in [0, 1], got {self.score!r}")
+
+
+def segments_from_entries(entries: list[dict]) -> tuple[SegmentLabel, ...]:
+    """Segment labels from JSON entries ({color | id, class_name, score?}); raises ValueError."""
+    out = []
+    for e in entries:
+        if "color" in e:
+            key = int(pack_rgb(np.array(e["color"], np.uint8).reshape(1, 3))[0])
+        elif "id" in e:
+            key = int(e["id"])
+        else:
+            raise ValueError(f"segment entry needs 'color' or 'id': {e!r}")
+        out.append(SegmentLabel(key, str(e.get("class_name", "")), float(e.get("score", 1.0))))
+    return tuple(out)
+
+
+def read_segments(path: str | Path) -> tuple[SegmentLabel, ...]:
+    entries = json.loads(Path(path).read_text())
+    if not isinstance(entries, list):
+        raise ValueError(f"{path}: expected a JSON list of segments")
+    return segments_from_entries(entries)
+
+
+def write_segments(path: str | Path, segments: tuple[SegmentLabel, ...]) -> None:
+    entries = [{"id": s.id, "class_name": s.class_name, "score": round(float(s.score), 6)} for s in segments]
+    Path(path).write_text(json.dumps(entries))
+
+
+class LabelHistogram:
+    """Per object, the summed scores of the class names its segments were given."""
+
+    def __init__(self) -> None:
+        self.scores: dict[int, dict[str, float]] = defaultdict(dict)
+
+    def add(self, object_id: int, class_name: str, score: float) -> None:
+        table = self.scores[int(object_id)]
+        table[class_name] = table.get(class_name, 0.0) + float(score)
+
+    def add_keyframe(self, segments: tuple[SegmentLabel, ...], segment_objects: dict[int, int]) -> int:
+        """Adds a keyframe's segment labels; `segment_objects` maps a segment id to its object id
+        (segments without an object add nothing). Returns the labels added."""
+        added = 0
+        for s in segments:
+            oid = segment_objects.get(s.id)
+            if oid is not None and s.score > 0:
+                self.add(oid, s.class_name, s.score)
+                added += 1
+        return added
+
+    def merge_objects(self, keep: int, drop: int) -> None:
+        for name, score in self.scores.pop(int(drop), {}).items():
+            self.add(keep, name, score)
+
+    def leading(self) -> dict[int, str]:
+        """Object id -> its leading class (highest summed score; ties: alphabetical)."""
+        return {oid: min(t.items(), key=lambda kv: (-kv[1], kv[0]))[0] for oid, t in self.scores.items() if t}
+
+    def to_json(self) -> str:
+        return json.dumps({str(k): v for k, v in sorted(self.scores.items())})
+
+    @classmethod
+    def from_json(cls, text: str) -> LabelHistogram:
+        out = cls()
+        for k, table in json.loads(text).items():
+            out.scores[int(k)] = {str(n): float(s) for n, s in table.items()}
+        return out
+
+
+def palette_segments(mask: np.ndarray, names: dict[int, str], score: float = 1.0) -> tuple[SegmentLabel, ...]:
+    """The segment labels a perfect segmenter would give a mask whose colors `names` names."""
+    return tuple(
+        SegmentLabel(int(c), names[int(c)], score) for c in np.unique(pack_rgb(mask)).tolist() if int(c) in names
+    )
+
+
+def relabel_segments(
+    segments: tuple[SegmentLabel, ...], before: np.ndarray, after: np.ndarray
+) -> tuple[SegmentLabel, ...]:
+    """Segment labels of a recolored mask: each color of `after` ((H, W) packed) takes the label of the
+    `before` color most of its pixels had (a renumbered, merged or split segment keeps its name)."""
+    by_id = {s.id: s for s in segments}
+    keys, counts = np.unique((after.astype(np.uint64) << np.uint64(32)) | before.astype(np.uint64), return_counts=True)
+    best: dict[int, tuple[int, int]] = {}
+    for key, c in zip(keys.tolist(), counts.tolist(), strict=True):
+        a, b = key >> 32, key & 0xFFFFFFFF
+        if a != VOID_ID and b in by_id and c > best.get(a, (0, -1))[0]:
+            best[a] = (c, b)
+    return tuple(SegmentLabel(a, by_id[b].class_name, by_id[b].score) for a, (_, b) in sorted(best.items()))
