@@ -52,12 +52,17 @@ class AssociationConfig:
     new_object_fraction: float = 2e-4  # stage 3: least segment size (fraction of the image) for a new object
     merge_containment: float = 0.6  # stage 5: share of an object's rendered region inside the one segment
     merge_min_keyframes: int = 3  # stage 5: keyframes a pair must have been covered together
+    # Overlaps are counted on every render_scale-th pixel (the view rendered at 1/render_scale of the
+    # mask's resolution): they are ratios of areas, and the rendering is most of the cost.
+    render_scale: int = 2
 
     def __post_init__(self) -> None:
         for name in ("min_iou", "part_share", "part_coverage", "new_object_fraction", "merge_containment"):
             value = float(getattr(self, name))
             if not 0.0 < value <= 1.0:
                 raise ValueError(f"association {name} must be in (0, 1], got {value!r}")
+        if int(self.render_scale) < 1:
+            raise ValueError(f"association render_scale must be >= 1, got {self.render_scale!r}")
         if int(self.merge_min_keyframes) < 1:
             raise ValueError(f"association merge_min_keyframes must be >= 1, got {self.merge_min_keyframes!r}")
 
@@ -295,6 +300,7 @@ def associate_keyframe(
     with its mask relabeled in object colors. Returns (keyframe, Association)."""
     from dataclasses import replace
 
+    from monovoc_ros.core.evaluation import resize_nearest
     from monovoc_ros.core.label_render import render_label_weights
     from monovoc_ros.core.pixel_labels import mask_labels
 
@@ -302,12 +308,15 @@ def associate_keyframe(
     labelled, _ = mask_labels(keyframe.mask, metric, min_snap_margin)
     segmented = time.perf_counter()
     compact, ids = rendered_object_index(gaussian_ids, associator.issued)
+    k, scale = keyframe.intrinsics, int(associator.config.render_scale)
+    small = k.scaled_to(max(1, k.width // scale), max(1, k.height // scale)) if scale > 1 else k
+    segments_small = resize_nearest(labelled.labels, small.height, small.width) if scale > 1 else labelled.labels
     if ids.size:
-        rendered = render_label_weights(gaussians, compact, keyframe.intrinsics, keyframe.cam_to_world).labels
+        rendered = render_label_weights(gaussians, compact, small, keyframe.cam_to_world).labels
     else:
-        rendered = np.full(labelled.labels.shape, -1, np.int32)
+        rendered = np.full(segments_small.shape, -1, np.int32)
     drawn = time.perf_counter()
-    report = associator.associate(labelled.labels, len(labelled.objects), rendered, ids)
+    report = associator.associate(segments_small, len(labelled.objects), rendered, ids)
     mask = associator.relabel_mask(labelled.labels, report.segment_objects)
     segments = keyframe.segments
     if segments:  # the segment labels follow their segments to the objects

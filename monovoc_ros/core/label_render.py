@@ -7,7 +7,7 @@ included (the `render_splat_labels` rule of core.evaluation, which needs a pass 
 This is what per-frame mask association (core.association) measures segment overlap against.
 
 "numba" is the production kernel (label_render_kernels); "reference" is its plain float64 twin from
-the dense weight matrix (tiny scenes only). The numba kernel keeps LABEL_SLOTS labels per pixel.
+the dense weight matrix (tiny scenes only). The numba kernel keeps TILE_LABELS labels per 16x16 tile.
 """
 
 from __future__ import annotations

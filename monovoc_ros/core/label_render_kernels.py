@@ -4,7 +4,9 @@ It walks the same binned, depth-sorted tile lists as the rasterizer's `render_ti
 alpha, transmittance and stopping rule, so the weights are the rasterizer's w_ip) but, instead of
 blending colors, adds each Gaussian's weight to its label's entry in a small per-pixel table. The
 Gaussian's label index travels in the red channel of its packed row (a float32 holds integers below
-2^24 exactly; -1 = unlabeled, which occludes but names nothing). Plain twin:
+2^24 exactly; -1 = unlabeled, which occludes but names nothing). Each tile gives the labels it meets
+slots (TILE_LABELS of them), so the pixel loop adds into one slot's row, as SIMD-friendly as the
+color blend of render_tiles. Plain twin:
 `label_render.render_label_weights_reference`.
 """
 
@@ -16,6 +18,7 @@ from numba import njit, prange
 from monovoc_ros.core.raster.constants import TILE
 from monovoc_ros.core.raster.numba_kernels import (
     _F_T_MIN,
+    _FASTMATH,
     ROW_RED,
     _alpha,
     _any_live,
@@ -30,18 +33,20 @@ from monovoc_ros.core.raster.numba_kernels import (
 _PIXELS = TILE * TILE
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
-# Distinct labels a pixel keeps; a further label's weight is lost (counted as void). A pixel's
-# compositing weight is nearly all in its first few labels, so 6 is exact in practice.
-LABEL_SLOTS = 6
+# Distinct labels one tile keeps (in the order its Gaussians reach them, front to back); a further
+# label's weight is lost (it counts as void). A 16x16 tile rarely shows more than a few objects.
+TILE_LABELS = 8
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=_FASTMATH)
 def _label_tile(t, rows, tile_start, tile_list, gx, width, height, out_label, out_weight):
     px = np.empty(_PIXELS, np.float32)
     py = np.empty(_PIXELS, np.float32)
     T = np.empty(_PIXELS, np.float32)
-    lab = np.full((_PIXELS, LABEL_SLOTS), -1, np.int32)
-    wt = np.zeros((_PIXELS, LABEL_SLOTS), np.float32)
+    # Per tile label slot, the summed weight of each pixel; row TILE_LABELS takes what names nothing.
+    wt = np.zeros((TILE_LABELS + 1, _PIXELS), np.float32)
+    slot_label = np.full(TILE_LABELS, -1, np.int32)
+    used = 0
     _tile_pixels(t, gx, px, py)
     _reset_transmittance(t, gx, width, height, T)
     ox = (t % gx) * TILE
@@ -51,6 +56,17 @@ def _label_tile(t, rows, tile_start, tile_list, gx, width, height, out_label, ou
         r = tile_list[j]
         u, v, A, R, S, o = _footprint(rows, r)
         label = np.int32(rows[r, ROW_RED])
+        s = TILE_LABELS
+        if label >= 0:
+            for q in range(used):
+                if slot_label[q] == label:
+                    s = q
+                    break
+            if s == TILE_LABELS and used < TILE_LABELS:
+                slot_label[used] = label
+                s = used
+                used += 1
+        acc = wt[s]
         br0, br1 = _block_rows(rows, r, oy)
         for br in range(br0, br1 + 1):
             k0, k1 = _pixel_span(rows, r, ox, oy, br)
@@ -61,15 +77,7 @@ def _label_tile(t, rows, tile_start, tile_list, gx, width, height, out_label, ou
                 go = nT >= _F_T_MIN
                 w = a * Tk if go else _F0
                 T[k] = nT if go else -abs(Tk)
-                if label >= 0 and w > _F0:
-                    for s in range(LABEL_SLOTS):
-                        if lab[k, s] == label:
-                            wt[k, s] += w
-                            break
-                        if lab[k, s] < 0:
-                            lab[k, s] = label
-                            wt[k, s] = w
-                            break
+                acc[k] += w
         if (j - j0) % 32 == 31 and not _any_live(T):
             break
     for k in range(_PIXELS):
@@ -78,14 +86,14 @@ def _label_tile(t, rows, tile_start, tile_list, gx, width, height, out_label, ou
         if x < width and y < height:
             # Void (unlabeled Gaussians plus the background's final transmittance) competes as one label.
             total = _F0
-            for s in range(LABEL_SLOTS):
-                total += wt[k, s]
+            for q in range(used):
+                total += wt[q, k]
             best = np.int32(-1)
             best_w = _F1 - total
-            for s in range(LABEL_SLOTS):
-                if lab[k, s] >= 0 and wt[k, s] > best_w:
-                    best = lab[k, s]
-                    best_w = wt[k, s]
+            for q in range(used):
+                if wt[q, k] > best_w:
+                    best = slot_label[q]
+                    best_w = wt[q, k]
             out_label[y, x] = best
             out_weight[y, x] = best_w
 
