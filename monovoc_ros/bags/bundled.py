@@ -16,6 +16,7 @@ from monovoc_ros.bags.convert import ConvertReport, sequence_to_bag
 BUNDLED_DIR = Path(__file__).resolve().parents[2] / "bags"
 SYNTHETIC_BAG = "synthetic_room.mcap"
 REPLICA_BAG = "replica_office0.mcap"
+PER_FRAME_BAG = "synthetic_room_per_frame.mcap"
 DEFAULT_REPLICA_SOURCE = BUNDLED_DIR.parents[1] / "shared" / "data" / "replica_office0"
 
 
@@ -28,6 +29,21 @@ def make_synthetic_bag(out_dir: str | os.PathLike = BUNDLED_DIR, *, progress: bo
     from monovoc_ros.core.synthetic import SceneConfig, generate_scene
 
     return sequence_to_bag(generate_scene(SceneConfig()), Path(out_dir) / SYNTHETIC_BAG, progress=progress)
+
+
+def per_frame_scene():
+    """The scene of the per-frame bag: a small synthetic room (30k Gaussians, 20 keyframes at 308x172)
+    whose every mask is renumbered at random (core.segment_noise, seed 0): segment ids hold per frame."""
+    from monovoc_ros.core.segment_noise import CorruptedMasks
+    from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+
+    scene = generate_scene(SceneConfig.at_resolution(308, 172, n_gaussians=30_000, n_keyframes=20))
+    return CorruptedMasks(scene, shuffled=True, seed=0)
+
+
+def make_per_frame_bag(out_dir: str | os.PathLike = BUNDLED_DIR, *, progress: bool = False) -> ConvertReport:
+    """``synthetic_room_per_frame.mcap``: `per_frame_scene` as a bag, for `mask_ids: per_frame`. Committed."""
+    return sequence_to_bag(per_frame_scene(), Path(out_dir) / PER_FRAME_BAG, progress=progress)
 
 
 def make_replica_bag(

@@ -55,6 +55,11 @@ def register(subparsers) -> None:
         help="also write replica_office0.mcap (from PATH, default ../shared/data/replica_office0)",
     )
     m.add_argument("--no-synthetic", action="store_true", help="skip synthetic_room.mcap")
+    m.add_argument(
+        "--per-frame",
+        action="store_true",
+        help="also write synthetic_room_per_frame.mcap (a small room, every mask renumbered: mask_ids per_frame)",
+    )
     m.add_argument("--out-dir", default=None, help="output folder (default: the repository's bags/)")
     m.add_argument("--quiet", action="store_true", help="no progress bar")
     m.set_defaults(func=run_make_bundled)
@@ -122,6 +127,8 @@ def run_make_bundled(args: argparse.Namespace) -> int:
     try:
         if not args.no_synthetic:
             reports.append(bundled.make_synthetic_bag(out_dir, progress=not args.quiet))
+        if args.per_frame:
+            reports.append(bundled.make_per_frame_bag(out_dir, progress=not args.quiet))
         if args.replica is not None:
             source = args.replica or bundled.DEFAULT_REPLICA_SOURCE
             reports.append(bundled.make_replica_bag(source, out_dir, progress=not args.quiet))

@@ -1,0 +1,77 @@
+"""mask_ids per_frame in the live node: the bundled per-frame bag (every mask renumbered) replayed into
+semantic_mapper gives the same objects as `monovoc map --bag ... --mask-ids per-frame`."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import msg_adapters as ma
+from monovoc_ros.bags import bag_events
+from monovoc_ros.bags.bundled import PER_FRAME_BAG, bundled_bag, make_per_frame_bag
+from monovoc_ros.cli import main
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map_store import load_snapshot
+from monovoc_ros.core.palette import UNOBSERVED_ID
+from monovoc_ros.nodes.qos import latched_qos
+from tests.rosutil import (
+    DiagnosticsMonitor,
+    MessageCollector,
+    RosClientNode,
+    RosProcess,
+    ros_args,
+    ros_environment,
+    wait_until,
+)
+from tests.test_bags_ros import finish, replay_process
+from tests.test_node_support import NODE
+
+pytestmark = pytest.mark.ros
+
+
+def test_per_frame_bag_is_reproducible(tmp_path):
+    report = make_per_frame_bag(tmp_path)
+    assert report.path.read_bytes() == bundled_bag(PER_FRAME_BAG).read_bytes()
+
+
+def test_live_node_on_the_per_frame_bag_matches_offline_mapping(tmp_path):
+    from sensor_msgs.msg import PointCloud2
+
+    from monovoc_interfaces.msg import SemanticObjectArray
+
+    bag = bundled_bag(PER_FRAME_BAG)
+    out = tmp_path / "map"
+    assert main(["map", "--bag", str(bag), "-o", str(out), "--quiet", "--mask-ids", "per-frame"]) == 0
+    mapper = load_snapshot(out)
+    expected = mapper.result()
+    keyframes = [e for e in bag_events(bag) if isinstance(e, Keyframe)]
+    last = keyframes[-1].stamp_ns
+    assert len(mapper.associator.issued) >= 15
+
+    env = ros_environment(tmp_path)
+    params = {"publish_rate_hz": 0.0, "mask_ids": "per_frame", "diagnostics_period_s": 0.2}
+    with (
+        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        RosClientNode(env) as client,
+    ):
+        clouds, objects = MessageCollector(), MessageCollector()
+        client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())
+        client.node.create_subscription(SemanticObjectArray, "/monovoc/objects", objects, latched_qos())
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        with replay_process(bag, env, "--fast", "--wait-subscribers", "1") as replay:
+            finish(replay)
+        done = diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(len(keyframes)), 60.0, process=node)
+        assert done["keyframes_dropped"] == "0" and done["rejected_total"] == "0"
+        wait_until(lambda: any(ma.header_stamp_ns(m) == last for m in clouds.messages), 20.0, "the final cloud",
+                   process=node)  # fmt: skip
+        wait_until(lambda: objects.messages and ma.header_stamp_ns(objects.messages[-1]) == last, 20.0, "objects")
+        cloud = next(m for m in clouds.messages if ma.header_stamp_ns(m) == last)
+        final = objects.messages[-1]
+
+    known = expected.object_ids != UNOBSERVED_ID
+    got = ma.semantic_cloud_to_arrays(cloud)
+    np.testing.assert_array_equal(got.object_ids, expected.object_ids[known])
+    np.testing.assert_allclose(got.confidence, expected.confidence[known])
+    ids = sorted(o.id for o in final.objects)
+    assert ids == sorted(set(expected.object_ids[known].tolist())) and len(ids) >= 15
+    assert set(ids) <= set(mapper.associator.issued)
