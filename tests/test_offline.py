@@ -161,3 +161,33 @@ def test_segment_labels_from_a_folder_and_from_labels_reach_the_snapshot(scene, 
     labels = load_snapshot(out).object_labels()
     names = {e["class_name"] for e in scene.labels()}
     assert len(labels) >= 15 and set(labels.values()) <= names
+
+
+def test_per_frame_map_with_segment_labels_answers_queries_through_instance_matching(scene, tmp_path, capsys):
+    from monovoc_ros.objects.database import ObjectDatabase
+
+    data = tmp_path / "seq"
+    write_plain(scene, data)
+    out = tmp_path / "map"
+    args = ["map", str(data), "-o", str(out), "--quiet", "--objects", "--crop-mode", "hard"]
+    assert main([*args, "--mask-ids", "per-frame", "--mask-noise", "shuffled", "--segments-from-labels"]) == 0
+    records = ObjectDatabase(out, create=False).records()
+    names = {e["class_name"] for e in scene.labels()}
+    # Every object is named by the segmenter's leading class, not by a palette it does not have.
+    assert len(records) >= 10 and all(r.label in names and r.label_source == "given" for r in records)
+    queries = tmp_path / "queries.json"
+    sofa = next(e for e in scene.labels() if e["class_name"] == "sofa")
+    sofa_id = "#" + "".join(f"{v:02x}" for v in sofa["color"])
+    queries.write_text(json.dumps([
+        {"text": "a sofa", "expected": ["sofa"], "kind": "class"},
+        {"text": "the sofa", "expected": [sofa_id], "kind": "id"},
+    ]))  # fmt: skip
+    report_path = tmp_path / "retrieval.json"
+    common = ["eval-retrieval", str(queries), "--map", str(out), "--modes", "hard", "--out", str(report_path)]
+    assert main([*common, "--description", "on", "--label-nouns", "on", "--reference", str(data)]) == 0
+    variant = json.loads(report_path.read_text())["variants"][0]
+    assert variant["unanswerable"] == [] and variant["label_nouns"]
+    # the palette id of the reference sofa now names the map object matched to it
+    assert variant["per_query"][1]["expected"] == variant["per_query"][0]["expected"]
+    assert variant["all"]["top3"] == 1.0
+    capsys.readouterr()

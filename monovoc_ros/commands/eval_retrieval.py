@@ -45,6 +45,13 @@ def register(subparsers) -> None:
         help="descriptions name objects by their ground-truth labels (on) or by the best ImageNet class (off); "
         "on,off runs both (default off)",
     )
+    p.add_argument(
+        "--reference",
+        metavar="SOURCE",
+        help="a map built with per-frame mask ids: match its objects to SOURCE's reference instances "
+        "(rendered overlap, every 3rd keyframe); palette ids in 'expected' and ground-truth class names "
+        "then name the matched objects, and label-noun descriptions use the map's own (segment) labels",
+    )
     p.add_argument("--labels", metavar="FILE", help="labels.json with ground truth class names (default: the map's)")
     p.add_argument("--backend", default=None, help="embedding backend (default: the one the map was built with)")
     p.add_argument("--model-dir", default=None, help="embedding model directory")
@@ -57,6 +64,39 @@ def _switches(text: str, what: str) -> list[bool]:
         return [_ON_OFF[s.strip()] for s in text.split(",") if s.strip()]
     except KeyError:
         raise ValueError(f"{what}: expected on, off or on,off; got {text!r}") from None
+
+
+def matched_queries(map_dir: str, source: str, queries: list):
+    """Queries and ground truth translated to a per-frame map's own object ids (core.instance_eval):
+    (queries with palette ids renamed, {map id: reference class name}, {map id: the map's label})."""
+    import dataclasses
+
+    from monovoc_ros import offline
+    from monovoc_ros.commands.eval import sequence_frames
+    from monovoc_ros.core.evaluation import render_splat_labels
+    from monovoc_ros.core.instance_eval import match_instances
+    from monovoc_ros.core.map_store import load_snapshot
+    from monovoc_ros.core.palette import pack_rgb
+    from monovoc_ros.objects.labels import format_object_id, parse_object_id
+
+    mapper = load_snapshot(Path(map_dir) if Path(map_dir).is_dir() else Path(map_dir).parent)
+    seq = offline.open_source(source)
+    _, frames, names, _ = sequence_frames(seq, every=3)
+    ids = mapper.result().object_ids
+    preds = [render_splat_labels(mapper.gaussians, ids, k, pose) for k, pose, _ in frames]
+    match = match_instances(preds, [pack_rgb(m) for _, _, m in frames])
+    to_map = {ref: obj for obj, ref in match.mapping.items()}
+
+    def rename(item: str) -> str:
+        try:
+            oid = parse_object_id(item)
+        except ValueError:
+            return item  # a class name
+        return format_object_id(to_map.get(oid, oid))
+
+    renamed = [dataclasses.replace(q, expected=[rename(e) for e in q.expected]) for q in queries]
+    truth = {obj: names[ref] for obj, ref in match.mapping.items() if names.get(ref)}
+    return renamed, truth, mapper.object_labels()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,6 +112,9 @@ def run(args: argparse.Namespace) -> int:
         weights = [args.description_weight if on else 0.0 for on in _switches(args.description, "--description")]
         nouns = _switches(args.label_nouns, "--label-nouns")
         labels = load_labels(args.labels) if args.labels else None
+        noun_labels = None
+        if args.reference:
+            queries, labels, noun_labels = matched_queries(args.map, args.reference, queries)
         stored = ObjectDatabase(args.map, create=False).meta().get("backend") or {}
         name = args.backend or stored.get("name", "conse")
         options = {}
@@ -89,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
             labels=labels,
             label_nouns=nouns,
             unlabeled_noun=args.unlabeled_noun,
+            noun_labels=noun_labels,
         )
     except (ValueError, ObjectDatabaseError, ModelMissingError, OSError) as exc:
         print(f"monovoc eval-retrieval: {exc}", file=sys.stderr)

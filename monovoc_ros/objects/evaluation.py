@@ -153,13 +153,17 @@ def evaluate_map(
     labels: Mapping[int, str] | None = None,
     label_nouns: Sequence[bool] = (False,),
     unlabeled_noun: str | None = None,
+    noun_labels: Mapping[int, str] | None = None,
 ) -> dict:
     """Every (mode, description weight, label nouns) variant of a saved map's objects, re-embedded from
-    its stored views. ``labels``: ground truth for class-name expectations (default: the map's)."""
+    its stored views. ``labels``: ground truth for class-name expectations (default: the map's);
+    ``noun_labels``: the names the label-noun descriptions use (default: the ground truth; the map's
+    own labels, e.g. a segmenter's, to score what the map itself knows)."""
     db = ObjectDatabase(location, create=False)
     meta = db.meta()
     base = IndexConfig.from_dict(meta.get("config") or {})
     truth = dict(labels) if labels is not None else dict(base.labels or {})
+    named = dict(noun_labels) if noun_labels is not None else truth
     records, views = db.records(), db.views()
     if not records:
         raise ValueError(f"{db.path}: the map has no objects")
@@ -173,7 +177,7 @@ def evaluate_map(
                 if weight == 0 and nouns and False in label_nouns:
                     continue  # without a description the nouns do not matter
                 config = dataclasses.replace(
-                    base, crop_mode=mode, description_weight=float(weight), labels=truth if nouns else None
+                    base, crop_mode=mode, description_weight=float(weight), labels=named if nouns else None
                 )
                 if unlabeled_noun is not None:
                     config.unlabeled_noun = unlabeled_noun
