@@ -255,3 +255,31 @@ def test_bundled_synthetic_bag() -> None:
     events = list(bag_events(path, assembler=assembler))
     assert isinstance(events[0], GaussianMap) and len(events[0]) > 1000
     assert sum(isinstance(e, Keyframe) for e in events) == n and not assembler.rejected
+
+
+def test_convert_with_mask_noise_renumbers_every_mask(tmp_path: Path) -> None:
+    from monovoc_ros.core.palette import pack_rgb
+
+    out = tmp_path / "pf.mcap"
+    args = [
+        "bag",
+        "convert",
+        "synthetic",
+        "-o",
+        str(out),
+        "--quiet",
+        "--max-keyframes",
+        "3",
+        "--mask-noise",
+        "shuffled",
+    ]
+    assert monovoc(args) == 0
+    scene = generate_scene(SceneConfig())
+    keyframes = [e for e in bag_events(out) if isinstance(e, Keyframe)]
+    assert len(keyframes) == 3
+    for i, kf in enumerate(keyframes):
+        clean, noisy = pack_rgb(scene.keyframe(i).mask), pack_rgb(kf.mask)
+        pairs = np.unique(np.stack([clean.ravel(), noisy.ravel()]), axis=1)
+        # the same segments (a bijection of colors), none of them keeping its global color but void
+        assert len(set(pairs[0])) == len(set(pairs[1])) == pairs.shape[1]
+        assert all((a == b) == (a == 0xFFFFFF) for a, b in pairs.T.tolist())

@@ -31,6 +31,13 @@ def register(subparsers) -> None:
     c.add_argument("--max-keyframes", type=int, default=None)
     c.add_argument("--namespace", default="/monovoc")
     c.add_argument("--no-map", action="store_true", help="leave the Gaussian map out")
+    c.add_argument(
+        "--mask-noise",
+        default=None,
+        help="corrupt the masks as a segmenter would: shuffled (per-frame ids), merge=P, split=P, drop=P, "
+        "small=F, comma-separated (core.segment_noise); map the bag with mask_ids per_frame",
+    )
+    c.add_argument("--noise-seed", type=int, default=0, help="seed of --mask-noise (default 0)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=run_convert)
 
@@ -73,6 +80,11 @@ def run_convert(args: argparse.Namespace) -> int:
     options = {k: getattr(args, k) for k in ("gaussians", "masks", "rgb") if getattr(args, k)}
     try:
         sequence = open_source(args.source, args.layout, **options)
+        if args.mask_noise:
+            from monovoc_ros.core.segment_noise import CorruptedMasks, parse_mask_noise
+
+            shuffled, rates = parse_mask_noise(args.mask_noise)
+            sequence = CorruptedMasks(sequence, shuffled=shuffled, rates=rates, seed=args.noise_seed)
         report = sequence_to_bag(
             sequence,
             args.out,
