@@ -263,6 +263,9 @@ def test_label_histogram_leads_merges_and_round_trips():
     h.merge_objects(20, 10)
     assert h.leading() == {20: "sofa"} and h.scores[20]["chair"] == pytest.approx(0.9)
     assert LabelHistogram.from_json(h.to_json()).scores == h.scores
+    other = LabelHistogram()
+    other.add(20, "chair", 2.0)
+    assert h.merged(other).leading() == {20: "chair"} and h.leading() == {20: "sofa"}
     with pytest.raises(ValueError):
         SegmentLabel(VOID_ID, "wall")
 

@@ -281,6 +281,7 @@ class SemanticMapper:
         out = SemanticMapper(self.gaussians, self.config)
         out.state = self.state.merged(other.state)
         out.palette_builder = self.palette_builder.merged(other.palette_builder)
+        out.segment_labels = self.segment_labels.merged(other.segment_labels)
         out.map_version = max(self.map_version, other.map_version)
         return out
 

@@ -88,6 +88,15 @@ class LabelHistogram:
         for name, score in self.scores.pop(int(drop), {}).items():
             self.add(keep, name, score)
 
+    def merged(self, other: LabelHistogram) -> LabelHistogram:
+        """Both histograms' scores added (two maps of the same scene with global ids)."""
+        out = LabelHistogram()
+        for source in (self, other):
+            for oid, table in source.scores.items():
+                for name, score in table.items():
+                    out.add(oid, name, score)
+        return out
+
     def leading(self) -> dict[int, str]:
         """Object id -> its leading class (highest summed score; ties: alphabetical)."""
         return {oid: min(t.items(), key=lambda kv: (-kv[1], kv[0]))[0] for oid, t in self.scores.items() if t}
