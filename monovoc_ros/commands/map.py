@@ -51,6 +51,12 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
         help="vote mode: margin below which a non-palette mask color adds no evidence "
         f"(default {MapperConfig.min_snap_margin})",
     )
+    parser.add_argument(
+        "--palette-from-labels",
+        action="store_true",
+        help="vote mode: the labels' colors are the objects; every mask pixel is one of them or snaps to one "
+        "(for lossy masks, e.g. JPEG)",
+    )
 
 
 def add_source_options(parser: argparse.ArgumentParser) -> None:
@@ -79,8 +85,18 @@ def _object_index(args: argparse.Namespace, labels: list[dict]):
     )
 
 
-def mapper_config(args: argparse.Namespace) -> MapperConfig:
+def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) -> MapperConfig:
+    """The mapper settings of the command line; `labels` (the source's labels.json entries) become the
+    known object colors with --palette-from-labels."""
+    colors: tuple[int, ...] = ()
+    if getattr(args, "palette_from_labels", False):
+        if not labels:
+            raise SystemExit("monovoc map: --palette-from-labels needs labels (labels.json, or the bag's labels)")
+        from monovoc_ros.objects.labels import labels_from_entries
+
+        colors = tuple(labels_from_entries(labels))
     return MapperConfig(
+        object_colors=colors,
         impl=args.impl,
         device=args.device,
         metric=args.metric,
@@ -122,7 +138,6 @@ def run(args: argparse.Namespace) -> int:
 
     if bool(args.source) == bool(args.bag):
         raise SystemExit("monovoc map: give either SOURCE or --bag BAG")
-    config = mapper_config(args)
     if args.bag:
         from monovoc_ros.bags import bag_labels
 
@@ -130,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         sequence = offline.open_source(args.source, args.layout, **source_options(args))
         name, labels = sequence.name, sequence.labels()
+    config = mapper_config(args, labels)
     index = _object_index(args, labels)
     hook = index.keyframe_listener if index is not None else None
     if sequence is None:

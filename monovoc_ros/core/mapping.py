@@ -53,6 +53,10 @@ class MapperConfig:
     # Vote mode: a pixel whose color is no palette color is snapped to the nearest one (with `metric`)
     # when the relative margin (d2 - d1) / (d2 + d1) of its two nearest palette colors is at least this.
     min_snap_margin: float = 0.2
+    # Vote mode: the known object colors (packed 0xRRGGBB, e.g. from a labels file). Empty: each mask's
+    # own region colors are its objects; given: every pixel is an exact color of these or snaps to one,
+    # which is what lossy (JPEG) masks need, whose flat regions drift off the true colors.
+    object_colors: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.impl not in IMPLEMENTATIONS:
@@ -69,6 +73,10 @@ class MapperConfig:
             raise ValueError(f"vote_slots must be an integer in [1, 16], got {self.vote_slots!r}")
         if not 0.0 <= float(self.min_snap_margin) <= 1.0:
             raise ValueError(f"min_snap_margin must be in [0, 1], got {self.min_snap_margin!r}")
+        colors = tuple(sorted({int(c) for c in self.object_colors}))
+        if any(not 0 <= c < VOID_ID for c in colors):
+            raise ValueError("object_colors must be packed 24-bit colors other than void white")
+        self.object_colors = colors
 
     def empty_state(self, n: int, ids: np.ndarray | None) -> GaussianEvidence:
         """The evidence store of this configuration's semantic mode for a map of n Gaussians."""
@@ -133,6 +141,8 @@ class SemanticMapper:
         self._result: SemanticResult | None = None
         # Vote mode keeps every Gaussian's label and confidence and re-labels only what a keyframe touched.
         self._labels: tuple[np.ndarray, np.ndarray] | None = None
+        known = np.array(self.config.object_colors, np.uint32)
+        self._known_palette = Palette.from_colors(unpack_rgb(known)) if known.size else None
 
     @property
     def n_keyframes(self) -> int:
@@ -179,6 +189,7 @@ class SemanticMapper:
             self.config.metric,
             self.config.min_snap_margin,
             include_void=self.config.void_policy == "include",
+            palette=self._known_palette,
         )
         labels = labelled.labels
         votes = accumulate_votes(
@@ -227,7 +238,8 @@ class SemanticMapper:
     def merged(self, other: SemanticMapper) -> SemanticMapper:
         """A mapper holding both mappers' evidence and palette counts: two robots or two bags of the
         same Gaussian map. The evidence settings must agree and no keyframe may be in both."""
-        for name in ("semantic_mode", "weight_power", "vote_slots", "void_policy", "metric", "min_snap_margin"):
+        settings = ("semantic_mode", "weight_power", "vote_slots", "void_policy", "metric", "min_snap_margin")
+        for name in (*settings, "object_colors"):
             mine, theirs = getattr(self.config, name), getattr(other.config, name)
             if mine != theirs and (name != "vote_slots" or self.config.semantic_mode == "vote"):
                 raise ValueError(f"cannot merge maps built with different {name} ({mine!r} vs {theirs!r})")

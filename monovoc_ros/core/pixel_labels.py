@@ -69,14 +69,21 @@ def pixel_labels(
 
 
 def mask_labels(
-    mask: np.ndarray, metric: str = "cmc", min_snap_margin: float = 0.2, *, include_void: bool = False
+    mask: np.ndarray,
+    metric: str = "cmc",
+    min_snap_margin: float = 0.2,
+    *,
+    include_void: bool = False,
+    palette: Palette | None = None,
 ) -> tuple[PixelLabels, PaletteBuilder]:
-    """Labels of a mask against its own palette, and that mask's palette counts.
+    """Labels of a mask against `palette` (the known object colors) or, when None, against the mask's
+    own palette; and that mask's palette counts.
 
-    Labels come from the mask alone, never from the masks before it, so a keyframe's votes do not
-    depend on the order of keyframes and maps of the same scene merge exactly."""
+    Labels come from the mask (and the fixed palette) alone, never from the masks before it, so a
+    keyframe's votes do not depend on the order of keyframes and maps of the same scene merge exactly."""
     colors = mask_colors(mask)
     own = PaletteBuilder()
     own.update(mask, colors)
-    palette = own.build(thin_min_pixels=MASK_THIN_MIN_PIXELS)
+    if palette is None:
+        palette = own.build(thin_min_pixels=MASK_THIN_MIN_PIXELS)
     return pixel_labels(mask, palette, metric, min_snap_margin, include_void=include_void, colors=colors), own

@@ -67,6 +67,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("frame_id", "map", "frame of the semantic cloud, markers and objects (the SLAM map frame)"),
     ParameterSpec("publish_rate_hz", 1.0, "max rate of semantic cloud / objects updates; 0 = whenever the queue is empty"),
     ParameterSpec("labels_file", "", "JSON list [{color: [r, g, b], class_name: ...}] naming objects (empty: no labels)"),
+    ParameterSpec("labels_define_palette", False, "vote mode: labels_file's colors are the objects; every mask pixel is one of them or snaps to one (lossy masks)"),
     ParameterSpec("marker_up", [0.0, 0.0, 1.0], "up direction of the map frame, for marker labels ([0, -1, 0] for a y-down SLAM world)"),
     ParameterSpec("diagnostics_period_s", 1.0, "period of /diagnostics messages (s)"),
     # Persistence and services
@@ -129,6 +130,10 @@ class NodeParams:
             )
             return x
 
+        labels = load_labels(str(v["labels_file"]))
+        need(
+            not (v["labels_define_palette"] and not labels), "labels_define_palette", "needs a labels_file with colors"
+        )
         try:
             ingest = IngestConfig(
                 pose_type=v["pose_type"],
@@ -149,6 +154,7 @@ class NodeParams:
                 semantic_mode=v["semantic_mode"],
                 vote_slots=v["vote_slots"],
                 min_snap_margin=float(v["min_snap_margin"]),
+                object_colors=tuple(labels) if v["labels_define_palette"] else (),
             )
         except ValueError as exc:
             raise ParameterError(str(exc).replace(" must be", ": must be", 1)) from None
@@ -177,7 +183,7 @@ class NodeParams:
             queue_size=int(v["queue_size"]),
             frame_id=str(v["frame_id"]),
             publish_rate_hz=positive("publish_rate_hz", allow_zero=True),
-            labels=load_labels(str(v["labels_file"])),
+            labels=labels,
             labels_file=str(v["labels_file"]),
             marker_up=(up[0], up[1], up[2]),
             diagnostics_period_s=positive("diagnostics_period_s"),
