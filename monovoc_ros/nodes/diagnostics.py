@@ -47,6 +47,7 @@ class MapperStats:
     publishes: int = 0
     last_stamp_ns: int = 0  # newest integrated keyframe
     worker_errors: int = 0
+    service_errors: int = 0  # service callbacks that failed unexpectedly (answered success=false)
     rejected: Counter = field(default_factory=Counter)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 

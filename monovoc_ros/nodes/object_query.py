@@ -139,7 +139,11 @@ class ObjectQueryComponent:
         self._last_refresh = time.monotonic()
         self.queries_failed = 0
         self.group = MutuallyExclusiveCallbackGroup()  # queries never wait for the mapper's groups
-        self.service = node.create_service(TextQuery, "query", self._on_query, callback_group=self.group)
+        if hasattr(node, "create_guarded_service"):
+            self.service = node.create_guarded_service(TextQuery, "query", self._on_query, self.group)
+        else:
+            self.service = node.create_service(TextQuery, "query", self._on_query, callback_group=self.group)
+        self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
         self.highlight = node.create_publisher(PointCloud2, "query/highlight", latched_qos())
         self.markers = node.create_publisher(MarkerArray, "query/markers", latched_qos())
         self.frame_id = getattr(getattr(node, "params", None), "frame_id", "map")
@@ -165,7 +169,7 @@ class ObjectQueryComponent:
             worker.add_reset_listener(self._on_reset)
             # objects.db is written with every snapshot and read back with load_map.
             worker.add_save_listener(self._on_saved)
-            worker.add_load_listener(self._on_loaded)
+            worker.add_load_check(self._check_load)
         params = getattr(node, "params", None)
         if params is not None and params.resume and params.map_directory:
             self._restore(params.map_directory)
@@ -179,11 +183,30 @@ class ObjectQueryComponent:
     def _on_saved(self, directory: str, info: Any, mapper: Any) -> None:
         self.save(directory, snapshot=info.path.name, keyframes=info.keyframes, mapper=mapper)
 
-    def _on_loaded(self, path: str) -> None:
-        if Path(path).is_dir():
-            self._restore(path)
-        else:
-            self._replace_index(None)
+    def _check_load(self, path: str, mapper: Any) -> Callable[[], None]:
+        """load_map: reads the map directory's objects.db before anything is swapped; an unreadable one fails
+        the load (ObjectDatabaseError), so the current objects and every file stay as they are."""
+        index = None
+        db = Path(path) / DB_NAME
+        if Path(path).is_dir() and db.is_file():
+            try:
+                index = load_object_index(db, backend=self._current_backend(), config=self.settings.index)
+            except Exception as exc:  # whatever the defect, the load fails with its reason
+                self.restore_errors += 1
+                raise ObjectDatabaseError(f"objects not restored, map not loaded: {type(exc).__name__}: {exc}") from exc
+            ids = index.object_ids
+            if ids is not None and len(ids) != len(mapper.gaussians):
+                self.restore_errors += 1
+                raise ObjectDatabaseError(
+                    f"{db}: its per-Gaussian index has {len(ids)} entries, the map {len(mapper.gaussians)} Gaussians"
+                )
+
+        def commit() -> None:
+            self._replace_index(index)
+            if index is not None:
+                self.log.info(f"restored {len(index)} objects from {db}")
+
+        return commit
 
     def stop(self) -> None:
         self._stopping.set()
@@ -202,6 +225,7 @@ class ObjectQueryComponent:
             "objects.backend_error": self.backend_error or "",
             "queries.answered": self.queries_answered,
             "queries.failed": self.queries_failed,
+            "objects.restore_errors": self.restore_errors,
         }
 
     # ------------------------------------------------------------------ hooks (worker thread)
@@ -291,14 +315,22 @@ class ObjectQueryComponent:
             self.log.error(f"could not save objects to {directory}: {exc}")
 
     def _restore(self, directory: str) -> None:
+        """Resume: objects.db of the map directory. An unreadable one is renamed aside (kept for inspection,
+        never overwritten by the next save) and the objects are rebuilt from the keyframes that follow."""
         path = Path(directory) / DB_NAME
         if not path.is_file():
             self._replace_index(None)
             return
         try:
             index = load_object_index(path, backend=self._current_backend(), config=self.settings.index)
-        except (ObjectDatabaseError, ModelMissingError, ValueError) as exc:
-            self.log.error(f"could not restore objects from {path}: {exc}")
+        except Exception as exc:  # a start-up must survive any defect of the file
+            self.restore_errors += 1
+            kept = path.with_name(f"{DB_NAME}.unreadable-{time.strftime('%Y%m%d-%H%M%S')}")
+            for suffix in ("", "-wal", "-shm"):
+                source = path.with_name(path.name + suffix)
+                if source.exists():
+                    source.replace(kept.with_name(kept.name + suffix))
+            self.log.error(f"could not restore objects from {path} ({type(exc).__name__}: {exc}); kept as {kept}")
             self._replace_index(None)
             return
         self._replace_index(index)

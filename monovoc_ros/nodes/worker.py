@@ -43,6 +43,7 @@ from monovoc_ros.nodes.diagnostics import MapperStats
 
 KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
+LoadCheck = Callable[[str, SemanticMapper], "Callable[[], None] | None"]
 
 
 class Logger(Protocol):
@@ -235,6 +236,7 @@ class MapWorker:
         self._on_reset: list[Callable[[], None]] = []
         self._on_save: list[Callable[[str, SnapshotInfo, SemanticMapper], None]] = []
         self._on_load: list[Callable[[str], None]] = []
+        self._load_checks: list[LoadCheck] = []
         self._refresh_map_stats()
 
     # ------------------------------------------------------------------ public API (any thread)
@@ -261,6 +263,12 @@ class MapWorker:
     def add_load_listener(self, fn: Callable[[str], None]) -> None:
         """fn(path) runs on the worker thread after load (a snapshot directory or a PLY file)."""
         self._on_load.append(fn)
+
+    def add_load_check(self, fn: LoadCheck) -> None:
+        """fn(path, mapper) runs on the worker thread after a map was read and before it replaces the current
+        one: it reads and checks what it needs (the object database) and raises to fail the load, with nothing
+        changed; it returns a function that swaps its part in (run right after the mapper is swapped), or None."""
+        self._load_checks.append(fn)
 
     def submit_keyframe(self, keyframe: Keyframe) -> Keyframe | None:
         """Queues a keyframe; returns the one dropped to make room (already counted), if any."""
@@ -330,7 +338,11 @@ class MapWorker:
         return info
 
     def load(self, path: str) -> SemanticMapper:
-        """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state)."""
+        """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state).
+
+        Everything (the snapshot's files, then each load check: objects.db) is read and validated first;
+        any failure raises and leaves the current map, its objects and the files untouched.
+        """
         p = Path(path)
         if not p.exists():
             raise ValueError(f"{path} does not exist")
@@ -342,7 +354,11 @@ class MapWorker:
             source = f"PLY {p} (fresh semantic state)"
         else:
             raise ValueError(f"{path}: neither a map directory nor a .ply file")
+        commits = [fn(path, mapper) for fn in self._load_checks]  # may raise: nothing swapped yet
         self._mapper = mapper
+        for commit in commits:
+            if commit is not None:
+                commit()
         self._changed(unsaved=p.resolve() != _resolved(self.settings.map_directory))
         self.log.info(f"loaded {source}: {len(mapper.gaussians)} Gaussians")
         for fn in self._on_load:
