@@ -38,6 +38,7 @@ REASONS = (
     "void_mask",
     "stamp_out_of_order",
     "duplicate_stamp",
+    "stamp_future",
 )
 _BAD = {"image": "bad_image", "mask": "bad_mask", "camera_info": "bad_camera_info", "pose": "bad_pose"}
 
@@ -55,6 +56,9 @@ class IngestConfig:
     rectified: bool = False  # CameraInfo: use P (rectified images) instead of K
     allow_distortion: bool = False
     max_pending: int = 32  # per-stream synchronizer buffer
+    # A stamp more than this ahead of the newest stamp of every other topic is rejected (stamp_future); a
+    # waiting message this far ahead of a later one of its own topic is dropped. 0 = no such check.
+    max_stamp_lead_s: float = 30.0
 
     def __post_init__(self) -> None:
         if self.pose_type not in POSE_TYPES:
@@ -63,6 +67,8 @@ class IngestConfig:
             raise ValueError(f"frame_convention must be 'optical' or 'body', got {self.frame_convention!r}")
         if not self.sync_tolerance_s >= 0:
             raise ValueError(f"sync_tolerance_s must be >= 0, got {self.sync_tolerance_s}")
+        if not self.max_stamp_lead_s >= 0:
+            raise ValueError(f"max_stamp_lead_s must be >= 0, got {self.max_stamp_lead_s}")
 
 
 @dataclass
@@ -84,6 +90,11 @@ def mask_from_image(array: np.ndarray) -> np.ndarray:
     """A palette mask as (H, W, 3) uint8: color masks as they are, mono8/mono16 instance-id images
     colorized with the deterministic instance palette (id 0 = void)."""
     if array.ndim == 3:
+        if array.dtype != np.uint8:
+            raise ma.AdapterError(
+                f"mask: {8 * array.dtype.itemsize}-bit color mask; color masks must be 8-bit RGB "
+                "(16-bit is only for mono16 instance ids)"
+            )
         return array
     if array.dtype.kind != "u":
         raise ma.AdapterError(f"mask: instance-id images must be mono8 or mono16, got dtype {array.dtype}")
@@ -100,7 +111,12 @@ class KeyframeAssembler:
         )
         self.rejected: Counter[str] = Counter()
         self.received: Counter[str] = Counter()
+        # Per role: the watermark (newest stamp that became part of a keyframe; older and equal stamps are
+        # rejected) and the newest stamp accepted. Only a keyframe advances the watermark, so one outlier
+        # (a far-future stamp) that never matches cannot block the messages after it.
         self._last_stamp: dict[str, int] = {}
+        self._newest: dict[str, int] = {}
+        self._lead_ns = int(round(self.config.max_stamp_lead_s * 1e9))
         self._count = 0
 
     def push(self, role: str, msg: Any) -> tuple[list[Keyframe], list[Rejection]]:
@@ -115,18 +131,44 @@ class KeyframeAssembler:
         except ValueError as exc:
             reason = "void_mask" if isinstance(exc, _VoidMask) else _BAD[role]
             return [], [self._reject(reason, role, stamp, str(exc))]
-        last = self._last_stamp.get(role)
-        if last is not None and stamp <= last:
-            reason = "duplicate_stamp" if stamp == last else "stamp_out_of_order"
-            return [], [self._reject(reason, role, stamp, f"stamp {stamp} after {last} on {role}")]
-        self._last_stamp[role] = stamp
-        keyframes, rejections = [], []
-        for pivot_stamp, parts in self.sync.push(role, stamp, item):
+        rejections = []
+        rejection = self._check_stamp(role, stamp)
+        if rejection is None and self._lead_ns:
+            # Waiting messages of this topic far ahead of this one were outliers (a far-future stamp that came
+            # before any other topic could show it): they go, so they cannot block this topic.
+            for gone in self.sync.discard_newer(role, stamp + self._lead_ns):
+                detail = f"{role} stamp {gone} was {(gone - stamp) / 1e9:.3g} s ahead of a later message"
+                rejections.append(self._reject("stamp_future", role, gone, detail))
+        newest = self.sync.newest(role)
+        if rejection is None and newest is not None and stamp <= newest:
+            reason = "duplicate_stamp" if stamp == newest else "stamp_out_of_order"
+            rejection = self._reject(reason, role, stamp, f"stamp {stamp} after {newest} (waiting) on {role}")
+        if rejection is not None:
+            return [], [*rejections, rejection]
+        self._newest[role] = stamp
+        keyframes = []
+        for pivot_stamp, parts in self.sync.push(role, stamp, (stamp, item)):
+            for r, (part_stamp, _) in parts.items():
+                self._last_stamp[r] = max(self._last_stamp.get(r, part_stamp), part_stamp)
             try:
-                keyframes.append(self._assemble(pivot_stamp, parts))
+                keyframes.append(self._assemble(pivot_stamp, {r: it for r, (_, it) in parts.items()}))
             except ValueError as exc:
                 rejections.append(self._reject("size_mismatch", "mask", pivot_stamp, str(exc)))
         return keyframes, rejections
+
+    def _check_stamp(self, role: str, stamp: int) -> Rejection | None:
+        """Against the watermark of the role, then against the other topics."""
+        last = self._last_stamp.get(role)
+        if last is not None and stamp <= last:
+            reason = "duplicate_stamp" if stamp == last else "stamp_out_of_order"
+            return self._reject(reason, role, stamp, f"stamp {stamp} after {last} on {role}")
+        others = [t for r, t in self._newest.items() if r != role]
+        if self._lead_ns and others and stamp > max(others) + self._lead_ns:
+            ahead = (stamp - max(others)) / 1e9
+            return self._reject(
+                "stamp_future", role, stamp, f"{role} stamp {stamp} is {ahead:.3g} s ahead of every other topic"
+            )
+        return None
 
     def _reject(self, reason: str, role: str, stamp: int | None, detail: str) -> Rejection:
         self.rejected[reason] += 1

@@ -83,7 +83,9 @@ class SemanticMapperNode(Node):
         self.stats = MapperStats()
         self._ingest_lock = threading.Lock()
         self.assembler = KeyframeAssembler(self.params.ingest)
-        self._reorder = StampReorder(self.assembler.roles, self.params.reorder_wait_s)
+        self._reorder = StampReorder(
+            self.assembler.roles, self.params.reorder_wait_s, max_lead_s=self.params.ingest.max_stamp_lead_s
+        )
         self._reject_log = RejectionLog(self.get_logger().warning)
         self._warned_frame: set[str] = set()
         self._diagnostics_sources: list[Callable[[], dict[str, Any]]] = []
@@ -107,6 +109,7 @@ class SemanticMapperNode(Node):
             publish_period_s=1.0 / p.publish_rate_hz if p.publish_rate_hz > 0 else 0.0,
             map_directory=p.map_directory,
             save_period_s=p.save_period_s,
+            map_update_max_shrink=p.map_update_max_shrink,
         )
         self.worker = MapWorker(
             p.mapper,
