@@ -8,7 +8,7 @@ reach the synchronizer or the semantic state.
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -79,10 +79,36 @@ class Rejection:
     detail: str
 
 
-def image_message_to_numpy(msg: Any) -> np.ndarray:
+# Largest image or mask decoded before any camera_info told the size to expect (4096 x 4096: 48 MB as RGB).
+UNKNOWN_CAMERA_MAX_PIXELS = 4096 * 4096
+MASK_MAX_SCALE = 4  # masks may be resampled copies of the camera image, up to this many times its pixels
+
+
+class _SizeMismatch(ValueError):
+    """An image or mask whose header disagrees with camera_info: refused before decoding (size_mismatch)."""
+
+
+def _is_compressed(msg: Any) -> bool:
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+def image_size(msg: Any) -> tuple[int, int]:
+    """(width, height) of an Image (its fields) or CompressedImage (its PNG / JPEG header), without decoding."""
+    if _is_compressed(msg):
+        data = ma.buffers.bytes_view(msg.data, "CompressedImage.data")
+        if data.size == 0:
+            raise ma.AdapterError("CompressedImage: data is empty")
+        header = ma.compressed_image_header(data, ma.compressed_image.format_codec(str(msg.format)))
+        return header.width, header.height
+    return int(msg.width), int(msg.height)
+
+
+def image_message_to_numpy(msg: Any, max_pixels: int | None = None) -> np.ndarray:
     """sensor_msgs/Image or CompressedImage (told apart by their fields) -> NumPy."""
-    if hasattr(msg, "format") and not hasattr(msg, "encoding"):
-        return ma.compressed_image_to_numpy(msg)
+    if _is_compressed(msg):
+        return ma.compressed_image_to_numpy(msg, max_pixels)
+    if max_pixels is not None and int(msg.width) * int(msg.height) > max_pixels:
+        raise ma.AdapterError(f"Image: {msg.width}x{msg.height} is more than the {max_pixels} pixels allowed here")
     return ma.image_to_numpy(msg)
 
 
@@ -117,6 +143,8 @@ class KeyframeAssembler:
         self._last_stamp: dict[str, int] = {}
         self._newest: dict[str, int] = {}
         self._lead_ns = int(round(self.config.max_stamp_lead_s * 1e9))
+        self._camera_latest: tuple[int, int] | None = None  # size of the latest valid camera_info
+        self._camera_sizes: deque[tuple[int, int]] = deque(maxlen=4)  # camera sizes of the last keyframes
         self._count = 0
 
     def push(self, role: str, msg: Any) -> tuple[list[Keyframe], list[Rejection]]:
@@ -130,6 +158,7 @@ class KeyframeAssembler:
             item = self._convert(role, msg)
         except ValueError as exc:
             reason = "void_mask" if isinstance(exc, _VoidMask) else _BAD[role]
+            reason = "size_mismatch" if isinstance(exc, _SizeMismatch) else reason
             return [], [self._reject(reason, role, stamp, str(exc))]
         rejections = []
         rejection = self._check_stamp(role, stamp)
@@ -182,8 +211,9 @@ class KeyframeAssembler:
             ma.camera_info_to_intrinsics(
                 msg, rectified=self.config.rectified, allow_distortion=self.config.allow_distortion
             )
+            self._camera_latest = (int(msg.width), int(msg.height))
             return msg
-        array = image_message_to_numpy(msg)
+        array = image_message_to_numpy(msg, self._check_size(role, msg))
         if role == "image":
             if array.ndim != 3:
                 raise ma.AdapterError(f"image: expected a color image, got shape {array.shape}")
@@ -192,6 +222,23 @@ class KeyframeAssembler:
         if not np.any(mask != np.array(VOID_RGB, np.uint8)):
             raise _VoidMask(f"mask {mask.shape[1]}x{mask.shape[0]} is entirely void (white)")
         return mask
+
+    def _check_size(self, role: str, msg: Any) -> int:
+        """The most pixels `msg` may decode to; raises _SizeMismatch when its header disagrees with the camera
+        sizes in use (images must have one of them, masks the aspect ratio of one), before anything is decoded.
+
+        Sizes in use: those of the last keyframes and of the latest camera_info. One bad camera_info therefore
+        cannot make good images fail, and a resolution change costs one keyframe (its image comes first)."""
+        sizes = {*self._camera_sizes, *([self._camera_latest] if self._camera_latest else [])}
+        if not sizes:
+            return UNKNOWN_CAMERA_MAX_PIXELS
+        w, h = image_size(msg)
+        known = ", ".join(f"{cw}x{ch}" for cw, ch in sorted(sizes))
+        if role == "image" and (w, h) not in sizes:
+            raise _SizeMismatch(f"image {w}x{h} disagrees with camera_info {known} (not decoded)")
+        if role == "mask" and (h <= 0 or not any(abs(w / h - cw / ch) <= 0.01 * cw / ch for cw, ch in sizes)):
+            raise _SizeMismatch(f"mask {w}x{h} does not have the aspect ratio of camera_info {known} (not decoded)")
+        return MASK_MAX_SCALE * max(cw * ch for cw, ch in sizes)
 
     def _assemble(self, stamp: int, parts: dict[str, Any]) -> Keyframe:
         mask = parts["mask"]
@@ -209,4 +256,7 @@ class KeyframeAssembler:
         )
         keyframe = Keyframe(self._count, stamp, parts["pose"], intrinsics, mask, rgb)
         self._count += 1
+        if (cam_w, cam_h) in self._camera_sizes:
+            self._camera_sizes.remove((cam_w, cam_h))
+        self._camera_sizes.append((cam_w, cam_h))
         return keyframe

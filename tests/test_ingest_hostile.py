@@ -92,3 +92,20 @@ def test_16_bit_color_mask_gets_a_clear_reason():
     assert keyframes == [] and [r.reason for r in rejections] == ["bad_mask"]
     assert "16-bit" in rejections[0].detail and "8-bit RGB" in rejections[0].detail
     assert CAM.width == 80  # the good camera of the other cases
+
+
+def test_bombs_are_refused_from_their_header_without_a_camera():
+    from tests.test_node_bombs import jpeg_bomb, png_bomb
+
+    for payload, fmt in ((png_bomb(30000, 30000), "png"), (jpeg_bomb(30000, 30000), "jpeg")):
+        msg = messages(1 * S)["mask"]
+        msg.format, msg.data = fmt, payload
+        with pytest.raises(ma.AdapterError, match="header says 30000x30000, beyond 16384 pixels per side"):
+            ma.compressed_image_to_numpy(msg)
+    asm = KeyframeAssembler()  # no camera_info yet: at most UNKNOWN_CAMERA_MAX_PIXELS
+    msg = messages(1 * S)["mask"]
+    msg.data = png_bomb(8000, 6000)
+    _, rejections = asm.push("mask", msg)
+    assert [r.reason for r in rejections] == ["bad_mask"] and "8000x6000, more than the 16777216" in rejections[
+        0
+    ].detail
