@@ -84,13 +84,14 @@ def map_events(
     events: Iterable[object],
     config: MapperConfig | None = None,
     *,
+    max_keyframes: int | None = None,
     progress: bool = False,
     on_keyframe: KeyframeListener | None = None,
 ) -> tuple[SemanticMapper, RunStats]:
     """Drives a mapper with bag events (GaussianMap, Keyframe or rejection objects) in order.
 
     The first map creates the mapper; later maps are SLAM updates. Keyframes that come before any map
-    wait for it, as they do in the live node's queue.
+    wait for it, as they do in the live node's queue. `max_keyframes` stops after that many integrated.
     """
     mapper: SemanticMapper | None = None
     waiting: list[Keyframe] = []
@@ -98,13 +99,15 @@ def map_events(
     start = time.perf_counter()
     with _progress(None, progress, "SCD") as bar:
         for event in events:
+            if max_keyframes is not None and stats.keyframes >= max_keyframes:
+                break
             if isinstance(event, GaussianMap):
                 if mapper is None:
                     mapper = SemanticMapper(event, config)
                 else:
                     mapper.update_gaussians(event)
                     stats.map_updates += 1
-                for keyframe in waiting:
+                for keyframe in waiting[: None if max_keyframes is None else max(0, max_keyframes - stats.keyframes)]:
                     _integrate(mapper, keyframe, stats, on_keyframe)
                     bar.update()
                 waiting.clear()

@@ -61,7 +61,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("weight_power", 4, "exponent k of the SCD evidence weights w^k: 1 = the paper's SCD, 4 = fewest boundary errors (1..4)"),
     ParameterSpec("reassociation_tolerance", 0.01, "map updates without ids: max distance (m) for evidence to follow a Gaussian"),
     ParameterSpec("map_update_max_shrink", 0.5, "map updates removing a larger share of the Gaussians are refused (counted); 1 = allow all"),
-    ParameterSpec("queue_size", 32, "keyframes waiting for the worker; when full the oldest is dropped (counted)"),
+    ParameterSpec("queue_size", 100, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)"),
     # Outputs
     ParameterSpec("frame_id", "map", "frame of the semantic cloud, markers and objects (the SLAM map frame)"),
     ParameterSpec("publish_rate_hz", 1.0, "max rate of semantic cloud / objects updates; 0 = whenever the queue is empty"),

@@ -66,7 +66,7 @@ class WorkerStopped(RuntimeError):
 
 @dataclass
 class WorkerSettings:
-    queue_size: int = 32  # keyframes
+    queue_size: int = 100  # keyframes
     publish_period_s: float = 1.0  # 0: publish as soon as nothing runnable is queued
     map_directory: str = ""  # periodic and final snapshots go here ("" = none)
     save_period_s: float = 30.0  # 0 = no periodic snapshots
