@@ -49,7 +49,7 @@ from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.params import PARAMETERS, NodeParams, ParameterError
-from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, input_qos, latched_qos
+from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.worker import KeyframeListener, MapWorker, ResultListener, WorkerSettings, WorkerStopped
@@ -225,14 +225,15 @@ class SemanticMapperNode(Node):
         self, srv_type: type, name: str, handler: Callable[[Any, Any], Any], group: CallbackGroup, qos: Any = None
     ) -> Any:
         """A service whose every failure answers success=false (monovoc_ros.nodes.services.guarded), counted
-        as `service_errors` in diagnostics. Components (the query service) use it too."""
+        as `service_errors` in diagnostics, with a request queue deep enough for bursts (SERVICE_QOS).
+        Components (the query service) use it too."""
 
         def count() -> None:
             self.stats.add(service_errors=1)
 
         callback = guarded(srv_type, name, handler, log=self.get_logger().error, on_error=count)
-        kwargs = {"qos_profile": qos} if qos is not None else {}
-        return self.create_service(srv_type, name, callback, callback_group=group, **kwargs)
+        qos = SERVICE_QOS if qos is None else qos
+        return self.create_service(srv_type, name, callback, callback_group=group, qos_profile=qos)
 
     # ------------------------------------------------------------------ inputs
 
