@@ -4,9 +4,10 @@
 
 runs the semantic_mapper with this component (``attach(node)`` is its ``setup`` hook). It adds:
 
-* service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) in its own callback
-  group, answered from an immutable snapshot of the object index, so it stays responsive while the
-  worker integrates keyframes and while objects are being embedded;
+* service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) on its own node
+  (``<name>_query``) and executor thread, with a keep-last-1000 request queue (SERVICE_QOS), answered from
+  an immutable snapshot of the object index, so it stays responsive while the worker integrates keyframes
+  and while objects are being embedded (recent query texts are cached);
 * topics ``query/highlight`` (PointCloud2 in the semantic-cloud schema: the Gaussians of the objects of
   the last successful query) and ``query/markers`` (MarkerArray: their boxes and labels), both latched;
 * ``objects.db`` (monovoc_ros.objects.database) beside the map snapshots, written whenever the node
@@ -482,6 +483,10 @@ def attach(node: Any, backend: object | None = None) -> ObjectQueryComponent:
 def main(args: list[str] | None = None, *, setup: Callable[[Any], None] | None = None) -> int:
     """The semantic_mapper node with this component attached."""
     from monovoc_ros.nodes.semantic_mapper import main as mapper_main
+
+    # A query needs the GIL for a few short steps; with the default 5 ms switch interval each waited up to
+    # 5 ms per step behind the worker's and the indexer's Python code (the tail of the query latency).
+    sys.setswitchinterval(0.001)
 
     def setup_all(node: Any) -> None:
         attach(node)
