@@ -19,6 +19,7 @@ from monovoc_ros.core.datasets import Sequence, open_sequence
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.mapping import DuplicateKeyframeError, MapperConfig, SemanticMapper
+from monovoc_ros.ingest import map_update_refusal
 
 KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
 
@@ -85,6 +86,7 @@ def map_events(
     config: MapperConfig | None = None,
     *,
     max_keyframes: int | None = None,
+    max_shrink: float = 0.5,
     progress: bool = False,
     on_keyframe: KeyframeListener | None = None,
 ) -> tuple[SemanticMapper, RunStats]:
@@ -92,6 +94,8 @@ def map_events(
 
     The first map creates the mapper; later maps are SLAM updates. Keyframes that come before any map
     wait for it, as they do in the live node's queue. `max_keyframes` stops after that many integrated.
+    Maps the live node refuses (empty, or removing more than `max_shrink` of the Gaussians) are refused and
+    counted the same way.
     """
     mapper: SemanticMapper | None = None
     waiting: list[Keyframe] = []
@@ -102,6 +106,10 @@ def map_events(
             if max_keyframes is not None and stats.keyframes >= max_keyframes:
                 break
             if isinstance(event, GaussianMap):
+                refusal = map_update_refusal(mapper.gaussians if mapper else None, event, max_shrink)
+                if refusal is not None:  # as the live node refuses it
+                    stats.rejected[refusal[0]] += 1
+                    continue
                 if mapper is None:
                     mapper = SemanticMapper(event, config)
                 else:

@@ -109,3 +109,18 @@ def test_bombs_are_refused_from_their_header_without_a_camera():
     assert [r.reason for r in rejections] == ["bad_mask"] and "8000x6000, more than the 16777216" in rejections[
         0
     ].detail
+
+
+def test_offline_bag_mapping_refuses_the_maps_the_node_refuses():
+    from monovoc_ros.ingest import map_update_refusal
+    from monovoc_ros.offline import map_events
+    from tests.test_node_support import small_scene
+
+    gaussians = small_scene().gaussians
+    n = len(gaussians)
+    empty, shrunk = gaussians.subset(np.zeros(0, np.int64)), gaussians.subset(np.arange(n // 4))
+    mapper, stats = map_events([gaussians, empty, shrunk])
+    assert len(mapper.gaussians) == n and stats.map_updates == 0
+    assert stats.rejected == {"empty_gaussians": 1, "map_shrink": 1}
+    assert map_update_refusal(gaussians, shrunk, 1.0) is None  # allowed by the operator
+    assert map_update_refusal(gaussians, gaussians.subset(np.arange(n // 2 + 1)), 0.5) is None  # 50% exactly: kept

@@ -39,6 +39,7 @@ from monovoc_ros.core.map_store import SnapshotInfo, load_snapshot, save_snapsho
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
 from monovoc_ros.core.objects import summarize_objects
 from monovoc_ros.core.ply import load_ply
+from monovoc_ros.ingest import map_update_refusal
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
@@ -207,14 +208,6 @@ def same_geometry(a: GaussianMap, b: GaussianMap) -> bool:
     if (a.colors is None) != (b.colors is None):
         return False
     return a.colors is None or np.allclose(a.colors, b.colors, rtol=0, atol=1e-5)
-
-
-def removed_gaussians(old: GaussianMap, new: GaussianMap) -> tuple[int, int]:
-    """(Gaussians of `old` that `new` removes, len(old)): by id when both maps have ids, else by count.
-    Moved Gaussians are not removed, with or without ids (a loop closure keeps its map)."""
-    if old.ids is not None and new.ids is not None:
-        return int((~np.isin(old.ids, new.ids)).sum()), len(old)
-    return max(0, len(old) - len(new)), len(old)
 
 
 class MapWorker:
@@ -450,21 +443,14 @@ class MapWorker:
             self._guarded(fn, keyframe, mapper)
 
     def _apply_map(self, gaussians: GaussianMap, name: str) -> None:
-        if len(gaussians) == 0:
-            self.stats.reject("empty_gaussians")
-            self.log.warning(f"Gaussian map {name} ignored: it has no Gaussians (the map in use is kept)")
+        refusal = map_update_refusal(
+            self._mapper.gaussians if self._mapper else None, gaussians, self.settings.map_update_max_shrink
+        )
+        if refusal is not None:
+            reason, detail = refusal
+            self.stats.reject(reason)
+            self.log.warning(f"Gaussian map {name} refused: {detail}")
             return
-        if self._mapper is not None:
-            removed, total = removed_gaussians(self._mapper.gaussians, gaussians)
-            limit = self.settings.map_update_max_shrink
-            if limit < 1.0 and removed > limit * total:
-                self.stats.reject("map_shrink")
-                self.log.warning(
-                    f"map update {name} refused: it removes {removed} of {total} Gaussians "
-                    f"({removed / total:.0%} > map_update_max_shrink {limit:g}); set map_update_max_shrink "
-                    "to 1 to allow it, or reset the map"
-                )
-                return
         if self._mapper is None:
             self._mapper = SemanticMapper(gaussians, self.config)
             self.log.info(
