@@ -5,8 +5,12 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
 * keyframes: bounded (`queue_size`); when full, the OLDEST waiting keyframe is dropped and counted.
   Keyframes that arrive before any Gaussian map wait in the queue (tasks behind them still run).
 * Gaussian maps from the SLAM front-end: never dropped; a map that directly follows another pending map
-  replaces it (only the newest of consecutive updates matters: no keyframe lies between them).
+  replaces it (only the newest of consecutive updates matters: no keyframe lies between them). A map
+  without Gaussians, or one removing more than `map_update_max_shrink` of them, is refused and counted
+  (monovoc_ros.ingest.map_update_refusal): one empty cloud must not wipe the map.
 * calls (services, plugins): never dropped; run in arrival order with the rest, results via a Future.
+  `load` reads and checks everything (the snapshot, then each load check such as objects.db) before it
+  swaps anything in, so a failed load changes nothing.
 
 Between tasks the worker publishes the semantic result (at most every `publish_period_s` while something
 changed; period 0 = as soon as nothing runnable is queued) and saves periodic snapshots of new evidence.
