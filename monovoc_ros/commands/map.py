@@ -108,6 +108,21 @@ def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) ->
     )
 
 
+def check_source_options(args: argparse.Namespace) -> None:
+    """Refuses options that would be ignored (a bag carries its own Gaussian map, masks and RGB)."""
+    if args.max_keyframes is not None and args.max_keyframes < 1:
+        raise SystemExit(f"monovoc: --max-keyframes must be >= 1, got {args.max_keyframes}")
+    if args.bag:
+        ignored = [f"--{k}" for k in ("gaussians", "masks", "rgb") if getattr(args, k)]
+        if args.layout != "auto":
+            ignored.append("--layout")
+        if ignored:
+            raise SystemExit(
+                f"monovoc: {', '.join(ignored)} cannot be used with --bag (the bag carries its own Gaussian "
+                "map, masks and images)"
+            )
+
+
 def source_options(args: argparse.Namespace) -> dict:
     return {k: getattr(args, k) for k in ("gaussians", "masks", "rgb") if getattr(args, k)}
 
@@ -138,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
 
     if bool(args.source) == bool(args.bag):
         raise SystemExit("monovoc map: give either SOURCE or --bag BAG")
+    check_source_options(args)
     if args.bag:
         from monovoc_ros.bags import bag_labels
 
@@ -149,7 +165,9 @@ def run(args: argparse.Namespace) -> int:
     index = _object_index(args, labels)
     hook = index.keyframe_listener if index is not None else None
     if sequence is None:
-        mapper, stats = offline.map_bag(args.bag, config, progress=not args.quiet, on_keyframe=hook)
+        mapper, stats = offline.map_bag(
+            args.bag, config, max_keyframes=args.max_keyframes, progress=not args.quiet, on_keyframe=hook
+        )
     else:
         mapper, stats = offline.map_sequence(
             sequence, config, max_keyframes=args.max_keyframes, progress=not args.quiet, on_keyframe=hook
