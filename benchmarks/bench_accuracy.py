@@ -29,6 +29,7 @@ sys.path.insert(0, str(REPO))
 from monovoc_ros import offline  # noqa: E402
 from monovoc_ros.commands.eval import score, sequence_frames  # noqa: E402
 from monovoc_ros.core.mapping import MapperConfig  # noqa: E402
+from monovoc_ros.objects.labels import labels_from_entries  # noqa: E402
 
 REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
 CONFIGS = {
@@ -44,6 +45,9 @@ CONFIGS = {
     "snap1": {"min_snap_margin": 1.0},
     "vote_rgb": {"metric": "rgb"},
     "vote_include": {"void_policy": "include"},
+    "known": {"object_colors": "labels"},  # the source's labels.json colors are the palette
+    "known_snap0": {"object_colors": "labels", "min_snap_margin": 0.0},
+    "known_snap0.5": {"object_colors": "labels", "min_snap_margin": 0.5},
 }
 
 
@@ -81,7 +85,10 @@ def run(source: str, config_name: str, jpeg: int | None) -> dict:
     if jpeg:
         seq = JpegMasks(seq, jpeg)
     start = time.perf_counter()
-    mapper, stats = offline.map_sequence(seq, MapperConfig(**CONFIGS[config_name]))
+    settings = dict(CONFIGS[config_name])
+    if settings.get("object_colors") == "labels":
+        settings["object_colors"] = tuple(labels_from_entries(seq.labels()))
+    mapper, stats = offline.map_sequence(seq, MapperConfig(**settings))
     mapping_s = time.perf_counter() - start
     _, frames, _, _ = sequence_frames(seq, every=3)
     result, _ = score(mapper.gaussians, mapper.result().object_ids, frames, "splats", 0.05)

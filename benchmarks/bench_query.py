@@ -7,12 +7,14 @@ On a synthetic room (default: the full 140k-Gaussian, 60-keyframe scene at 616x3
   (summaries + embedding every object's views);
 - ``offline``: query latency on the index alone (text embedding + cosine ranking), p50 / p99 ms;
 - ``memory``: semantic bytes of this scene (per-Gaussian object index + records + embeddings) and of the
-  reference scene of 140k Gaussians and 100 objects, against MonoVoc's 14 MB, with the SCD accumulators
+  reference scene of 140k Gaussians and 100 objects, against MonoVoc's 14 MB, with the vote state
   (mapping state) and the view cache reported separately;
 - ``service`` (unless --no-ros): round-trip latency through the live node's ``/monovoc/query`` at 100
   queries/s, p50 / p99 ms, on a map resumed from the first half of the keyframes (idle), and on the same
   map while the other half is published into the node at 10 Hz (it integrates them and re-embeds the
-  objects that get better views).
+  objects that get better views);
+- ``open_loop_while_mapping`` (unless --no-ros): 100 queries/s sent whatever the answers (open loop,
+  monovoc_ros.nodes.query_load) while keyframes arrive at 3/s: sent / answered / lost, p50 / p99 ms.
 """
 
 from __future__ import annotations
@@ -197,21 +199,22 @@ def _paced_queries(client, seconds: float, rate_hz: float) -> dict:
     return out
 
 
-def _feed(publisher, messages: list) -> None:
-    for msgs in messages:  # 10 Hz, like a SLAM front-end's keyframes at most
+def _feed(publisher, messages: list, period: float = 0.1) -> None:
+    for msgs in messages:  # 10 Hz, like a SLAM front-end's keyframes at most (3 Hz for the open loop)
         publisher.publish_messages(msgs)
-        time.sleep(0.1)
+        time.sleep(period)
 
 
 def service(scene, directory: Path, seconds: float) -> dict:
     from monovoc_interfaces.srv import TextQuery
     from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
+    from monovoc_ros.nodes.query_load import open_loop_queries, query_client
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-query-ros-"))
     env = _ros_env(tmp)
     (tmp / "ros_log").mkdir()
     out = {}
-    for phase in ("idle", "mapping"):
+    for phase in ("idle", "mapping", "open_loop_while_mapping"):
         # Both phases resume the map of the first half of the keyframes (a copy: nodes save into it).
         copy = tmp / f"map-{phase}"
         shutil.copytree(directory, copy)
@@ -227,11 +230,11 @@ def service(scene, directory: Path, seconds: float) -> dict:
         )
         client = _Client(env)
         try:
-            cli = client.node.create_client(TextQuery, "/monovoc/query")
+            cli = query_client(client.node)
             if not cli.wait_for_service(timeout_sec=60.0):
                 raise RuntimeError(f"node did not come up; see {tmp / (phase + '.out')}")
             feeder = None
-            if phase == "mapping":
+            if phase != "idle":
                 publisher = KeyframePublisher(client.node)
                 deadline = time.monotonic() + 30
                 while any(p.get_subscription_count() == 0 for p in publisher.all_publishers()):
@@ -240,13 +243,17 @@ def service(scene, directory: Path, seconds: float) -> dict:
                     time.sleep(0.05)
                 messages = [keyframe_messages(scene.keyframe(i)) for i in range(len(scene) // 2, len(scene))]
 
-                feeder = threading.Thread(target=_feed, args=(publisher, messages), daemon=True)
+                period = 0.1 if phase == "mapping" else 1 / 3
+                feeder = threading.Thread(target=_feed, args=(publisher, messages, period), daemon=True)
                 feeder.start()
-                seconds_here = min(seconds, 0.1 * len(messages))
+                seconds_here = min(seconds, period * len(messages))
             else:
                 seconds_here = seconds
             _call(cli, TextQuery.Request(text="warm up"), 30.0)
-            out[phase] = _paced_queries(cli, seconds_here, 100.0)
+            if phase == "open_loop_while_mapping":
+                out[phase] = open_loop_queries(cli, 100.0, int(100 * seconds_here), timeout_s=30.0)
+            else:
+                out[phase] = _paced_queries(cli, seconds_here, 100.0)
             if feeder is not None:
                 feeder.join()
         finally:

@@ -61,12 +61,12 @@ def main() -> int:
             labels = mask_labels(mask)[0].labels
             n_labels = int(labels.max()) + 1
 
-            def on_cuda(labels=labels, pose=pose):
+            def on_cuda(gmap=gmap, k=k, labels=labels, pose=pose):
                 out = accumulate_votes(gmap, labels, k, pose, weight_power=4, impl="torch", device="cuda")
                 torch.cuda.synchronize()
                 return out
 
-            def on_numba(labels=labels, pose=pose):
+            def on_numba(gmap=gmap, k=k, labels=labels, pose=pose):
                 return accumulate_votes(gmap, labels, k, pose, weight_power=4, impl="numba")
 
             ref = dense(on_numba(), len(gmap), n_labels)

@@ -8,7 +8,7 @@ reach the synchronizer or the semantic state.
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +17,7 @@ import numpy as np
 import msg_adapters as ma
 from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.datasets import instance_palette
+from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import VOID_RGB
 from monovoc_ros.core.sync import StampSynchronizer
@@ -38,6 +39,7 @@ REASONS = (
     "void_mask",
     "stamp_out_of_order",
     "duplicate_stamp",
+    "stamp_future",
 )
 _BAD = {"image": "bad_image", "mask": "bad_mask", "camera_info": "bad_camera_info", "pose": "bad_pose"}
 
@@ -55,6 +57,9 @@ class IngestConfig:
     rectified: bool = False  # CameraInfo: use P (rectified images) instead of K
     allow_distortion: bool = False
     max_pending: int = 32  # per-stream synchronizer buffer
+    # A stamp more than this ahead of the newest stamp of every other topic is rejected (stamp_future); a
+    # waiting message this far ahead of a later one of its own topic is dropped. 0 = no such check.
+    max_stamp_lead_s: float = 30.0
 
     def __post_init__(self) -> None:
         if self.pose_type not in POSE_TYPES:
@@ -63,6 +68,8 @@ class IngestConfig:
             raise ValueError(f"frame_convention must be 'optical' or 'body', got {self.frame_convention!r}")
         if not self.sync_tolerance_s >= 0:
             raise ValueError(f"sync_tolerance_s must be >= 0, got {self.sync_tolerance_s}")
+        if not self.max_stamp_lead_s >= 0:
+            raise ValueError(f"max_stamp_lead_s must be >= 0, got {self.max_stamp_lead_s}")
 
 
 @dataclass
@@ -73,10 +80,36 @@ class Rejection:
     detail: str
 
 
-def image_message_to_numpy(msg: Any) -> np.ndarray:
+# Largest image or mask decoded before any camera_info told the size to expect (4096 x 4096: 48 MB as RGB).
+UNKNOWN_CAMERA_MAX_PIXELS = 4096 * 4096
+MASK_MAX_SCALE = 4  # masks may be resampled copies of the camera image, up to this many times its pixels
+
+
+class _SizeMismatch(ValueError):
+    """An image or mask whose header disagrees with camera_info: refused before decoding (size_mismatch)."""
+
+
+def _is_compressed(msg: Any) -> bool:
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+def image_size(msg: Any) -> tuple[int, int]:
+    """(width, height) of an Image (its fields) or CompressedImage (its PNG / JPEG header), without decoding."""
+    if _is_compressed(msg):
+        data = ma.buffers.bytes_view(msg.data, "CompressedImage.data")
+        if data.size == 0:
+            raise ma.AdapterError("CompressedImage: data is empty")
+        header = ma.compressed_image_header(data, ma.compressed_image.format_codec(str(msg.format)))
+        return header.width, header.height
+    return int(msg.width), int(msg.height)
+
+
+def image_message_to_numpy(msg: Any, max_pixels: int | None = None) -> np.ndarray:
     """sensor_msgs/Image or CompressedImage (told apart by their fields) -> NumPy."""
-    if hasattr(msg, "format") and not hasattr(msg, "encoding"):
-        return ma.compressed_image_to_numpy(msg)
+    if _is_compressed(msg):
+        return ma.compressed_image_to_numpy(msg, max_pixels)
+    if max_pixels is not None and int(msg.width) * int(msg.height) > max_pixels:
+        raise ma.AdapterError(f"Image: {msg.width}x{msg.height} is more than the {max_pixels} pixels allowed here")
     return ma.image_to_numpy(msg)
 
 
@@ -84,6 +117,11 @@ def mask_from_image(array: np.ndarray) -> np.ndarray:
     """A palette mask as (H, W, 3) uint8: color masks as they are, mono8/mono16 instance-id images
     colorized with the deterministic instance palette (id 0 = void)."""
     if array.ndim == 3:
+        if array.dtype != np.uint8:
+            raise ma.AdapterError(
+                f"mask: {8 * array.dtype.itemsize}-bit color mask; color masks must be 8-bit RGB "
+                "(16-bit is only for mono16 instance ids)"
+            )
         return array
     if array.dtype.kind != "u":
         raise ma.AdapterError(f"mask: instance-id images must be mono8 or mono16, got dtype {array.dtype}")
@@ -100,7 +138,14 @@ class KeyframeAssembler:
         )
         self.rejected: Counter[str] = Counter()
         self.received: Counter[str] = Counter()
+        # Per role: the watermark (newest stamp that became part of a keyframe; older and equal stamps are
+        # rejected) and the newest stamp accepted. Only a keyframe advances the watermark, so one outlier
+        # (a far-future stamp) that never matches cannot block the messages after it.
         self._last_stamp: dict[str, int] = {}
+        self._newest: dict[str, int] = {}
+        self._lead_ns = int(round(self.config.max_stamp_lead_s * 1e9))
+        self._camera_latest: tuple[int, int] | None = None  # size of the latest valid camera_info
+        self._camera_sizes: deque[tuple[int, int]] = deque(maxlen=4)  # camera sizes of the last keyframes
         self._count = 0
 
     def push(self, role: str, msg: Any) -> tuple[list[Keyframe], list[Rejection]]:
@@ -114,19 +159,46 @@ class KeyframeAssembler:
             item = self._convert(role, msg)
         except ValueError as exc:
             reason = "void_mask" if isinstance(exc, _VoidMask) else _BAD[role]
+            reason = "size_mismatch" if isinstance(exc, _SizeMismatch) else reason
             return [], [self._reject(reason, role, stamp, str(exc))]
-        last = self._last_stamp.get(role)
-        if last is not None and stamp <= last:
-            reason = "duplicate_stamp" if stamp == last else "stamp_out_of_order"
-            return [], [self._reject(reason, role, stamp, f"stamp {stamp} after {last} on {role}")]
-        self._last_stamp[role] = stamp
-        keyframes, rejections = [], []
-        for pivot_stamp, parts in self.sync.push(role, stamp, item):
+        rejections = []
+        rejection = self._check_stamp(role, stamp)
+        if rejection is None and self._lead_ns:
+            # Waiting messages of this topic far ahead of this one were outliers (a far-future stamp that came
+            # before any other topic could show it): they go, so they cannot block this topic.
+            for gone in self.sync.discard_newer(role, stamp + self._lead_ns):
+                detail = f"{role} stamp {gone} was {(gone - stamp) / 1e9:.3g} s ahead of a later message"
+                rejections.append(self._reject("stamp_future", role, gone, detail))
+        newest = self.sync.newest(role)
+        if rejection is None and newest is not None and stamp <= newest:
+            reason = "duplicate_stamp" if stamp == newest else "stamp_out_of_order"
+            rejection = self._reject(reason, role, stamp, f"stamp {stamp} after {newest} (waiting) on {role}")
+        if rejection is not None:
+            return [], [*rejections, rejection]
+        self._newest[role] = stamp
+        keyframes = []
+        for pivot_stamp, parts in self.sync.push(role, stamp, (stamp, item)):
+            for r, (part_stamp, _) in parts.items():
+                self._last_stamp[r] = max(self._last_stamp.get(r, part_stamp), part_stamp)
             try:
-                keyframes.append(self._assemble(pivot_stamp, parts))
+                keyframes.append(self._assemble(pivot_stamp, {r: it for r, (_, it) in parts.items()}))
             except ValueError as exc:
                 rejections.append(self._reject("size_mismatch", "mask", pivot_stamp, str(exc)))
         return keyframes, rejections
+
+    def _check_stamp(self, role: str, stamp: int) -> Rejection | None:
+        """Against the watermark of the role, then against the other topics."""
+        last = self._last_stamp.get(role)
+        if last is not None and stamp <= last:
+            reason = "duplicate_stamp" if stamp == last else "stamp_out_of_order"
+            return self._reject(reason, role, stamp, f"stamp {stamp} after {last} on {role}")
+        others = [t for r, t in self._newest.items() if r != role]
+        if self._lead_ns and others and stamp > max(others) + self._lead_ns:
+            ahead = (stamp - max(others)) / 1e9
+            return self._reject(
+                "stamp_future", role, stamp, f"{role} stamp {stamp} is {ahead:.3g} s ahead of every other topic"
+            )
+        return None
 
     def _reject(self, reason: str, role: str, stamp: int | None, detail: str) -> Rejection:
         self.rejected[reason] += 1
@@ -140,8 +212,9 @@ class KeyframeAssembler:
             ma.camera_info_to_intrinsics(
                 msg, rectified=self.config.rectified, allow_distortion=self.config.allow_distortion
             )
+            self._camera_latest = (int(msg.width), int(msg.height))
             return msg
-        array = image_message_to_numpy(msg)
+        array = image_message_to_numpy(msg, self._check_size(role, msg))
         if role == "image":
             if array.ndim != 3:
                 raise ma.AdapterError(f"image: expected a color image, got shape {array.shape}")
@@ -150,6 +223,23 @@ class KeyframeAssembler:
         if not np.any(mask != np.array(VOID_RGB, np.uint8)):
             raise _VoidMask(f"mask {mask.shape[1]}x{mask.shape[0]} is entirely void (white)")
         return mask
+
+    def _check_size(self, role: str, msg: Any) -> int:
+        """The most pixels `msg` may decode to; raises _SizeMismatch when its header disagrees with the camera
+        sizes in use (images must have one of them, masks the aspect ratio of one), before anything is decoded.
+
+        Sizes in use: those of the last keyframes and of the latest camera_info. One bad camera_info therefore
+        cannot make good images fail, and a resolution change costs one keyframe (its image comes first)."""
+        sizes = {*self._camera_sizes, *([self._camera_latest] if self._camera_latest else [])}
+        if not sizes:
+            return UNKNOWN_CAMERA_MAX_PIXELS
+        w, h = image_size(msg)
+        known = ", ".join(f"{cw}x{ch}" for cw, ch in sorted(sizes))
+        if role == "image" and (w, h) not in sizes:
+            raise _SizeMismatch(f"image {w}x{h} disagrees with camera_info {known} (not decoded)")
+        if role == "mask" and (h <= 0 or not any(abs(w / h - cw / ch) <= 0.01 * cw / ch for cw, ch in sizes)):
+            raise _SizeMismatch(f"mask {w}x{h} does not have the aspect ratio of camera_info {known} (not decoded)")
+        return MASK_MAX_SCALE * max(cw * ch for cw, ch in sizes)
 
     def _assemble(self, stamp: int, parts: dict[str, Any]) -> Keyframe:
         mask = parts["mask"]
@@ -167,4 +257,32 @@ class KeyframeAssembler:
         )
         keyframe = Keyframe(self._count, stamp, parts["pose"], intrinsics, mask, rgb)
         self._count += 1
+        if (cam_w, cam_h) in self._camera_sizes:
+            self._camera_sizes.remove((cam_w, cam_h))
+        self._camera_sizes.append((cam_w, cam_h))
         return keyframe
+
+
+def removed_gaussians(old: GaussianMap, new: GaussianMap) -> tuple[int, int]:
+    """(Gaussians of `old` that `new` removes, len(old)): by id when both maps have ids, else by count.
+    Moved Gaussians are not removed, with or without ids (a loop closure keeps its map)."""
+    if old.ids is not None and new.ids is not None:
+        return int((~np.isin(old.ids, new.ids)).sum()), len(old)
+    return max(0, len(old) - len(new)), len(old)
+
+
+def map_update_refusal(old: GaussianMap | None, new: GaussianMap, max_shrink: float) -> tuple[str, str] | None:
+    """(reason, detail) when a Gaussian map must not replace `old` (the live node and offline bag mapping
+    apply the same rule): empty_gaussians for a map without Gaussians, map_shrink when it removes more than
+    `max_shrink` of old's Gaussians (1.0 allows everything); None when it may."""
+    if len(new) == 0:
+        return "empty_gaussians", "it has no Gaussians (the map in use is kept)"
+    if old is None or max_shrink >= 1.0:
+        return None
+    removed, total = removed_gaussians(old, new)
+    if removed > max_shrink * total:
+        return "map_shrink", (
+            f"it removes {removed} of {total} Gaussians ({removed / total:.0%} > map_update_max_shrink "
+            f"{max_shrink:g}); set map_update_max_shrink to 1 to allow it, or reset the map"
+        )
+    return None

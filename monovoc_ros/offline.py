@@ -19,6 +19,7 @@ from monovoc_ros.core.datasets import Sequence, open_sequence
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.mapping import DuplicateKeyframeError, MapperConfig, SemanticMapper
+from monovoc_ros.ingest import map_update_refusal
 
 KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
 
@@ -84,13 +85,17 @@ def map_events(
     events: Iterable[object],
     config: MapperConfig | None = None,
     *,
+    max_keyframes: int | None = None,
+    max_shrink: float = 0.5,
     progress: bool = False,
     on_keyframe: KeyframeListener | None = None,
 ) -> tuple[SemanticMapper, RunStats]:
     """Drives a mapper with bag events (GaussianMap, Keyframe or rejection objects) in order.
 
     The first map creates the mapper; later maps are SLAM updates. Keyframes that come before any map
-    wait for it, as they do in the live node's queue.
+    wait for it, as they do in the live node's queue. `max_keyframes` stops after that many integrated.
+    Maps the live node refuses (empty, or removing more than `max_shrink` of the Gaussians) are refused and
+    counted the same way.
     """
     mapper: SemanticMapper | None = None
     waiting: list[Keyframe] = []
@@ -98,13 +103,19 @@ def map_events(
     start = time.perf_counter()
     with _progress(None, progress, "SCD") as bar:
         for event in events:
+            if max_keyframes is not None and stats.keyframes >= max_keyframes:
+                break
             if isinstance(event, GaussianMap):
+                refusal = map_update_refusal(mapper.gaussians if mapper else None, event, max_shrink)
+                if refusal is not None:  # as the live node refuses it
+                    stats.rejected[refusal[0]] += 1
+                    continue
                 if mapper is None:
                     mapper = SemanticMapper(event, config)
                 else:
                     mapper.update_gaussians(event)
                     stats.map_updates += 1
-                for keyframe in waiting:
+                for keyframe in waiting[: None if max_keyframes is None else max(0, max_keyframes - stats.keyframes)]:
                     _integrate(mapper, keyframe, stats, on_keyframe)
                     bar.update()
                 waiting.clear()

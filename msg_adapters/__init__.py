@@ -6,9 +6,10 @@ lazily, so readers work without a ROS environment). Every conversion raises ``Ad
 ``ValueError``) naming the problem. Frame conventions and field schemas: docs/interfaces.md.
 """
 
+from msg_adapters import buffers, compressed_image
 from msg_adapters.camera_info import camera_info_to_intrinsics, has_distortion, intrinsics_to_camera_info
 from msg_adapters.colors import packed_to_rgb, rgb_to_packed
-from msg_adapters.compressed_image import compressed_image_to_numpy, numpy_to_compressed_image
+from msg_adapters.compressed_image import compressed_image_header, compressed_image_to_numpy, numpy_to_compressed_image
 from msg_adapters.errors import AdapterError
 from msg_adapters.gaussian_cloud import cloud_to_gaussian_map, gaussian_map_to_cloud
 from msg_adapters.image import image_to_numpy, numpy_to_image
@@ -32,6 +33,9 @@ __all__ = [
     "SemanticCloud",
     "camera_info_to_intrinsics",
     "cloud_to_gaussian_map",
+    "buffers",
+    "compressed_image",
+    "compressed_image_header",
     "compressed_image_to_numpy",
     "gaussian_map_to_cloud",
     "has_distortion",

@@ -22,6 +22,11 @@ from monovoc_ros.core.camera import Intrinsics
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import make_header
 
+# Plausibility bounds: a camera outside them is a corrupt or hostile message, not a lens. fx = fy = 1e-30
+# projected everything onto one pixel (garbage evidence); a 2^32 x 2^32 camera asked for 2^64-pixel images.
+MAX_IMAGE_SIDE = 16384
+FOCAL_RANGE = (0.05, 50.0)  # focal length / image width: ~175 degrees to ~1 degree of horizontal field of view
+
 
 def has_distortion(msg: Any) -> bool:
     """True when the CameraInfo lists any non-zero distortion coefficient."""
@@ -33,6 +38,8 @@ def _effective_size_and_matrix(msg: Any, rectified: bool) -> tuple[np.ndarray, i
     width, height = int(msg.width), int(msg.height)
     if width <= 0 or height <= 0:
         raise AdapterError(f"CameraInfo: invalid image size {width}x{height}")
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
+        raise AdapterError(f"CameraInfo: image size {width}x{height} exceeds {MAX_IMAGE_SIDE} pixels per side")
     if rectified:
         P = np.asarray(msg.p, dtype=np.float64).reshape(-1)
         if P.size != 12:
@@ -51,6 +58,13 @@ def _effective_size_and_matrix(msg: Any, rectified: bool) -> tuple[np.ndarray, i
         raise AdapterError(f"CameraInfo: {what} is all zero (uncalibrated camera)")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 1] != 0 or not np.allclose(K[2], (0.0, 0.0, 1.0)):
         raise AdapterError(f"CameraInfo: {what} is not a pinhole matrix with positive focal lengths: {K.tolist()}")
+    lo, hi = FOCAL_RANGE
+    for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not lo * width <= f <= hi * width:
+            raise AdapterError(
+                f"CameraInfo: {name} = {f:g} is implausible for a {width} pixel wide image "
+                f"(expected {lo:g}..{hi:g} x width = {lo * width:g}..{hi * width:g})"
+            )
 
     roi = msg.roi
     x0, y0, rw, rh = int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height)

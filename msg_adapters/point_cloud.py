@@ -63,7 +63,7 @@ def read_fields(
         if datatype not in allowed:
             want = " or ".join(DATATYPE_NAMES[d] for d in allowed)
             raise AdapterError(f"{what}: field {name!r} has datatype {DATATYPE_NAMES[datatype]}, expected {want}")
-        if count > 1:
+        if count != 1:
             raise AdapterError(f"{what}: field {name!r} has count {count}, expected 1")
         dtype = np.dtype(byteorder + _DATATYPE_CODES[datatype])
         if offset < 0 or offset + dtype.itemsize > point_step:
@@ -81,6 +81,12 @@ def read_fields(
     needed = row_step * (height - 1) + row_bytes
     if data.size < needed:
         raise AdapterError(f"{what}: data has {data.size} bytes, {width}x{height} points need {needed}")
+    # A header that lies about the layout is refused even where the lie would be harmless to read.
+    if data.size > row_step * height or (height == 1 and row_step not in (row_bytes, data.size)):
+        raise AdapterError(
+            f"{what}: row_step {row_step} x height {height} does not describe {data.size} bytes of data "
+            f"(width {width} x point_step {point_step} = {row_bytes} per row)"
+        )
     if height == 1 or row_step == row_bytes:
         packed = data[: n * point_step]
     else:  # rows padded beyond width * point_step: gather them (one copy)

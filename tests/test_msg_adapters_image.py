@@ -165,8 +165,10 @@ def test_compressed_rejects_bad_input() -> None:
         compressed_image_to_numpy(CompressedImage(format="tiff", data=png.data))
     with pytest.raises(AdapterError, match="compressedDepth"):
         compressed_image_to_numpy(CompressedImage(format="16UC1; compressedDepth png", data=png.data))
-    with pytest.raises(AdapterError, match="cannot decode"):
+    with pytest.raises(AdapterError, match="not a PNG"):
         compressed_image_to_numpy(CompressedImage(format="png", data=b"not a png at all"))
+    with pytest.raises(AdapterError, match="cannot decode"):  # a valid header, then nothing
+        compressed_image_to_numpy(CompressedImage(format="png", data=bytes(png.data)[:40]))
     with pytest.raises(AdapterError, match="data is empty"):
         compressed_image_to_numpy(CompressedImage(format="jpeg"))
     with pytest.raises(AdapterError, match="cannot encode uint16"):

@@ -35,7 +35,7 @@ def test_config_file_lists_every_parameter_with_its_default():
 def test_defaults_are_valid():
     p = NodeParams.from_values(DEFAULTS)
     assert p.mapper.impl == "numba" and p.mapper.metric == "cmc" and p.mapper.device is None
-    assert p.ingest.pose_type == "pose" and p.queue_size == 32 and p.labels == {}
+    assert p.ingest.pose_type == "pose" and p.queue_size == 100 and p.labels == {}
 
 
 @pytest.mark.parametrize(

@@ -1,7 +1,10 @@
 """semantic_mapper persistence: kill -9 after a periodic snapshot, restart with resume, send the rest.
 
 The final snapshot must equal an offline run over exactly the keyframe stamps it holds, and those are all
-sent stamps except the ones integrated between the last periodic snapshot and the kill.
+sent stamps except the ones integrated between the last periodic snapshot and the kill. Deterministic
+whatever the timing (issue 9, case 11): the loss is measured against the snapshot CURRENT named at the kill
+(a second periodic snapshot may land before it), and the resumed node saves only at shutdown, so its final
+snapshot is always written and logged.
 """
 
 from __future__ import annotations
@@ -72,15 +75,18 @@ def test_kill_9_loses_only_the_keyframes_since_the_last_snapshot(tmp_path):
             node.proc.wait(10)
         assert node.returncode == -signal.SIGKILL
     saved_at_kill = snapshot_stamps(map_dir)
-    assert saved_at_kill == stamps[:6], "a periodic snapshot came between the last keyframes and the kill"
-    assert load_snapshot(map_dir).n_keyframes == 6  # intact after SIGKILL
+    kept = len(saved_at_kill)
+    assert 6 <= kept <= 9 and saved_at_kill == stamps[:kept], saved_at_kill  # the last snapshot, nothing else
+    assert load_snapshot(map_dir).n_keyframes == kept  # intact after SIGKILL
 
     # A fresh client: the killed node's participant would linger in the old one's graph.
     with RosClientNode(env, "client_2") as client:
         publisher = KeyframePublisher(client.node)
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher.publish_map(scene.gaussians)  # the same map again (latched): must not disturb the state
-        with RosProcess.python(args, env, name="mapper_2") as node:
+        # No periodic snapshot this time: the one written at shutdown is the one checked below.
+        resumed = [*NODE, *ros_args({**params, "save_period_s": 0.0})]
+        with RosProcess.python(resumed, env, name="mapper_2") as node:
             node.wait_for_output("resumed", 30.0)
             for pub in publisher.all_publishers():
                 wait_for_subscribers(pub, timeout=20.0, process=node)
@@ -93,7 +99,7 @@ def test_kill_9_loses_only_the_keyframes_since_the_last_snapshot(tmp_path):
         assert "final snapshot" in node.output()
 
     final = load_snapshot(map_dir)
-    expected_stamps = stamps[:6] + stamps[9:]
+    expected_stamps = saved_at_kill + stamps[9:]
     assert final.state.stamps_ns.tolist() == expected_stamps
     offline = offline_mapper(scene.gaussians, [kf for kf in keyframes if kf.stamp_ns in set(expected_stamps)])
     assert_same_evidence(final.state, offline.state, rtol=1e-12, atol=1e-12)

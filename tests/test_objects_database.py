@@ -185,7 +185,7 @@ def test_semantic_memory_per_scene():
     report = semantic_memory(140_000, 100, 384)
     assert report.semantic_bytes < TARGET_SEMANTIC_BYTES
     assert report.object_index_bytes == 140_000 + 4 * 101  # one byte per Gaussian
-    assert report.accumulator_bytes == 140_000 * 32  # float64 color (3) + weight (1): mapping state
+    assert report.accumulator_bytes == 140_000 * 56  # 4 x (uint32 id + float64 votes) + float64 other
     assert report.to_dict()["ratio_to_paper"] < 0.05  # vs MonoVoc's 14 MB per 140k-Gaussian scene
     assert semantic_memory(140_000, 300).object_index_bytes == 2 * 140_000 + 4 * 301
     mapper, index = room_map()

@@ -230,3 +230,26 @@ def test_pixel_labels_exact_snapped_ambiguous_and_void():
     assert out.snapped_pixels == 1 and out.ambiguous_pixels == 1
     everything = pixel_labels(mask, palette, min_snap_margin=0.0, include_void=True)
     assert everything.labels.min() >= 0 and everything.objects[everything.labels[3, 3]] == VOID_ID
+
+
+def test_known_object_colors_take_lossy_masks():
+    """A region whose color drifted (as JPEG does to flat areas) is its own object without a known
+    palette, and the known object with one."""
+    from monovoc_ros.core.keyframe import Keyframe
+    from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+
+    gmap, k, pose, _ = random_scene(2)
+    mask = np.zeros((k.height, k.width, 3), np.uint8)
+    mask[:, : k.width // 2] = (255, 0, 0)
+    mask[:, k.width // 2 :] = (2, 0, 253)  # drifted blue
+    keyframe = Keyframe(0, 1, pose, k, mask)
+    red, blue = 0xFF0000, 0x0000FF
+    plain = SemanticMapper(gmap, MapperConfig())
+    plain.integrate(keyframe)
+    assert set(np.unique(plain.result().object_ids)) == {red, 0x0200FD, UNOBSERVED_ID}
+    known = SemanticMapper(gmap, MapperConfig(object_colors=(red, blue, 0x00FF00)))
+    report = known.integrate(keyframe)
+    assert set(np.unique(known.result().object_ids)) == {red, blue, UNOBSERVED_ID}
+    assert report.snapped_pixels == k.height * (k.width - k.width // 2)
+    with pytest.raises(ValueError, match="object_colors"):
+        MapperConfig(object_colors=(VOID_ID,))

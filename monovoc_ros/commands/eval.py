@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.commands.map import add_source_options, open_source_args
+from monovoc_ros.commands.map import add_source_options, check_source_options, open_source_args
 from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
 from monovoc_ros.core.instance_eval import UNMATCHED_ID, score_matched
 from monovoc_ros.core.map_store import load_snapshot
@@ -46,17 +46,18 @@ def _frames(args: argparse.Namespace):
     if args.bag:
         from monovoc_ros.bags import bag_labels
 
-        return Path(args.bag).name, bag_frames(args.bag, args.every), label_names(bag_labels(args.bag)), None
+        frames = bag_frames(args.bag, args.every, args.max_keyframes)
+        return Path(args.bag).name, frames, label_names(bag_labels(args.bag)), None
     seq = open_source_args(args)
     return sequence_frames(seq, args.every, args.max_keyframes)
 
 
-def bag_frames(path, every: int = 1) -> list:
-    """Frames [(intrinsics, pose, mask)] of every ``every``-th keyframe of a bag."""
+def bag_frames(path, every: int = 1, max_keyframes: int | None = None) -> list:
+    """Frames [(intrinsics, pose, mask)] of every ``every``-th of the first ``max_keyframes`` keyframes of a bag."""
     from monovoc_ros.bags import bag_events
     from monovoc_ros.core.keyframe import Keyframe
 
-    keyframes = [e for e in bag_events(path) if isinstance(e, Keyframe)][::every]
+    keyframes = [e for e in bag_events(path) if isinstance(e, Keyframe)][:max_keyframes][::every]
     return [(k.intrinsics, k.cam_to_world, k.mask) for k in keyframes]
 
 
@@ -125,6 +126,7 @@ def _public(result: dict, names: dict[int, str]) -> dict:
 def run(args: argparse.Namespace) -> int:
     if bool(args.source) == bool(args.bag):
         raise SystemExit("monovoc eval: give either SOURCE or --bag BAG")
+    check_source_options(args)
     metrics = METRICS if args.metrics == "all" else tuple(m.strip() for m in args.metrics.split(","))
     protocols = tuple(p.strip() for p in args.protocols.split(","))
     for bad in set(metrics) - set(METRICS) | set(protocols) - set(PROTOCOLS):

@@ -52,6 +52,12 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
         f"(default {MapperConfig.min_snap_margin})",
     )
     parser.add_argument(
+        "--palette-from-labels",
+        action="store_true",
+        help="vote mode: the labels' colors are the objects; every mask pixel is one of them or snaps to one "
+        "(for lossy masks, e.g. JPEG)",
+    )
+    parser.add_argument(
         "--mask-ids",
         choices=("global", "per-frame"),
         default="global",
@@ -99,8 +105,18 @@ def _object_index(args: argparse.Namespace, labels: list[dict]):
     )
 
 
-def mapper_config(args: argparse.Namespace) -> MapperConfig:
+def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) -> MapperConfig:
+    """The mapper settings of the command line; `labels` (the source's labels.json entries) become the
+    known object colors with --palette-from-labels."""
+    colors: tuple[int, ...] = ()
+    if getattr(args, "palette_from_labels", False):
+        if not labels:
+            raise SystemExit("monovoc map: --palette-from-labels needs labels (labels.json, or the bag's labels)")
+        from monovoc_ros.objects.labels import labels_from_entries
+
+        colors = tuple(labels_from_entries(labels))
     return MapperConfig(
+        object_colors=colors,
         impl=args.impl,
         device=args.device,
         metric=args.metric,
@@ -111,6 +127,21 @@ def mapper_config(args: argparse.Namespace) -> MapperConfig:
         min_snap_margin=args.min_snap_margin,
         mask_ids=args.mask_ids.replace("-", "_"),
     )
+
+
+def check_source_options(args: argparse.Namespace) -> None:
+    """Refuses options that would be ignored (a bag carries its own Gaussian map, masks and RGB)."""
+    if args.max_keyframes is not None and args.max_keyframes < 1:
+        raise SystemExit(f"monovoc: --max-keyframes must be >= 1, got {args.max_keyframes}")
+    if args.bag:
+        ignored = [f"--{k}" for k in ("gaussians", "masks", "rgb") if getattr(args, k)]
+        if args.layout != "auto":
+            ignored.append("--layout")
+        if ignored:
+            raise SystemExit(
+                f"monovoc: {', '.join(ignored)} cannot be used with --bag (the bag carries its own Gaussian "
+                "map, masks and images)"
+            )
 
 
 def source_options(args: argparse.Namespace) -> dict:
@@ -160,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
 
     if bool(args.source) == bool(args.bag):
         raise SystemExit("monovoc map: give either SOURCE or --bag BAG")
-    config = mapper_config(args)
+    check_source_options(args)
     if args.bag:
         from monovoc_ros.bags import bag_labels
 
@@ -168,12 +199,15 @@ def run(args: argparse.Namespace) -> int:
     else:
         sequence = open_source_args(args)
         name, labels = sequence.name, sequence.labels()
+    config = mapper_config(args, labels)
     if config.mask_ids == "per_frame":
         labels = []  # a labels file names global mask colors, which per-frame masks do not have
     index = _object_index(args, labels)
     hook = index.keyframe_listener if index is not None else None
     if sequence is None:
-        mapper, stats = offline.map_bag(args.bag, config, progress=not args.quiet, on_keyframe=hook)
+        mapper, stats = offline.map_bag(
+            args.bag, config, max_keyframes=args.max_keyframes, progress=not args.quiet, on_keyframe=hook
+        )
     else:
         mapper, stats = offline.map_sequence(
             sequence, config, max_keyframes=args.max_keyframes, progress=not args.quiet, on_keyframe=hook

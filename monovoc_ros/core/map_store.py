@@ -76,7 +76,7 @@ def _save_map(path: Path, gmap: GaussianMap) -> None:
 
 
 def _load_map(path: Path) -> GaussianMap:
-    with np.load(path) as arrays:
+    with np.load(path, allow_pickle=False) as arrays:
         return GaussianMap(**{name: arrays[name] for name in _MAP_FIELDS if name in arrays})
 
 
@@ -157,40 +157,79 @@ def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None
 
     `config` overrides the saved configuration (e.g. another rasterizer implementation); the saved
     one is used when it is None. Evidence accumulated with another weight_power raises MapStoreError.
+    Every file is read and checked before the mapper is built, and any failure (a truncated or
+    byte-flipped archive, meta.json that is not an object, a missing key, arrays of the wrong shape)
+    raises MapStoreError naming the snapshot and the problem: never another exception type.
     """
     map_dir = Path(map_dir)
-    snap = current_snapshot(map_dir)
+    try:
+        snap = current_snapshot(map_dir)
+    except OSError as exc:
+        raise MapStoreError(f"{map_dir}: unreadable CURRENT ({exc})") from exc
     if snap is None:
         raise MapStoreError(f"{map_dir}: no saved map (no CURRENT file)")
     try:
-        meta = json.loads((snap / "meta.json").read_text())
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise MapStoreError(f"{snap}: unsupported format_version {meta.get('format_version')}")
-        gaussians = _load_map(snap / "gaussians.npz")
-        # Snapshots from before semantic_mode used SCD, and before weight_power the paper's k = 1.
-        saved = {"weight_power": 1, "semantic_mode": "scd", **meta["config"]}
-        store = VoteState if saved["semantic_mode"] == "vote" else SemanticState
-        state = store.load(snap / "state.npz")
-        with np.load(snap / "palette.npz") as arrays:
-            builder = PaletteBuilder.from_arrays(dict(arrays))
-        path = snap / "association.json"
-        association = Associator.from_json(path.read_text()) if path.exists() else None
-        path = snap / "segment_labels.json"
-        segment_labels = LabelHistogram.from_json(path.read_text()) if path.exists() else LabelHistogram()
-    except (OSError, KeyError, ValueError) as exc:
-        raise MapStoreError(f"{snap}: unreadable snapshot ({exc})") from exc
+        return _read_snapshot(snap, config)
+    except MapStoreError:
+        raise
+    except Exception as exc:  # any defect of the files is "an unreadable snapshot"
+        raise MapStoreError(f"{snap}: unreadable snapshot ({type(exc).__name__}: {exc})") from exc
+
+
+def _read(path: Path, read):
+    """read(path), any failure as MapStoreError naming the file."""
+    try:
+        return read(path)
+    except MapStoreError:
+        raise
+    except Exception as exc:  # see load_snapshot
+        raise MapStoreError(f"{path}: unreadable snapshot file ({type(exc).__name__}: {exc})") from exc
+
+
+def _read_palette(path: Path) -> PaletteBuilder:
+    with np.load(path, allow_pickle=False) as arrays:
+        return PaletteBuilder.from_arrays(dict(arrays))
+
+
+def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
+    meta = _read(snap / "meta.json", lambda p: json.loads(p.read_text()))
+    if not isinstance(meta, dict):
+        raise MapStoreError(f"{snap}: meta.json holds a {type(meta).__name__}, not an object")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise MapStoreError(f"{snap}: unsupported format_version {meta.get('format_version')}")
+    if not isinstance(meta.get("config"), dict):
+        raise MapStoreError(f"{snap}: meta.json has no 'config' object")
+    gaussians = _read(snap / "gaussians.npz", _load_map)
+    # Snapshots from before semantic_mode used SCD, and before weight_power the paper's k = 1.
+    saved = {"weight_power": 1, "semantic_mode": "scd", **meta["config"]}
+    store = VoteState if saved["semantic_mode"] == "vote" else SemanticState
+    state = _read(snap / "state.npz", store.load)
+    builder = _read(snap / "palette.npz", _read_palette)
+    path = snap / "association.json"
+    association = _read(path, lambda p: Associator.from_json(p.read_text())) if path.exists() else None
+    path = snap / "segment_labels.json"
+    segment_labels = (
+        _read(path, lambda p: LabelHistogram.from_json(p.read_text())) if path.exists() else LabelHistogram()
+    )
     if len(state) != len(gaussians):
         raise MapStoreError(f"{snap}: state has {len(state)} Gaussians, map has {len(gaussians)}")
+    if "gaussians" in meta and meta["gaussians"] != len(gaussians):
+        raise MapStoreError(f"{snap}: meta.json says {meta['gaussians']} Gaussians, gaussians.npz has {len(gaussians)}")
     if isinstance(state, VoteState):
         saved["vote_slots"] = state.slots
+    try:
+        saved_config = MapperConfig(**saved)  # checked even when `config` overrides it
+    except (TypeError, ValueError) as exc:
+        raise MapStoreError(f"{snap}: invalid saved config ({exc})") from exc
     if config is not None and len(state.stamps_ns):
-        for name in ("semantic_mode", "weight_power", "vote_slots", "mask_ids"):
-            if name in saved and getattr(config, name) != saved[name] and (name != "vote_slots" or store is VoteState):
+        for name in ("semantic_mode", "weight_power", "vote_slots", "object_colors", "mask_ids"):
+            mine, theirs = getattr(config, name), getattr(saved_config, name)
+            if mine != theirs and (name not in ("vote_slots", "object_colors") or store is VoteState):
                 raise MapStoreError(
-                    f"{snap}: its evidence was accumulated with {name} {saved[name]!r}, not "
-                    f"{getattr(config, name)!r}: the two cannot be mixed (reset the map or keep {name})"
+                    f"{snap}: its evidence was accumulated with {name} {theirs!r}, not {mine!r}: "
+                    f"the two cannot be mixed (reset the map or keep {name})"
                 )
-    mapper = SemanticMapper(gaussians, config or MapperConfig(**saved))
+    mapper = SemanticMapper(gaussians, config or saved_config)
     if len(state.stamps_ns) or type(state) is type(mapper.state):
         mapper.state = state
     mapper.palette_builder = builder

@@ -55,6 +55,10 @@ class MapperConfig:
     # Vote mode: a pixel whose color is no palette color is snapped to the nearest one (with `metric`)
     # when the relative margin (d2 - d1) / (d2 + d1) of its two nearest palette colors is at least this.
     min_snap_margin: float = 0.2
+    # Vote mode: the known object colors (packed 0xRRGGBB, e.g. from a labels file). Empty: each mask's
+    # own region colors are its objects; given: every pixel is an exact color of these or snaps to one,
+    # which is what lossy (JPEG) masks need, whose flat regions drift off the true colors.
+    object_colors: tuple[int, ...] = ()
     # "global": a mask color names the same object in every keyframe; "per_frame": segment ids hold for
     # one mask only and are associated with the map's objects (core.association; vote mode only).
     mask_ids: str = "global"
@@ -74,10 +78,16 @@ class MapperConfig:
             raise ValueError(f"vote_slots must be an integer in [1, 16], got {self.vote_slots!r}")
         if not 0.0 <= float(self.min_snap_margin) <= 1.0:
             raise ValueError(f"min_snap_margin must be in [0, 1], got {self.min_snap_margin!r}")
+        colors = tuple(sorted({int(c) for c in self.object_colors}))
+        if any(not 0 <= c < VOID_ID for c in colors):
+            raise ValueError("object_colors must be packed 24-bit colors other than void white")
+        self.object_colors = colors
         if self.mask_ids not in MASK_ID_MODES:
             raise ValueError(f"mask_ids must be one of {MASK_ID_MODES}, got {self.mask_ids!r}")
         if self.mask_ids == "per_frame" and self.semantic_mode != "vote":
             raise ValueError("mask_ids 'per_frame' needs semantic_mode 'vote' (association merges per-object votes)")
+        if self.mask_ids == "per_frame" and self.object_colors:
+            raise ValueError("mask_ids 'per_frame' cannot take object_colors: per-frame mask colors name no object")
 
     def empty_state(self, n: int, ids: np.ndarray | None) -> GaussianEvidence:
         """The evidence store of this configuration's semantic mode for a map of n Gaussians."""
@@ -144,6 +154,8 @@ class SemanticMapper:
         self._result: SemanticResult | None = None
         # Vote mode keeps every Gaussian's label and confidence and re-labels only what a keyframe touched.
         self._labels: tuple[np.ndarray, np.ndarray] | None = None
+        known = np.array(self.config.object_colors, np.uint32)
+        self._known_palette = Palette.from_colors(unpack_rgb(known)) if known.size else None
         self.associator: Associator | None = Associator() if self.config.mask_ids == "per_frame" else None
         self.segment_labels = LabelHistogram()  # per object, the class names its segments were given
 
@@ -214,6 +226,7 @@ class SemanticMapper:
             self.config.metric,
             self.config.min_snap_margin,
             include_void=self.config.void_policy == "include",
+            palette=self._known_palette,
         )
         labels = labelled.labels
         votes = accumulate_votes(
@@ -268,7 +281,8 @@ class SemanticMapper:
         same Gaussian map. The evidence settings must agree and no keyframe may be in both."""
         if self.associator is not None or other.associator is not None:
             raise ValueError("cannot merge maps built with per-frame mask ids (their object ids are their own)")
-        for name in ("semantic_mode", "weight_power", "vote_slots", "void_policy", "metric", "min_snap_margin"):
+        settings = ("semantic_mode", "weight_power", "vote_slots", "void_policy", "metric", "min_snap_margin")
+        for name in (*settings, "object_colors"):
             mine, theirs = getattr(self.config, name), getattr(other.config, name)
             if mine != theirs and (name != "vote_slots" or self.config.semantic_mode == "vote"):
                 raise ValueError(f"cannot merge maps built with different {name} ({mine!r} vs {theirs!r})")

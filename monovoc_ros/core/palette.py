@@ -127,6 +127,25 @@ def blend_mask(mask: np.ndarray, packed: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
+class MaskColors:
+    """The distinct colors of one mask."""
+
+    packed: np.ndarray  # (H, W) uint32 packed color of every pixel
+    ids: np.ndarray  # (C,) uint32 distinct packed colors, ascending
+    counts: np.ndarray  # (C,) int64 pixels of each
+
+    def inverse(self) -> np.ndarray:
+        """(H, W) index into `ids` of every pixel (a search, not a second sort)."""
+        return np.searchsorted(self.ids, self.packed)
+
+
+def mask_colors(mask: np.ndarray) -> MaskColors:
+    packed = pack_rgb(_check_mask(mask))
+    ids, counts = np.unique(packed, return_counts=True)
+    return MaskColors(packed, ids.astype(np.uint32), counts.astype(np.int64))
+
+
+@dataclass(frozen=True, eq=False)
 class Palette:
     colors: np.ndarray  # (K, 3) uint8, sorted by packed id
     ids: np.ndarray  # (K,) uint32 packed colors (the object ids), ascending
@@ -188,13 +207,12 @@ class PaletteBuilder:
         self.counts = {name: np.zeros(0, np.int64) for name in _COUNT_FIELDS}
         self.n_masks = 0
 
-    def update(self, mask: np.ndarray) -> None:
-        """Counts one (H, W, 3) uint8 mask."""
+    def update(self, mask: np.ndarray, colors: MaskColors | None = None) -> None:
+        """Counts one (H, W, 3) uint8 mask (`colors`: its mask_colors, when the caller has them)."""
         mask = _check_mask(mask)
-        packed = pack_rgb(mask)
-        ids, pixels = np.unique(packed, return_counts=True)
-        interior, blend = region_counts(np.ascontiguousarray(mask), packed, ids)
-        self._add(ids, pixels.astype(np.int64), interior, blend, np.ones(ids.size, np.int64))
+        colors = colors or mask_colors(mask)
+        interior, blend = region_counts(np.ascontiguousarray(mask), colors.packed, colors.ids)
+        self._add(colors.ids, colors.counts, interior, blend, np.ones(colors.ids.size, np.int64))
         self.n_masks += 1
 
     def _add(self, ids: np.ndarray, *counts: np.ndarray) -> None:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.palette import VOID_ID, Palette, PaletteBuilder, pack_rgb
+from monovoc_ros.core.palette import VOID_ID, MaskColors, Palette, PaletteBuilder, mask_colors
 from monovoc_ros.core.quantize import confidence, quantize
 
 # A thin color (no 3x3 region in the mask) is an object of that mask from this many pixels on, when it
@@ -38,11 +38,12 @@ def pixel_labels(
     min_snap_margin: float = 0.2,
     *,
     include_void: bool = False,
+    colors: MaskColors | None = None,
 ) -> PixelLabels:
     """Labels of one (H, W, 3) uint8 mask against `palette` (see the module docstring); with
     `include_void`, void pixels get a label of their own whose object id is VOID_ID."""
-    packed = pack_rgb(mask)
-    colors, inverse, counts = np.unique(packed, return_inverse=True, return_counts=True)
+    distinct = colors or mask_colors(mask)
+    colors, counts = distinct.ids, distinct.counts
     index = palette.index_of(colors)  # (C,) palette index of each distinct color, -1 if not a palette color
     foreign = (index < 0) & (colors != VOID_ID)
     snapped = ambiguous = 0
@@ -63,18 +64,26 @@ def pixel_labels(
         index[colors == VOID_ID] = len(palette)
         compact[len(palette)] = present.size
         objects = np.append(objects, np.uint32(VOID_ID))
-    labels = compact[index][inverse].reshape(packed.shape)
+    labels = compact[index][distinct.inverse()]
     return PixelLabels(labels, objects.astype(np.uint32), snapped, ambiguous)
 
 
 def mask_labels(
-    mask: np.ndarray, metric: str = "cmc", min_snap_margin: float = 0.2, *, include_void: bool = False
+    mask: np.ndarray,
+    metric: str = "cmc",
+    min_snap_margin: float = 0.2,
+    *,
+    include_void: bool = False,
+    palette: Palette | None = None,
 ) -> tuple[PixelLabels, PaletteBuilder]:
-    """Labels of a mask against its own palette, and that mask's palette counts.
+    """Labels of a mask against `palette` (the known object colors) or, when None, against the mask's
+    own palette; and that mask's palette counts.
 
-    Labels come from the mask alone, never from the masks before it, so a keyframe's votes do not
-    depend on the order of keyframes and maps of the same scene merge exactly."""
+    Labels come from the mask (and the fixed palette) alone, never from the masks before it, so a
+    keyframe's votes do not depend on the order of keyframes and maps of the same scene merge exactly."""
+    colors = mask_colors(mask)
     own = PaletteBuilder()
-    own.update(mask)
-    palette = own.build(thin_min_pixels=MASK_THIN_MIN_PIXELS)
-    return pixel_labels(mask, palette, metric, min_snap_margin, include_void=include_void), own
+    own.update(mask, colors)
+    if palette is None:
+        palette = own.build(thin_min_pixels=MASK_THIN_MIN_PIXELS)
+    return pixel_labels(mask, palette, metric, min_snap_margin, include_void=include_void, colors=colors), own

@@ -35,15 +35,21 @@ class PlyError(ValueError):
     """A PLY file that cannot be read as what was asked; the message names the file."""
 
 
+_MAX_HEADER_LINE = 4096  # bytes: a longer "header line" is binary garbage, not a PLY header
+_MAX_HEADER_LINES = 100_000
+
+
 def _parse_header(path: Path, fh) -> tuple[str, list[tuple[str, int, list[tuple[str, str]]]]]:
-    if fh.readline().strip() != b"ply":
+    if fh.readline(16).strip() != b"ply":
         raise PlyError(f"{path}: not a PLY file (missing 'ply' magic)")
     fmt = None
     elements: list[tuple[str, int, list[tuple[str, str]]]] = []
-    while True:
-        raw = fh.readline()
+    for _ in range(_MAX_HEADER_LINES):
+        raw = fh.readline(_MAX_HEADER_LINE + 1)
         if not raw:
             raise PlyError(f"{path}: header ends before 'end_header'")
+        if len(raw) > _MAX_HEADER_LINE:
+            raise PlyError(f"{path}: header line longer than {_MAX_HEADER_LINE} bytes (not a PLY header)")
         words = raw.decode("ascii", errors="replace").split()
         if not words or words[0] in ("comment", "obj_info"):
             continue
@@ -53,11 +59,14 @@ def _parse_header(path: Path, fh) -> tuple[str, list[tuple[str, int, list[tuple[
             fmt = words[1]
         elif words[0] == "element" and len(words) == 3:
             try:
-                elements.append((words[1], int(words[2]), []))
+                count = int(words[2])
             except ValueError:
                 raise PlyError(f"{path}: bad element line {raw!r}") from None
+            if count < 0:
+                raise PlyError(f"{path}: element {words[1]!r} has a negative count {count}")
+            elements.append((words[1], count, []))
         elif words[0] == "property" and elements:
-            if words[1] == "list":
+            if len(words) == 5 and words[1] == "list":
                 elements[-1][2].append((words[-1], "list"))
             elif len(words) == 3 and words[1] in _PLY_TYPES:
                 elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
@@ -65,13 +74,19 @@ def _parse_header(path: Path, fh) -> tuple[str, list[tuple[str, int, list[tuple[
                 raise PlyError(f"{path}: bad property line {raw!r}")
         else:
             raise PlyError(f"{path}: unexpected header line {raw!r}")
+    else:
+        raise PlyError(f"{path}: more than {_MAX_HEADER_LINES} header lines")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise PlyError(f"{path}: unsupported format {fmt!r}")
     return fmt, elements
 
 
 def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
-    """The `vertex` element of a PLY file as a structured array (native byte order)."""
+    """The `vertex` element of a PLY file as a structured array (native byte order).
+
+    The header's vertex count is checked against the file's size before anything is read, so a header
+    that claims 10^12 vertices is a PlyError, not an allocation.
+    """
     path = Path(path)
     try:
         fh = open(path, "rb")
@@ -82,12 +97,20 @@ def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
         if not elements or elements[0][0] != "vertex":
             raise PlyError(f"{path}: the first element must be 'vertex', got {[e[0] for e in elements]}")
         _, count, props = elements[0]
+        if not props:
+            raise PlyError(f"{path}: the 'vertex' element has no properties")
         if any(kind == "list" for _, kind in props):
             raise PlyError(f"{path}: list properties in 'vertex' are not supported")
         names = [name for name, _ in props]
         if len(set(names)) != len(names):
             raise PlyError(f"{path}: duplicate vertex property names")
+        body = os.fstat(fh.fileno()).st_size - fh.tell()  # bytes after the header
         if fmt == "ascii":
+            # Every value takes at least one digit and one separator.
+            if count * 2 * len(props) > body:
+                raise PlyError(
+                    f"{path}: truncated: {count} vertices of {len(props)} values declared, the body has {body} bytes"
+                )
             dtype = np.dtype([(name, kind) for name, kind in props])
             rows = []
             for i in range(count):
@@ -99,14 +122,18 @@ def read_ply_vertices(path: str | os.PathLike) -> np.ndarray:
                 table = np.array(rows, dtype=np.float64)
             except ValueError:
                 raise PlyError(f"{path}: malformed ASCII vertex rows") from None
-            if table.ndim != 2 or table.shape[1] != len(props):
+            if count and (table.ndim != 2 or table.shape[1] != len(props)):
                 raise PlyError(f"{path}: ASCII vertex rows do not have {len(props)} values each")
             out = np.empty(count, dtype=dtype)
             for j, name in enumerate(names):
-                out[name] = table[:, j]
+                out[name] = table[:, j] if count else []
             return out
         order = "<" if fmt == "binary_little_endian" else ">"
         dtype = np.dtype([(name, order + kind) for name, kind in props])
+        if dtype.itemsize * count > body:
+            raise PlyError(
+                f"{path}: truncated: {count} vertices of {dtype.itemsize} bytes declared, {body} bytes present"
+            )
         data = fh.read(dtype.itemsize * count)
         if len(data) < dtype.itemsize * count:
             raise PlyError(
@@ -120,40 +147,73 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
 
 
 def load_ply(path: str | os.PathLike) -> GaussianMap:
-    """A 3DGS PLY as a GaussianMap with activated values (see module docstring)."""
+    """A 3DGS PLY as a GaussianMap with activated values (see module docstring).
+
+    Every malformed file raises one PlyError naming the file and the problem; NaN/inf values (and
+    log-scales whose exponential overflows) are rejected as on the Gaussian PointCloud2 path.
+    """
+    try:
+        return _load_ply(path)
+    except PlyError:
+        raise
+    except Exception as exc:  # one error type for every malformed file
+        raise PlyError(f"{path}: unreadable Gaussian PLY ({type(exc).__name__}: {exc})") from exc
+
+
+def _load_ply(path: str | os.PathLike) -> GaussianMap:
     v = read_ply_vertices(path)
     names = set(v.dtype.names)
     missing = [n for n in _REQUIRED if n not in names]
     if missing:
         raise PlyError(f"{path}: not a Gaussian map, missing vertex properties {missing}")
 
-    def stack(fields: list[str]) -> np.ndarray:
-        return np.stack([v[f].astype(np.float64) for f in fields], axis=1)
+    def stack(fields: list[str], what: str) -> np.ndarray:
+        out = np.stack([v[f].astype(np.float64) for f in fields], axis=1)
+        bad = ~np.isfinite(out)
+        if bad.any():
+            rows, cols = np.nonzero(bad)
+            raise PlyError(
+                f"{path}: {rows.size} NaN/inf values in {what} properties "
+                f"{sorted({fields[c] for c in cols})} (first at vertex {rows[0]})"
+            )
+        return out
 
-    rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
-    if len(rest) not in _REST_COUNTS:
-        raise PlyError(f"{path}: {len(rest)} f_rest fields match no SH degree 0..3")
-    quats = stack(["rot_0", "rot_1", "rot_2", "rot_3"])
-    bad = ~np.isfinite(quats).all(1) | (np.linalg.norm(quats, axis=1) == 0)
+    rest_names = [n for n in names if n.startswith("f_rest_")]
+    malformed = sorted(n for n in rest_names if not n[7:].isdigit())
+    if malformed:
+        raise PlyError(f"{path}: malformed f_rest property names {malformed}")
+    rest = sorted(rest_names, key=lambda n: int(n[7:]))
+    if len(rest) not in _REST_COUNTS or rest != [f"f_rest_{k}" for k in range(len(rest))]:
+        raise PlyError(f"{path}: {len(rest)} f_rest fields match no SH degree 0..3 (f_rest_0..f_rest_8/23/44)")
+    quats = stack(["rot_0", "rot_1", "rot_2", "rot_3"], "rotation")
+    with np.errstate(over="ignore"):  # a huge component is a valid direction, not an error
+        bad = ~np.isfinite(np.linalg.norm(quats, axis=1)) | (np.linalg.norm(quats, axis=1) == 0)
     if bad.any():
         raise PlyError(f"{path}: {int(bad.sum())} Gaussians have a zero or non-finite rotation")
-    means = stack(["x", "y", "z"])
-    if not np.isfinite(means).all():
-        raise PlyError(f"{path}: non-finite Gaussian positions")
+    means = stack(["x", "y", "z"], "position")
+    log_scales = stack(["scale_0", "scale_1", "scale_2"], "scale")
+    if log_scales.size and log_scales.max() > 80.0:  # exp overflows float32: not a log-scale of a real map
+        raise PlyError(f"{path}: log-scale {log_scales.max():g} is not finite once activated")
+    opacity = stack(["opacity"], "opacity")[:, 0]
     colors = None
     if {"f_dc_0", "f_dc_1", "f_dc_2"} <= names:
-        colors = np.clip(0.5 + SH_C0 * stack(["f_dc_0", "f_dc_1", "f_dc_2"]), 0.0, 1.0)
+        colors = np.clip(0.5 + SH_C0 * stack(["f_dc_0", "f_dc_1", "f_dc_2"], "color"), 0.0, 1.0)
     semantics = None
     if {"semantics_0", "semantics_1", "semantics_2"} <= names:
-        semantics = stack(["semantics_0", "semantics_1", "semantics_2"])
-    ids = v["id"].astype(np.int64) if "id" in names else None
-    extra = {"f_rest": stack(rest).astype(np.float32)} if rest else {}
+        semantics = stack(["semantics_0", "semantics_1", "semantics_2"], "semantics")
+    ids = None
+    if "id" in names:
+        raw_ids = v["id"]
+        if raw_ids.dtype.kind == "f" and (not np.isfinite(raw_ids).all() or np.any(raw_ids != np.round(raw_ids))):
+            raise PlyError(f"{path}: property 'id' holds non-integer values")
+        ids = raw_ids.astype(np.int64)
+    extra = {"f_rest": stack(rest, "f_rest").astype(np.float32)} if rest else {}
     try:
         return GaussianMap(
             means=means,
-            scales=np.exp(stack(["scale_0", "scale_1", "scale_2"])),
+            scales=np.exp(log_scales),
             quats=quats,
-            opacities=_sigmoid(v["opacity"]),
+            opacities=_sigmoid(opacity),
             colors=colors,
             ids=ids,
             semantics=semantics,

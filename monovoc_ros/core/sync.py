@@ -38,6 +38,20 @@ class StampSynchronizer:
     def pending(self, role: str) -> int:
         return len(self._queues[role])
 
+    def newest(self, role: str) -> int | None:
+        """Stamp of the newest item waiting on `role` (None when none waits)."""
+        queue = self._queues[role]
+        return queue[-1][0] if queue else None
+
+    def discard_newer(self, role: str, stamp_ns: int) -> list[int]:
+        """Removes the waiting items of `role` stamped after `stamp_ns` (outliers a later message showed to
+        be in the future); returns their stamps."""
+        queue = self._queues[role]
+        gone = []
+        while queue and queue[-1][0] > stamp_ns:
+            gone.append(queue.pop()[0])
+        return gone[::-1]
+
     def push(self, role: str, stamp_ns: int, item: Any) -> list[tuple[int, dict[str, Any]]]:
         """Adds an item; returns the sets completed by it as (pivot stamp, {role: item}), oldest first."""
         queue = self._queues[role]

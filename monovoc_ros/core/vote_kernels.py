@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from monovoc_ros.core.raster.numba_kernels import select_heaviest
+
 EMPTY = np.uint32(0xFFFFFFFF)
 
 
@@ -41,13 +43,7 @@ def merge_slots(objects, votes, other, rows, add_objects, add_votes, add_other):
                 wts[n] = 0.0
                 n += 1
             wts[q] += w
-        for a in range(min(n, m)):
-            best = a
-            for b in range(a + 1, n):
-                if wts[b] > wts[best] or (wts[b] == wts[best] and objs[b] < objs[best]):
-                    best = b
-            objs[a], objs[best] = objs[best], objs[a]
-            wts[a], wts[best] = wts[best], wts[a]
+        select_heaviest(objs, wts, n, m)
         rest = add_other[v]
         for a in range(m, n):
             rest += wts[a]

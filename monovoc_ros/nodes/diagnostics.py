@@ -20,8 +20,10 @@ from monovoc_ros.ingest import REASONS
 #   duplicate_stamp     a keyframe whose stamp is already in the state (e.g. replayed after a resume);
 #                       counted under the same name as the ingest reason, as `monovoc map` counts it
 #   integration_error   the rasterizer refused a keyframe (state untouched)
-#   bad_gaussians       a Gaussian map cloud that cannot be read (missing fields, NaN, ...)
-MAPPER_REASONS = ("integration_error", "bad_gaussians")
+#   bad_gaussians       a Gaussian map cloud that cannot be read (missing fields, NaN, a header that lies, ...)
+#   empty_gaussians     a Gaussian map without a single Gaussian (the map in use is kept)
+#   map_shrink          a map update that would remove more than map_update_max_shrink of the Gaussians
+MAPPER_REASONS = ("integration_error", "bad_gaussians", "empty_gaussians", "map_shrink")
 ALL_REASONS = REASONS + MAPPER_REASONS
 
 
@@ -47,6 +49,7 @@ class MapperStats:
     publishes: int = 0
     last_stamp_ns: int = 0  # newest integrated keyframe
     worker_errors: int = 0
+    service_errors: int = 0  # service callbacks that failed unexpectedly (answered success=false)
     rejected: Counter = field(default_factory=Counter)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 

@@ -4,9 +4,10 @@
 
 runs the semantic_mapper with this component (``attach(node)`` is its ``setup`` hook). It adds:
 
-* service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) in its own callback
-  group, answered from an immutable snapshot of the object index, so it stays responsive while the
-  worker integrates keyframes and while objects are being embedded;
+* service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) on its own node
+  (``<name>_query``) and executor thread, with a keep-last-1000 request queue (SERVICE_QOS), answered from
+  an immutable snapshot of the object index, so it stays responsive while the worker integrates keyframes
+  and while objects are being embedded (recent query texts are cached);
 * topics ``query/highlight`` (PointCloud2 in the semantic-cloud schema: the Gaussians of the objects of
   the last successful query) and ``query/markers`` (MarkerArray: their boxes and labels), both latched;
 * ``objects.db`` (monovoc_ros.objects.database) beside the map snapshots, written whenever the node
@@ -34,11 +35,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor
 
 import msg_adapters as ma
 from monovoc_ros.embed.model_store import ModelMissingError
+from monovoc_ros.nodes.qos import SERVICE_QOS
+from monovoc_ros.nodes.services import guarded
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase, ObjectDatabaseError, load_object_index
 from monovoc_ros.objects.index import LIVE_OBJECTS_PER_REFRESH, UP_AXES, IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
@@ -138,8 +143,25 @@ class ObjectQueryComponent:
         self.queries_answered = 0
         self._last_refresh = time.monotonic()
         self.queries_failed = 0
-        self.group = MutuallyExclusiveCallbackGroup()  # queries never wait for the mapper's groups
-        self.service = node.create_service(TextQuery, "query", self._on_query, callback_group=self.group)
+        # The query service lives on its own node, spun by its own single-threaded executor: in the mapper's
+        # MultiThreadedExecutor each request waited for a wait set rebuilt over every subscription, timer and
+        # service of the node while keyframes arrived (p99 several seconds at 100 queries/s on 2 cores).
+        self.group = MutuallyExclusiveCallbackGroup()
+        self._service_node = rclpy.create_node(
+            f"{node.get_name()}_query", namespace=node.get_namespace(), context=node.context
+        )
+
+        def count_error() -> None:
+            self.queries_failed += 1
+
+        handler = guarded(TextQuery, "query", self._on_query, log=self.log.error, on_error=count_error)
+        self.service = self._service_node.create_service(
+            TextQuery, "query", handler, qos_profile=SERVICE_QOS, callback_group=self.group
+        )
+        self._service_executor = SingleThreadedExecutor(context=node.context)
+        self._service_executor.add_node(self._service_node)
+        self._service_thread = threading.Thread(target=self._spin_service, name="monovoc-query-service", daemon=True)
+        self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
         self.highlight = node.create_publisher(PointCloud2, "query/highlight", latched_qos())
         self.markers = node.create_publisher(MarkerArray, "query/markers", latched_qos())
         self.frame_id = getattr(getattr(node, "params", None), "frame_id", "map")
@@ -165,7 +187,7 @@ class ObjectQueryComponent:
             worker.add_reset_listener(self._on_reset)
             # objects.db is written with every snapshot and read back with load_map.
             worker.add_save_listener(self._on_saved)
-            worker.add_load_listener(self._on_loaded)
+            worker.add_load_check(self._check_load)
         params = getattr(node, "params", None)
         if params is not None and params.resume and params.map_directory:
             self._restore(params.map_directory)
@@ -175,23 +197,52 @@ class ObjectQueryComponent:
                 self._labelled = (mapper.gaussians, ids)  # highlights work before the first result
         self._thread.start()
         self._highlighter.start()
+        self._service_thread.start()
+
+    def _spin_service(self) -> None:
+        try:
+            self._service_executor.spin()
+        except (ExternalShutdownException, ShutdownException):
+            pass
 
     def _on_saved(self, directory: str, info: Any, mapper: Any) -> None:
         self.save(directory, snapshot=info.path.name, keyframes=info.keyframes, mapper=mapper)
 
-    def _on_loaded(self, path: str) -> None:
-        if Path(path).is_dir():
-            self._restore(path)
-        else:
-            self._replace_index(None)
+    def _check_load(self, path: str, mapper: Any) -> Callable[[], None]:
+        """load_map: reads the map directory's objects.db before anything is swapped; an unreadable one fails
+        the load (ObjectDatabaseError), so the current objects and every file stay as they are."""
+        index = None
+        db = Path(path) / DB_NAME
+        if Path(path).is_dir() and db.is_file():
+            try:
+                index = load_object_index(db, backend=self._current_backend(), config=self.settings.index)
+            except Exception as exc:  # whatever the defect, the load fails with its reason
+                self.restore_errors += 1
+                raise ObjectDatabaseError(f"objects not restored, map not loaded: {type(exc).__name__}: {exc}") from exc
+            ids = index.object_ids
+            if ids is not None and len(ids) != len(mapper.gaussians):
+                self.restore_errors += 1
+                raise ObjectDatabaseError(
+                    f"{db}: its per-Gaussian index has {len(ids)} entries, the map {len(mapper.gaussians)} Gaussians"
+                )
+
+        def commit() -> None:
+            self._replace_index(index)
+            if index is not None:
+                self.log.info(f"restored {len(index)} objects from {db}")
+
+        return commit
 
     def stop(self) -> None:
         self._stopping.set()
         self._wake.set()
         self._highlight_wake.set()
-        for thread in (self._thread, self._highlighter):
+        # The service executor first, then its node (the other order aborts: ROS_WHEELS.md).
+        self._service_executor.shutdown(timeout_sec=5.0)
+        for thread in (self._thread, self._highlighter, self._service_thread):
             if thread.is_alive():
                 thread.join(10.0)
+        self._service_node.destroy_node()
 
     def diagnostics(self) -> dict[str, Any]:
         """The object index's part of the node's /diagnostics status."""
@@ -202,6 +253,7 @@ class ObjectQueryComponent:
             "objects.backend_error": self.backend_error or "",
             "queries.answered": self.queries_answered,
             "queries.failed": self.queries_failed,
+            "objects.restore_errors": self.restore_errors,
         }
 
     # ------------------------------------------------------------------ hooks (worker thread)
@@ -291,14 +343,22 @@ class ObjectQueryComponent:
             self.log.error(f"could not save objects to {directory}: {exc}")
 
     def _restore(self, directory: str) -> None:
+        """Resume: objects.db of the map directory. An unreadable one is renamed aside (kept for inspection,
+        never overwritten by the next save) and the objects are rebuilt from the keyframes that follow."""
         path = Path(directory) / DB_NAME
         if not path.is_file():
             self._replace_index(None)
             return
         try:
             index = load_object_index(path, backend=self._current_backend(), config=self.settings.index)
-        except (ObjectDatabaseError, ModelMissingError, ValueError) as exc:
-            self.log.error(f"could not restore objects from {path}: {exc}")
+        except Exception as exc:  # a start-up must survive any defect of the file
+            self.restore_errors += 1
+            kept = path.with_name(f"{DB_NAME}.unreadable-{time.strftime('%Y%m%d-%H%M%S')}")
+            for suffix in ("", "-wal", "-shm"):
+                source = path.with_name(path.name + suffix)
+                if source.exists():
+                    source.replace(kept.with_name(kept.name + suffix))
+            self.log.error(f"could not restore objects from {path} ({type(exc).__name__}: {exc}); kept as {kept}")
             self._replace_index(None)
             return
         self._replace_index(index)
@@ -423,6 +483,10 @@ def attach(node: Any, backend: object | None = None) -> ObjectQueryComponent:
 def main(args: list[str] | None = None, *, setup: Callable[[Any], None] | None = None) -> int:
     """The semantic_mapper node with this component attached."""
     from monovoc_ros.nodes.semantic_mapper import main as mapper_main
+
+    # A query needs the GIL for a few short steps; with the default 5 ms switch interval each waited up to
+    # 5 ms per step behind the worker's and the indexer's Python code (the tail of the query latency).
+    sys.setswitchinterval(0.001)
 
     def setup_all(node: Any) -> None:
         attach(node)

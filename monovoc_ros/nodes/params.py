@@ -46,6 +46,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("sync_tolerance_s", 0.02, "max stamp difference (s) between a mask and its image / camera_info / pose"),
     ParameterSpec("sync_max_pending", 32, "messages buffered per input stream while waiting for their partners"),
     ParameterSpec("reorder_wait_s", 3.0, "max time a message waits for the other topics so all reach the synchronizer in stamp order"),
+    ParameterSpec("max_stamp_lead_s", 30.0, "stamps further ahead of every other input topic are rejected (stamp_future); 0 = off"),
     ParameterSpec("use_image", True, "subscribe to `image` (RGB is only needed by object views; SCD needs mask + pose)"),
     ParameterSpec("rectified", False, "CameraInfo describes rectified images: use P instead of K"),
     ParameterSpec("allow_distortion", False, "accept CameraInfo with non-zero distortion (ignored: pinhole rendering)"),
@@ -63,11 +64,13 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("min_snap_margin", 0.2, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence"),
     ParameterSpec("mask_ids", "global", "mask ids: 'global' (a color names the same object in every mask) or 'per_frame' (segmenter ids per image, associated with the map's objects; vote mode)"),
     ParameterSpec("reassociation_tolerance", 0.01, "map updates without ids: max distance (m) for evidence to follow a Gaussian"),
-    ParameterSpec("queue_size", 32, "keyframes waiting for the worker; when full the oldest is dropped (counted)"),
+    ParameterSpec("map_update_max_shrink", 0.5, "map updates removing a larger share of the Gaussians are refused (counted); 1 = allow all"),
+    ParameterSpec("queue_size", 100, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)"),
     # Outputs
     ParameterSpec("frame_id", "map", "frame of the semantic cloud, markers and objects (the SLAM map frame)"),
     ParameterSpec("publish_rate_hz", 1.0, "max rate of semantic cloud / objects updates; 0 = whenever the queue is empty"),
     ParameterSpec("labels_file", "", "JSON list [{color: [r, g, b], class_name: ...}] naming objects (empty: no labels)"),
+    ParameterSpec("labels_define_palette", False, "vote mode: labels_file's colors are the objects; every mask pixel is one of them or snaps to one (lossy masks)"),
     ParameterSpec("marker_up", [0.0, 0.0, 1.0], "up direction of the map frame, for marker labels ([0, -1, 0] for a y-down SLAM world)"),
     ParameterSpec("diagnostics_period_s", 1.0, "period of /diagnostics messages (s)"),
     # Persistence and services
@@ -90,6 +93,7 @@ class NodeParams:
     input_depth: int
     reorder_wait_s: float
     map_ply: str
+    map_update_max_shrink: float
     queue_size: int
     frame_id: str
     publish_rate_hz: float
@@ -130,6 +134,11 @@ class NodeParams:
             )
             return x
 
+        lead = positive("max_stamp_lead_s", allow_zero=True)
+        labels = load_labels(str(v["labels_file"]))
+        need(
+            not (v["labels_define_palette"] and not labels), "labels_define_palette", "needs a labels_file with colors"
+        )
         try:
             ingest = IngestConfig(
                 pose_type=v["pose_type"],
@@ -139,6 +148,7 @@ class NodeParams:
                 rectified=bool(v["rectified"]),
                 allow_distortion=bool(v["allow_distortion"]),
                 max_pending=int(v["sync_max_pending"]),
+                max_stamp_lead_s=lead,
             )
             mapper = MapperConfig(
                 impl=v["impl"],
@@ -150,6 +160,7 @@ class NodeParams:
                 semantic_mode=v["semantic_mode"],
                 vote_slots=v["vote_slots"],
                 min_snap_margin=float(v["min_snap_margin"]),
+                object_colors=tuple(labels) if v["labels_define_palette"] else (),
                 mask_ids=v["mask_ids"],
             )
         except ValueError as exc:
@@ -162,6 +173,8 @@ class NodeParams:
         need(bool(str(v["frame_id"]).strip()), "frame_id", "must not be empty")
         up = [float(x) for x in v["marker_up"]]
         need(len(up) == 3 and all(map(math.isfinite, up)) and any(up), "marker_up", "must be a non-zero 3-vector")
+        shrink = float(v["map_update_max_shrink"])
+        need(0.0 <= shrink <= 1.0, "map_update_max_shrink", "must be in [0, 1]")
         map_ply = str(v["map_ply"])
         need(not map_ply or Path(map_ply).is_file(), "map_ply", "file not found")
         map_directory = str(v["map_directory"])
@@ -176,10 +189,11 @@ class NodeParams:
             input_depth=int(v["input_depth"]),
             reorder_wait_s=positive("reorder_wait_s", allow_zero=True),
             map_ply=map_ply,
+            map_update_max_shrink=shrink,
             queue_size=int(v["queue_size"]),
             frame_id=str(v["frame_id"]),
             publish_rate_hz=positive("publish_rate_hz", allow_zero=True),
-            labels=load_labels(str(v["labels_file"])),
+            labels=labels,
             labels_file=str(v["labels_file"]),
             marker_up=(up[0], up[1], up[2]),
             diagnostics_period_s=positive("diagnostics_period_s"),

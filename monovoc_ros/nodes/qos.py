@@ -32,3 +32,14 @@ def latched_qos() -> QoSProfile:
 
 
 DIAGNOSTICS_QOS = QoSProfile(depth=10)
+
+# Services (query, save_map, load_map, reset, publish): reliable, keep-last 1000. With rclpy's default
+# (keep-last 10) requests that arrived while the callbacks were busy overwrote each other: at 100 queries/s
+# during mapping 30-43% were never answered. Clients that keep many requests in flight need the same depth
+# for the answers (monovoc_ros.nodes.query_load.query_client).
+SERVICE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)

@@ -17,6 +17,10 @@ images, and a wait counted from the image's arrival alone lost 23 of 60 keyframe
 topic's callbacks also stalled for more than 0.5 s while another's ran (a backlog lost up to half its
 keyframes), hence the 3 s default. Per-topic order is
 never changed: out-of-order and duplicate stamps still reach the assembler as sent, and are rejected there.
+The one exception are far-future stamps (more than `max_lead_s` ahead of every other topic, or of a later
+message of their own topic): they are passed on at once, without moving the topic's position, so one
+outlier neither holds its topic's later messages back nor releases the other topics early; the
+assembler rejects them (stamp_future).
 """
 
 from __future__ import annotations
@@ -36,8 +40,10 @@ class StampReorder:
         max_wait_s: float = 3.0,
         max_buffered: int = 1000,
         clock: Callable[[], float] = time.monotonic,
+        max_lead_s: float = 30.0,
     ) -> None:
         self.roles = tuple(roles)
+        self.max_lead_ns = int(round(max_lead_s * 1e9))
         self.max_wait_s = max_wait_s
         self.max_buffered = max_buffered
         self._clock = clock
@@ -58,12 +64,26 @@ class StampReorder:
         except ValueError:
             stamp = None  # no readable stamp: released at once, the assembler rejects it
         now = self._clock()
+        outliers: list[tuple[str, Any]] = []
+        if stamp is not None and self.max_lead_ns:
+            others = [t for r, t in self._passed.items() if r != role and t is not None]
+            if others and stamp > max(others) + self.max_lead_ns:
+                return [(role, msg), *self.due()]  # far ahead of every other topic: the assembler rejects it
+            queue = self._queues[role]
+            if any(s is not None and s > stamp + self.max_lead_ns for s, _, _ in queue):
+                # Held far-future messages of this topic (sent before any other topic): out now, so they do
+                # not hold this one back.
+                outliers = [(role, m) for s, _, m in queue if s is not None and s > stamp + self.max_lead_ns]
+                kept = [e for e in queue if not (e[0] is not None and e[0] > stamp + self.max_lead_ns)]
+                queue.clear()
+                queue.extend(kept)
+                self._passed[role] = max((e[0] for e in kept if e[0] is not None), default=None)
         self._queues[role].append((stamp, now, msg))
         self._last_arrival[role] = now
         if stamp is not None:
             passed = self._passed[role]
             self._passed[role] = stamp if passed is None else max(passed, stamp)
-        return self.due()
+        return [*outliers, *self.due()]
 
     def due(self) -> list[tuple[str, Any]]:
         """Messages that may go now: the oldest head once every other topic has a head or has delivered its

@@ -49,8 +49,9 @@ from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.params import PARAMETERS, NodeParams, ParameterError
-from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, input_qos, latched_qos
+from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
 from monovoc_ros.nodes.reorder import StampReorder
+from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.worker import KeyframeListener, MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
@@ -82,7 +83,9 @@ class SemanticMapperNode(Node):
         self.stats = MapperStats()
         self._ingest_lock = threading.Lock()
         self.assembler = KeyframeAssembler(self.params.ingest)
-        self._reorder = StampReorder(self.assembler.roles, self.params.reorder_wait_s)
+        self._reorder = StampReorder(
+            self.assembler.roles, self.params.reorder_wait_s, max_lead_s=self.params.ingest.max_stamp_lead_s
+        )
         self._reject_log = RejectionLog(self.get_logger().warning)
         self._warned_frame: set[str] = set()
         self._diagnostics_sources: list[Callable[[], dict[str, Any]]] = []
@@ -106,6 +109,7 @@ class SemanticMapperNode(Node):
             publish_period_s=1.0 / p.publish_rate_hz if p.publish_rate_hz > 0 else 0.0,
             map_directory=p.map_directory,
             save_period_s=p.save_period_s,
+            map_update_max_shrink=p.map_update_max_shrink,
         )
         self.worker = MapWorker(
             p.mapper,
@@ -212,10 +216,24 @@ class SemanticMapperNode(Node):
         from monovoc_interfaces.srv import LoadMap, Reset, SaveMap
 
         group = self.callback_groups["services"]
-        self.create_service(SaveMap, "save_map", self._on_save, callback_group=group)
-        self.create_service(LoadMap, "load_map", self._on_load, callback_group=group)
-        self.create_service(Reset, "reset", self._on_reset, callback_group=group)
-        self.create_service(Trigger, "publish", self._on_publish, callback_group=group)
+        self.create_guarded_service(SaveMap, "save_map", self._on_save, group)
+        self.create_guarded_service(LoadMap, "load_map", self._on_load, group)
+        self.create_guarded_service(Reset, "reset", self._on_reset, group)
+        self.create_guarded_service(Trigger, "publish", self._on_publish, group)
+
+    def create_guarded_service(
+        self, srv_type: type, name: str, handler: Callable[[Any, Any], Any], group: CallbackGroup, qos: Any = None
+    ) -> Any:
+        """A service whose every failure answers success=false (monovoc_ros.nodes.services.guarded), counted
+        as `service_errors` in diagnostics, with a request queue deep enough for bursts (SERVICE_QOS).
+        Components (the query service) use it too."""
+
+        def count() -> None:
+            self.stats.add(service_errors=1)
+
+        callback = guarded(srv_type, name, handler, log=self.get_logger().error, on_error=count)
+        qos = SERVICE_QOS if qos is None else qos
+        return self.create_service(srv_type, name, callback, callback_group=group, qos_profile=qos)
 
     # ------------------------------------------------------------------ inputs
 
@@ -278,8 +296,10 @@ class SemanticMapperNode(Node):
             return False, f"{what}: timed out after {timeout:g} s waiting for the worker (still queued; it will run)"
         except WorkerStopped as exc:
             return False, str(exc)
-        except (ValueError, OSError, MapStoreError) as exc:
+        except (ValueError, OSError) as exc:  # expected failures (MapStoreError, PlyError, ...): their message
             return False, f"{what}: {exc}"
+        except Exception as exc:  # anything else still answers, with its type
+            return False, f"{what}: {type(exc).__name__}: {exc}"
 
     def _directory(self, requested: str) -> str:
         directory = requested or self.params.map_directory

@@ -5,8 +5,12 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
 * keyframes: bounded (`queue_size`); when full, the OLDEST waiting keyframe is dropped and counted.
   Keyframes that arrive before any Gaussian map wait in the queue (tasks behind them still run).
 * Gaussian maps from the SLAM front-end: never dropped; a map that directly follows another pending map
-  replaces it (only the newest of consecutive updates matters: no keyframe lies between them).
+  replaces it (only the newest of consecutive updates matters: no keyframe lies between them). A map
+  without Gaussians, or one removing more than `map_update_max_shrink` of them, is refused and counted
+  (monovoc_ros.ingest.map_update_refusal): one empty cloud must not wipe the map.
 * calls (services, plugins): never dropped; run in arrival order with the rest, results via a Future.
+  `load` reads and checks everything (the snapshot, then each load check such as objects.db) before it
+  swaps anything in, so a failed load changes nothing.
 
 Between tasks the worker publishes the semantic result (at most every `publish_period_s` while something
 changed; period 0 = as soon as nothing runnable is queued) and saves periodic snapshots of new evidence.
@@ -39,10 +43,12 @@ from monovoc_ros.core.map_store import SnapshotInfo, load_snapshot, save_snapsho
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
 from monovoc_ros.core.objects import summarize_objects
 from monovoc_ros.core.ply import load_ply
+from monovoc_ros.ingest import map_update_refusal
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
+LoadCheck = Callable[[str, SemanticMapper], "Callable[[], None] | None"]
 
 
 class Logger(Protocol):
@@ -65,10 +71,13 @@ class WorkerStopped(RuntimeError):
 
 @dataclass
 class WorkerSettings:
-    queue_size: int = 32  # keyframes
+    queue_size: int = 100  # keyframes
     publish_period_s: float = 1.0  # 0: publish as soon as nothing runnable is queued
     map_directory: str = ""  # periodic and final snapshots go here ("" = none)
     save_period_s: float = 30.0  # 0 = no periodic snapshots
+    # A map update removing a larger share of the Gaussians (by id when both maps have ids, else by count) is
+    # refused and counted (map_shrink): one empty or truncated cloud must not wipe the map. 1.0 = allow all.
+    map_update_max_shrink: float = 0.5
 
 
 @dataclass
@@ -235,6 +244,7 @@ class MapWorker:
         self._on_reset: list[Callable[[], None]] = []
         self._on_save: list[Callable[[str, SnapshotInfo, SemanticMapper], None]] = []
         self._on_load: list[Callable[[str], None]] = []
+        self._load_checks: list[LoadCheck] = []
         self._refresh_map_stats()
 
     # ------------------------------------------------------------------ public API (any thread)
@@ -261,6 +271,12 @@ class MapWorker:
     def add_load_listener(self, fn: Callable[[str], None]) -> None:
         """fn(path) runs on the worker thread after load (a snapshot directory or a PLY file)."""
         self._on_load.append(fn)
+
+    def add_load_check(self, fn: LoadCheck) -> None:
+        """fn(path, mapper) runs on the worker thread after a map was read and before it replaces the current
+        one: it reads and checks what it needs (the object database) and raises to fail the load, with nothing
+        changed; it returns a function that swaps its part in (run right after the mapper is swapped), or None."""
+        self._load_checks.append(fn)
 
     def submit_keyframe(self, keyframe: Keyframe) -> Keyframe | None:
         """Queues a keyframe; returns the one dropped to make room (already counted), if any."""
@@ -330,7 +346,11 @@ class MapWorker:
         return info
 
     def load(self, path: str) -> SemanticMapper:
-        """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state)."""
+        """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state).
+
+        Everything (the snapshot's files, then each load check: objects.db) is read and validated first;
+        any failure raises and leaves the current map, its objects and the files untouched.
+        """
         p = Path(path)
         if not p.exists():
             raise ValueError(f"{path} does not exist")
@@ -342,7 +362,11 @@ class MapWorker:
             source = f"PLY {p} (fresh semantic state)"
         else:
             raise ValueError(f"{path}: neither a map directory nor a .ply file")
+        commits = [fn(path, mapper) for fn in self._load_checks]  # may raise: nothing swapped yet
         self._mapper = mapper
+        for commit in commits:
+            if commit is not None:
+                commit()
         self._changed(unsaved=p.resolve() != _resolved(self.settings.map_directory))
         self.log.info(f"loaded {source}: {len(mapper.gaussians)} Gaussians")
         for fn in self._on_load:
@@ -424,6 +448,14 @@ class MapWorker:
             self._guarded(fn, integrated, mapper)
 
     def _apply_map(self, gaussians: GaussianMap, name: str) -> None:
+        refusal = map_update_refusal(
+            self._mapper.gaussians if self._mapper else None, gaussians, self.settings.map_update_max_shrink
+        )
+        if refusal is not None:
+            reason, detail = refusal
+            self.stats.reject(reason)
+            self.log.warning(f"Gaussian map {name} refused: {detail}")
+            return
         if self._mapper is None:
             self._mapper = SemanticMapper(gaussians, self.config)
             self.log.info(

@@ -24,6 +24,7 @@ import dataclasses
 import math
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 
@@ -46,6 +47,7 @@ CROP_MODES = ("soft", "hard")
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z", "auto")
 # Objects embedded per refresh call by default in a live node: ~3 views x 18 ms each on 2 cores, so
 # ~0.45 s of work per call, short enough that keyframes and map updates keep flowing.
+TEXT_CACHE_SIZE = 256  # query texts whose embeddings are kept
 LIVE_OBJECTS_PER_REFRESH = 8
 
 
@@ -154,6 +156,9 @@ class ObjectIndex:
         self._backend_lock = threading.Lock()
         self._refresh_lock = threading.Lock()
         self._lock = threading.Lock()
+        # Query texts embedded lately (a robot asks the same few things again and again): a hit skips the text
+        # encoder, which shares the CPU with the image encoder and the rasterizer while the node maps.
+        self._text_cache: OrderedDict[str, np.ndarray] = OrderedDict()
         # Immutable snapshot for queries: (records in id order, (M, d) embedding matrix).
         self._snapshot: tuple[tuple[ObjectRecord, ...], np.ndarray] = ((), np.zeros((0, 0), np.float32))
         self._summaries: dict[int, ObjectSummary] = {}
@@ -454,10 +459,16 @@ class ObjectIndex:
             waiting = self.pending()
             why = f"{self.views.keyframes} keyframes seen" + (f", {waiting} objects being embedded" if waiting else "")
             return QueryResult(cleaned, [], "; ".join([f"no objects in the map yet ({why})", *notes]), 0, truncated)
-        try:
-            query = self.backend.embed_texts([cleaned])[0]
-        except ModelMissingError as exc:
-            raise QueryError(f"cannot embed the query: {exc}") from exc
+        query = self._text_cache.get(cleaned)
+        if query is None:
+            try:
+                query = self.backend.embed_texts([cleaned])[0]
+            except ModelMissingError as exc:
+                raise QueryError(f"cannot embed the query: {exc}") from exc
+            with self._lock:
+                self._text_cache[cleaned] = query
+                while len(self._text_cache) > TEXT_CACHE_SIZE:
+                    self._text_cache.popitem(last=False)
         if query.shape[0] != matrix.shape[1]:
             raise QueryError(
                 f"the query embedding has dimension {query.shape[0]} but the objects have {matrix.shape[1]}: "

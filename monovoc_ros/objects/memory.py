@@ -9,7 +9,8 @@ What counts as *semantics*: what a map needs to answer "where is X" once mapping
   re-combination is counted too, as the index holds it).
 
 Reported separately, because they are not needed to answer queries:
-- *mapping state*: the SCD accumulators, float64 color sum (3) + weight sum (1) per Gaussian = 32 B,
+- *mapping state*: the vote state, 4 x (uint32 object id + float64 votes) + float64 "other" per
+  Gaussian = 56 B (SCD mode: 32 B),
   needed only to keep integrating keyframes;
 - *view cache*: the stored keyframe crops used to re-embed objects (PNG in objects.db, raw in memory).
 """
@@ -21,7 +22,8 @@ from dataclasses import dataclass
 PAPER_BYTES_PER_SCENE = 14_000_000  # MonoVoc: 14 MB per scene of ~140k Gaussians
 PAPER_GAUSSIANS = 140_000
 TARGET_SEMANTIC_BYTES = 1_000_000  # this project's target for 140k Gaussians and 100 objects
-ACCUMULATOR_BYTES_PER_GAUSSIAN = 4 * 8  # float64 color_sum (3) + weight_sum (1)
+# The default vote state (core.votes): 4 slots of (uint32 object id, float64 votes) + float64 "other".
+ACCUMULATOR_BYTES_PER_GAUSSIAN = 4 * (4 + 8) + 8
 _RECORD_FIXED_BYTES = 9 * 8 + 4 * 8  # centroid + box (9 float64) + id and 3 counts (int64)
 _TEXT_BYTES = 64  # label + description, typical ("a small brown box, 0.36 m wide, 0.76 m above the floor")
 
@@ -81,8 +83,8 @@ def semantic_memory(
     view_bytes: int = 0,
 ) -> MemoryReport:
     """The model of the module docstring for a scene of this size (e.g. 140k Gaussians, 100 objects,
-    384-d: 140,404 + 16,800 + 307,200 = 464,404 B of semantics, 3.3% of the paper's 14 MB; 4.48 MB of
-    accumulators)."""
+    384-d: 140,404 + 16,800 + 307,200 = 464,404 B of semantics, 3.3% of the paper's 14 MB; 7.84 MB of
+    vote state)."""
     n_ids = n_objects + 1  # + unobserved
     return MemoryReport(
         n_gaussians=int(n_gaussians),

@@ -395,54 +395,47 @@ def bin_tiles(rows, rects, n_tiles, gx, n_workers, list_buffer, slot_buffer):
 # --- compositing ------------------------------------------------------------------------------------
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pixel_of(t, gx, k):
+    """(x, y) of pixel k of tile t in block layout (block k // 16, row-major 4x4 inside a block)."""
+    blk = k >> 4
+    lane = k & 15
+    return (t % gx) * TILE + (blk % _BLOCKS_PER_ROW) * 4 + (lane & 3), (t // gx) * TILE + (
+        blk // _BLOCKS_PER_ROW
+    ) * 4 + (lane >> 2)
+
+
 @njit(cache=True, nogil=True)
 def _tile_pixels(t, gx, px, py):
     """Pixel-centre coordinates of tile t in block layout."""
-    ox = (t % gx) * TILE
-    oy = (t // gx) * TILE
-    for blk in range(_PIXELS // 16):
-        bx = ox + (blk % _BLOCKS_PER_ROW) * 4
-        by = oy + (blk // _BLOCKS_PER_ROW) * 4
-        for lane in range(16):
-            px[blk * 16 + lane] = np.float32(bx + (lane & 3))
-            py[blk * 16 + lane] = np.float32(by + (lane >> 2))
+    for k in range(_PIXELS):
+        x, y = _pixel_of(t, gx, k)
+        px[k] = np.float32(x)
+        py[k] = np.float32(y)
 
 
 @njit(cache=True, nogil=True)
 def _reset_transmittance(t, gx, width, height, T):
     """T = 1 on the image, -1 (stopped, so never blending) on a border tile's pixels off the image."""
-    ox = (t % gx) * TILE
-    oy = (t // gx) * TILE
-    for blk in range(_PIXELS // 16):
-        bx = ox + (blk % _BLOCKS_PER_ROW) * 4
-        by = oy + (blk // _BLOCKS_PER_ROW) * 4
-        for lane in range(16):
-            x = bx + (lane & 3)
-            y = by + (lane >> 2)
-            T[blk * 16 + lane] = _F1 if (x < width and y < height) else -_F1
+    for k in range(_PIXELS):
+        x, y = _pixel_of(t, gx, k)
+        T[k] = _F1 if (x < width and y < height) else -_F1
 
 
 @njit(cache=True, nogil=True)
 def _load_observations(t, gx, width, height, mask, scale, valid, has_valid, y0, y1, y2, val):
-    ox = (t % gx) * TILE
-    oy = (t // gx) * TILE
-    for blk in range(_PIXELS // 16):
-        bx = ox + (blk % _BLOCKS_PER_ROW) * 4
-        by = oy + (blk // _BLOCKS_PER_ROW) * 4
-        for lane in range(16):
-            k = blk * 16 + lane
-            x = bx + (lane & 3)
-            y = by + (lane >> 2)
-            if x < width and y < height:
-                y0[k] = np.float32(mask[y, x, 0]) * scale
-                y1[k] = np.float32(mask[y, x, 1]) * scale
-                y2[k] = np.float32(mask[y, x, 2]) * scale
-                val[k] = _F1 if (not has_valid or valid[y, x]) else _F0
-            else:
-                y0[k] = _F0
-                y1[k] = _F0
-                y2[k] = _F0
-                val[k] = _F0
+    for k in range(_PIXELS):
+        x, y = _pixel_of(t, gx, k)
+        if x < width and y < height:
+            y0[k] = np.float32(mask[y, x, 0]) * scale
+            y1[k] = np.float32(mask[y, x, 1]) * scale
+            y2[k] = np.float32(mask[y, x, 2]) * scale
+            val[k] = _F1 if (not has_valid or valid[y, x]) else _F0
+        else:
+            y0[k] = _F0
+            y1[k] = _F0
+            y2[k] = _F0
+            val[k] = _F0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -518,20 +511,13 @@ def _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T):
 @njit(cache=True, nogil=True)
 def _load_slots(t, gx, width, height, slot_map, o0, o1, o2, o3):
     """One-hot observations of a tile from its pixels' vote slots (slot_map: -1 = no evidence)."""
-    ox = (t % gx) * TILE
-    oy = (t // gx) * TILE
-    for blk in range(_PIXELS // 16):
-        bx = ox + (blk % _BLOCKS_PER_ROW) * 4
-        by = oy + (blk // _BLOCKS_PER_ROW) * 4
-        for lane in range(16):
-            k = blk * 16 + lane
-            x = bx + (lane & 3)
-            y = by + (lane >> 2)
-            s = slot_map[y, x] if (x < width and y < height) else np.int8(-1)
-            o0[k] = _F1 if s == 0 else _F0
-            o1[k] = _F1 if s == 1 else _F0
-            o2[k] = _F1 if s == 2 else _F0
-            o3[k] = _F1 if s == 3 else _F0
+    for k in range(_PIXELS):
+        x, y = _pixel_of(t, gx, k)
+        s = slot_map[y, x] if (x < width and y < height) else np.int8(-1)
+        o0[k] = _F1 if s == 0 else _F0
+        o1[k] = _F1 if s == 1 else _F0
+        o2[k] = _F1 if s == 2 else _F0
+        o3[k] = _F1 if s == 3 else _F0
 
 
 @njit(cache=True, nogil=True, fastmath=_FASTMATH)
@@ -656,6 +642,19 @@ def reduce_pairs(pair_acc, gauss_start, order, color_sum, weight_sum, n_workers)
 # --- votes: tile slot tables and the per-Gaussian reduction --------------------------------------
 
 
+@njit(cache=True, nogil=True)
+def select_heaviest(keys, weights, n, k):
+    """Moves the k heaviest of the first n entries to the front, in order: weight descending, then key
+    ascending (a partial selection sort: n is a handful here)."""
+    for a in range(min(n, k)):
+        best = a
+        for b in range(a + 1, n):
+            if weights[b] > weights[best] or (weights[b] == weights[best] and keys[b] < keys[best]):
+                best = b
+        keys[a], keys[best] = keys[best], keys[a]
+        weights[a], weights[best] = weights[best], weights[a]
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def tile_slots(labels, gx, gy, slot_map, tile_labels, n_workers):
     """Each tile's object slots (see raster.votes): up to VOTE_TILE_SLOTS labels per tile, ordered by
@@ -685,14 +684,7 @@ def tile_slots(labels, gx, gy, slot_map, tile_labels, n_workers):
                         counts[n] = 0
                         n += 1
                     counts[q] += 1
-            # Selection sort of the (few) labels: count descending, label ascending.
-            for a in range(n):
-                best = a
-                for b in range(a + 1, n):
-                    if counts[b] > counts[best] or (counts[b] == counts[best] and found[b] < found[best]):
-                        best = b
-                found[a], found[best] = found[best], found[a]
-                counts[a], counts[best] = counts[best], counts[a]
+            select_heaviest(found, counts, n, n)
             for c in range(4):
                 tile_labels[t, c] = found[c] if c < n else -1
             if n > 4:
@@ -748,13 +740,7 @@ def reduce_votes(pair_acc, pair_tile, tile_labels, gauss_start, order, out_label
                             wts[m] = 0.0
                             m += 1
                         wts[q] += wv
-                for a in range(min(m, e)):
-                    best = a
-                    for b in range(a + 1, m):
-                        if wts[b] > wts[best] or (wts[b] == wts[best] and labs[b] < labs[best]):
-                            best = b
-                    labs[a], labs[best] = labs[best], labs[a]
-                    wts[a], wts[best] = wts[best], wts[a]
+                select_heaviest(labs, wts, m, e)
                 for a in range(e):
                     out_labels[r, a] = labs[a] if a < m else -1
                     out_weights[r, a] = wts[a] if a < m else 0.0

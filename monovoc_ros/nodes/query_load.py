@@ -1,0 +1,75 @@
+"""Open-loop load on the text-query service: requests at a fixed rate whatever the answers, every one
+counted. Shared by tests/test_query_load.py (counted, not timed) and benchmarks/bench_query.py (latency).
+
+A closed-loop client (the next call after the last answer) never has more than one request in flight, so it
+cannot show requests that are lost: at 100 queries/s while the node integrated keyframes, 30-43% of the
+open-loop requests never reached the callback with the default service QoS (keep-last 10).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+from monovoc_ros.nodes.qos import SERVICE_QOS
+
+TEXTS = ("a chair", "the sofa", "a lamp", "a small box on the table", "a plant", "something red")
+
+
+def query_client(node: Any, name: str = "/monovoc/query") -> Any:
+    """A TextQuery client whose response queue holds as many answers as the service queues requests."""
+    from monovoc_interfaces.srv import TextQuery
+
+    return node.create_client(TextQuery, name, qos_profile=SERVICE_QOS)
+
+
+def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float = 30.0) -> dict[str, Any]:
+    """Sends `count` queries at `rate_hz` (the client's node spins in another thread) and waits up to
+    `timeout_s` after the last for the answers: {sent, answered, lost, succeeded, p50_ms, p99_ms, max_ms}."""
+    from monovoc_interfaces.srv import TextQuery
+
+    lock = threading.Lock()
+    latencies: list[float] = []
+    succeeded = [0]
+    done = threading.Semaphore(0)
+
+    def on_done(future: Any, sent: float) -> None:
+        elapsed = time.perf_counter() - sent
+        with lock:
+            latencies.append(elapsed)
+            succeeded[0] += bool(future.result() is not None and future.result().success)
+        done.release()
+
+    futures = []
+    start = time.perf_counter()
+    for n in range(count):
+        due = start + n / rate_hz
+        now = time.perf_counter()
+        if due > now:
+            time.sleep(due - now)
+        sent = time.perf_counter()
+        future = client.call_async(TextQuery.Request(text=TEXTS[n % len(TEXTS)], top_k=5))
+        future.add_done_callback(lambda f, sent=sent: on_done(f, sent))
+        futures.append(future)
+    sending_s = time.perf_counter() - start
+    deadline = time.monotonic() + timeout_s
+    answered = 0
+    while answered < count and done.acquire(timeout=max(0.0, deadline - time.monotonic())):
+        answered += 1
+    with lock:
+        samples = sorted(latencies)
+
+    def pct(q: float) -> float:
+        return round(1e3 * samples[min(len(samples) - 1, int(q * len(samples)))], 1) if samples else float("nan")
+
+    return {
+        "sent": count,
+        "answered": len(samples),
+        "lost": count - len(samples),
+        "succeeded": succeeded[0],
+        "achieved_hz": round(count / sending_s, 1) if sending_s > 0 else float("inf"),
+        "p50_ms": pct(0.50),
+        "p99_ms": pct(0.99),
+        "max_ms": round(1e3 * samples[-1], 1) if samples else float("nan"),
+    }

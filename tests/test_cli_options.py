@@ -1,0 +1,37 @@
+"""`monovoc map` / `monovoc eval` options are honoured or refused, never silently ignored (issue 9, case 10)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from monovoc_ros.cli import main
+from monovoc_ros.core.map_store import load_snapshot
+
+BAG = Path(__file__).resolve().parents[1] / "bags" / "synthetic_room.mcap"
+
+
+def test_max_keyframes_is_honoured_for_bags(tmp_path):
+    out = tmp_path / "map"
+    assert main(["map", "--bag", str(BAG), "--max-keyframes", "3", "-o", str(out), "--quiet"]) == 0
+    assert json.loads((out / "summary.json").read_text())["keyframes"] == 3
+    assert load_snapshot(out).n_keyframes == 3
+
+
+@pytest.mark.parametrize(
+    ("extra", "problem"),
+    [
+        (["--gaussians", "map.ply"], "--gaussians cannot be used with --bag"),
+        (["--masks", "m", "--rgb", "r"], "--masks, --rgb cannot be used with --bag"),
+        (["--layout", "hislam2"], "--layout cannot be used with --bag"),
+        (["--max-keyframes", "0"], "--max-keyframes must be >= 1, got 0"),
+    ],
+)
+def test_options_a_bag_cannot_use_are_refused(tmp_path, extra, problem):
+    for command in (["map", "--bag", str(BAG), "-o", str(tmp_path / "m")], ["eval", str(tmp_path), "--bag", str(BAG)]):
+        with pytest.raises(SystemExit) as info:
+            main([*command, *extra])
+        assert problem in str(info.value)
+    assert not (tmp_path / "m").exists()
