@@ -210,6 +210,13 @@ def test_per_frame_config_rules():
         MapperConfig(mask_ids="per_frame", semantic_mode="scd")
     with pytest.raises(ValueError, match="mask_ids"):
         MapperConfig(mask_ids="frame")
+    with pytest.raises(ValueError, match="association_scale"):
+        MapperConfig(mask_ids="per_frame", association_scale=5)
+    with pytest.raises(ValueError, match="object_colors"):
+        MapperConfig(mask_ids="per_frame", object_colors=(0x102030,))
+    gmap, _, _, _ = random_scene(0)
+    mapper = SemanticMapper(gmap, MapperConfig(mask_ids="per_frame", association_scale=1))
+    assert mapper.associator.config.render_scale == 1
 
 
 @pytest.fixture(scope="module")

@@ -64,6 +64,14 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
         help="global = a mask color names the same object in every keyframe (default); per-frame = "
         "segment ids hold for one mask only and are associated with the map's objects",
     )
+    parser.add_argument(
+        "--association-scale",
+        type=int,
+        choices=(1, 2, 3, 4),
+        default=MapperConfig.association_scale,
+        help="per-frame ids: render the map at 1/N of the mask resolution to associate segments "
+        f"(1 = full: slower, more exact under noisy segments; default {MapperConfig.association_scale})",
+    )
 
 
 def add_source_options(parser: argparse.ArgumentParser) -> None:
@@ -126,6 +134,7 @@ def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) ->
         vote_slots=args.vote_slots,
         min_snap_margin=args.min_snap_margin,
         mask_ids=args.mask_ids.replace("-", "_"),
+        association_scale=args.association_scale,
     )
 
 

@@ -54,7 +54,7 @@ class AssociationConfig:
     merge_min_keyframes: int = 3  # stage 5: keyframes a pair must have been covered together
     # Overlaps are counted on every render_scale-th pixel (the view rendered at 1/render_scale of the
     # mask's resolution): they are ratios of areas, and the rendering is most of the cost.
-    render_scale: int = 2
+    render_scale: int = 2  # MapperConfig.association_scale
 
     def __post_init__(self) -> None:
         for name in ("min_iou", "part_share", "part_coverage", "new_object_fraction", "merge_containment"):

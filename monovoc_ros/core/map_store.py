@@ -236,6 +236,7 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
     mapper.segment_labels = segment_labels
     if mapper.associator is not None and association is not None:
         mapper.associator = association
+        association.config.render_scale = mapper.config.association_scale  # a rendering setting only
     mapper.map_version = int(meta.get("map_version", 0))
     return mapper
 

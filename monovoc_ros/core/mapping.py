@@ -15,7 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.association import MASK_ID_MODES, Association, Associator, associate_keyframe
+from monovoc_ros.core.association import (
+    MASK_ID_MODES,
+    Association,
+    AssociationConfig,
+    Associator,
+    associate_keyframe,
+)
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
@@ -62,6 +68,8 @@ class MapperConfig:
     # "global": a mask color names the same object in every keyframe; "per_frame": segment ids hold for
     # one mask only and are associated with the map's objects (core.association; vote mode only).
     mask_ids: str = "global"
+    # per_frame: overlaps are counted on the map rendered at 1/association_scale of the mask resolution.
+    association_scale: int = 2
 
     def __post_init__(self) -> None:
         if self.impl not in IMPLEMENTATIONS:
@@ -86,6 +94,8 @@ class MapperConfig:
             raise ValueError(f"mask_ids must be one of {MASK_ID_MODES}, got {self.mask_ids!r}")
         if self.mask_ids == "per_frame" and self.semantic_mode != "vote":
             raise ValueError("mask_ids 'per_frame' needs semantic_mode 'vote' (association merges per-object votes)")
+        if isinstance(self.association_scale, bool) or self.association_scale not in (1, 2, 3, 4):
+            raise ValueError(f"association_scale must be 1, 2, 3 or 4, got {self.association_scale!r}")
         if self.mask_ids == "per_frame" and self.object_colors:
             raise ValueError("mask_ids 'per_frame' cannot take object_colors: per-frame mask colors name no object")
 
@@ -156,7 +166,9 @@ class SemanticMapper:
         self._labels: tuple[np.ndarray, np.ndarray] | None = None
         known = np.array(self.config.object_colors, np.uint32)
         self._known_palette = Palette.from_colors(unpack_rgb(known)) if known.size else None
-        self.associator: Associator | None = Associator() if self.config.mask_ids == "per_frame" else None
+        self.associator: Associator | None = None
+        if self.config.mask_ids == "per_frame":
+            self.associator = Associator(AssociationConfig(render_scale=self.config.association_scale))
         self.segment_labels = LabelHistogram()  # per object, the class names its segments were given
 
     @property
