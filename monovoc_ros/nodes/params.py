@@ -61,7 +61,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("semantic_mode", "vote", "per-Gaussian evidence: 'vote' (per-object weighted votes) or 'scd' (the paper's color deblending + palette quantization)"),
     ParameterSpec("weight_power", 4, "exponent k of the evidence weights w^k: 1 = the paper's SCD, 4 = fewest boundary errors (1..4)"),
     ParameterSpec("vote_slots", 4, "vote mode: objects kept per Gaussian (exact up to this many; the rest pooled) (1..16)"),
-    ParameterSpec("min_snap_margin", 0.2, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence"),
+    ParameterSpec("min_snap_margin", 0.5, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence"),
     ParameterSpec("reassociation_tolerance", 0.01, "map updates without ids: max distance (m) for evidence to follow a Gaussian"),
     ParameterSpec("map_update_max_shrink", 0.5, "map updates removing a larger share of the Gaussians are refused (counted); 1 = allow all"),
     ParameterSpec("queue_size", 100, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)"),
