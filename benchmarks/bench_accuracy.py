@@ -4,7 +4,7 @@ reference masks); prints one JSON object.
 
     python benchmarks/bench_accuracy.py                                  # the README's table
     python benchmarks/bench_accuracy.py --sources replica --configs vote,scd
-    python benchmarks/bench_accuracy.py --sources synthetic:mixed_boundary --jpeg 90 --configs vote,snap0.5
+    python benchmarks/bench_accuracy.py --sources synthetic:mixed_boundary --jpeg 90 --configs known,known_snap0.2
 
 A source is "synthetic[:VARIANT]" or "replica" (../shared/data/replica_office0, read in place); `--jpeg Q`
 sends every input mask through JPEG at quality Q first (the reference masks stay clean). A
@@ -41,13 +41,14 @@ CONFIGS = {
     "vote_slots2": {"vote_slots": 2},
     "vote_slots8": {"vote_slots": 8},
     "snap0": {"min_snap_margin": 0.0},
-    "snap0.5": {"min_snap_margin": 0.5},
+    "snap0.2": {"min_snap_margin": 0.2},
+    "snap0.7": {"min_snap_margin": 0.7},
     "snap1": {"min_snap_margin": 1.0},
     "vote_rgb": {"metric": "rgb"},
     "vote_include": {"void_policy": "include"},
     "known": {"object_colors": "labels"},  # the source's labels.json colors are the palette
     "known_snap0": {"object_colors": "labels", "min_snap_margin": 0.0},
-    "known_snap0.5": {"object_colors": "labels", "min_snap_margin": 0.5},
+    "known_snap0.2": {"object_colors": "labels", "min_snap_margin": 0.2},
 }
 
 

@@ -194,3 +194,20 @@ def test_semantic_memory_per_scene():
     assert measured.object_index_bytes == len(mapper.gaussians) + 4 * np.unique(mapper.result().object_ids).size
     assert measured.semantic_bytes < semantic_memory(len(mapper.gaussians), len(index)).semantic_bytes * 1.5
     assert measured.view_bytes > 0
+
+
+def test_a_restored_index_keeps_given_labels_when_it_re_embeds(tmp_path):
+    """A node resumed without the labels file keeps the names its database was written with, also
+    after re-embedding (before, every object fell back to its ImageNet class a few seconds after start)."""
+    from tests.test_objects_support import CountingBackend
+
+    mapper, index = room_map()
+    save_object_index(index, tmp_path, snapshot="snap-000001", map_version=0, keyframes=mapper.n_keyframes)
+    other = CountingBackend(backend())
+    other.top_k += 1  # another embedding identity: the stored embeddings are invalid, all are re-embedded
+    loaded = load_object_index(tmp_path, backend=other, config=IndexConfig())
+    assert loaded.config.labels is None and loaded.pending() == len(index)
+    loaded.refresh(mapper)
+    assert other.images > 0 and loaded.pending() == 0
+    names = {r.id: (r.label, r.label_source) for r in loaded.records()}
+    assert names == {r.id: (r.label, "given") for r in index.records()}

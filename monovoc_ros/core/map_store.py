@@ -202,7 +202,11 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
     gaussians = _read(snap / "gaussians.npz", _load_map)
     # Snapshots from before semantic_mode used SCD, and before weight_power the paper's k = 1.
     saved = {"weight_power": 1, "semantic_mode": "scd", **meta["config"]}
-    store = VoteState if saved["semantic_mode"] == "vote" else SemanticState
+    try:
+        saved_config = MapperConfig(**saved)  # checked even when `config` overrides it
+    except (TypeError, ValueError) as exc:
+        raise MapStoreError(f"{snap}: invalid saved config ({exc})") from exc
+    store = VoteState if saved_config.semantic_mode == "vote" else SemanticState
     state = _read(snap / "state.npz", store.load)
     builder = _read(snap / "palette.npz", _read_palette)
     path = snap / "association.json"
@@ -215,12 +219,8 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
         raise MapStoreError(f"{snap}: state has {len(state)} Gaussians, map has {len(gaussians)}")
     if "gaussians" in meta and meta["gaussians"] != len(gaussians):
         raise MapStoreError(f"{snap}: meta.json says {meta['gaussians']} Gaussians, gaussians.npz has {len(gaussians)}")
-    if isinstance(state, VoteState):
-        saved["vote_slots"] = state.slots
-    try:
-        saved_config = MapperConfig(**saved)  # checked even when `config` overrides it
-    except (TypeError, ValueError) as exc:
-        raise MapStoreError(f"{snap}: invalid saved config ({exc})") from exc
+    if isinstance(state, VoteState) and state.slots != saved_config.vote_slots:
+        raise MapStoreError(f"{snap}: state.npz has {state.slots} vote slots, meta.json says {saved_config.vote_slots}")
     if config is not None and len(state.stamps_ns):
         for name in ("semantic_mode", "weight_power", "vote_slots", "object_colors", "mask_ids"):
             mine, theirs = getattr(config, name), getattr(saved_config, name)
@@ -230,7 +230,7 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
                     f"the two cannot be mixed (reset the map or keep {name})"
                 )
     mapper = SemanticMapper(gaussians, config or saved_config)
-    if len(state.stamps_ns) or type(state) is type(mapper.state):
+    if len(state.stamps_ns):  # else the mapper's own empty state, of the configuration in force
         mapper.state = state
     mapper.palette_builder = builder
     mapper.segment_labels = segment_labels

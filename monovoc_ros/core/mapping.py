@@ -60,7 +60,7 @@ class MapperConfig:
     vote_slots: int = DEFAULT_SLOTS
     # Vote mode: a pixel whose color is no palette color is snapped to the nearest one (with `metric`)
     # when the relative margin (d2 - d1) / (d2 + d1) of its two nearest palette colors is at least this.
-    min_snap_margin: float = 0.2
+    min_snap_margin: float = 0.5
     # Vote mode: the known object colors (packed 0xRRGGBB, e.g. from a labels file). Empty: each mask's
     # own region colors are its objects; given: every pixel is an exact color of these or snaps to one,
     # which is what lossy (JPEG) masks need, whose flat regions drift off the true colors.

@@ -35,7 +35,7 @@ def pixel_labels(
     mask: np.ndarray,
     palette: Palette,
     metric: str = "cmc",
-    min_snap_margin: float = 0.2,
+    min_snap_margin: float = 0.5,
     *,
     include_void: bool = False,
     colors: MaskColors | None = None,
@@ -71,7 +71,7 @@ def pixel_labels(
 def mask_labels(
     mask: np.ndarray,
     metric: str = "cmc",
-    min_snap_margin: float = 0.2,
+    min_snap_margin: float = 0.5,
     *,
     include_void: bool = False,
     palette: Palette | None = None,

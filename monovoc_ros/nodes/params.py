@@ -61,7 +61,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("semantic_mode", "vote", "per-Gaussian evidence: 'vote' (per-object weighted votes) or 'scd' (the paper's color deblending + palette quantization)"),
     ParameterSpec("weight_power", 4, "exponent k of the evidence weights w^k: 1 = the paper's SCD, 4 = fewest boundary errors (1..4)"),
     ParameterSpec("vote_slots", 4, "vote mode: objects kept per Gaussian (exact up to this many; the rest pooled) (1..16)"),
-    ParameterSpec("min_snap_margin", 0.2, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence"),
+    ParameterSpec("min_snap_margin", 0.5, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence"),
     ParameterSpec("association_scale", 2, "per_frame: the map is rendered at 1/this of the mask resolution to associate segments (1 = full: slower, more exact under noisy segments)"),
     ParameterSpec("mask_ids", "global", "mask ids: 'global' (a color names the same object in every mask) or 'per_frame' (segmenter ids per image, associated with the map's objects; vote mode)"),
     ParameterSpec("reassociation_tolerance", 0.01, "map updates without ids: max distance (m) for evidence to follow a Gaussian"),

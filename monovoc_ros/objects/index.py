@@ -177,6 +177,7 @@ class ObjectIndex:
         self._color: dict[int, str] = {}
         self._num_views: dict[int, int] = {}
         self._imagenet_label: dict[int, str] = {}
+        self._restored_label: dict[int, str] = {}  # given labels of records restored from a database
         self._text_cache: dict[str, np.ndarray] = {}
         self._restored_backend_info: dict | None = None
 
@@ -345,6 +346,8 @@ class ObjectIndex:
             return labels[oid], "given"
         if oid in self.segment_labels:  # the segmenter's leading class for the object
             return self.segment_labels[oid], "given"
+        if oid in self._restored_label:  # given when the database was written: a restart keeps it
+            return self._restored_label[oid], "given"
         if oid not in self._imagenet_label:
             self._imagenet_label[oid] = best_class_name(self._image_emb[oid], backend)
         return self._imagenet_label[oid], "imagenet"
@@ -519,6 +522,7 @@ class ObjectIndex:
             self._image_emb.clear()
             self._embedded_version.clear()
             self._imagenet_label.clear()
+            self._restored_label = {r.id: r.label for r in records if r.label_source == "given" and r.label}
             for r in records:
                 self._color[r.id] = r.color_name
                 self._num_views[r.id] = r.num_views
