@@ -253,3 +253,17 @@ def test_known_object_colors_take_lossy_masks():
     assert report.snapped_pixels == k.height * (k.width - k.width // 2)
     with pytest.raises(ValueError, match="object_colors"):
         MapperConfig(object_colors=(VOID_ID,))
+
+
+def test_relabel_kernel_matches_labels():
+    rng = np.random.default_rng(7)
+    state = VoteState.zeros(500, 3)
+    for stamp in range(5):
+        state.add(*random_votes(rng, 500, 6), stamp)
+    ids, conf = state.labels()
+    got_ids, got_conf = np.zeros(500, np.uint32), np.full(500, -1.0, np.float32)
+    rows = np.flatnonzero(rng.random(500) < 0.5)
+    state.relabel(rows, got_ids, got_conf)
+    np.testing.assert_array_equal(got_ids[rows], ids[rows])
+    np.testing.assert_allclose(got_conf[rows], conf[rows], rtol=1e-6)
+    assert (got_conf[np.setdiff1d(np.arange(500), rows)] == -1).all()  # other rows untouched

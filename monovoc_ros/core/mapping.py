@@ -164,6 +164,7 @@ class SemanticMapper:
         self._result: SemanticResult | None = None
         # Vote mode keeps every Gaussian's label and confidence and re-labels only what a keyframe touched.
         self._labels: tuple[np.ndarray, np.ndarray] | None = None
+        self._dirty: list[np.ndarray] = []  # rows touched since the labels were last brought up to date
         known = np.array(self.config.object_colors, np.uint32)
         self._known_palette = Palette.from_colors(unpack_rgb(known)) if known.size else None
         self.associator: Associator | None = None
@@ -197,18 +198,29 @@ class SemanticMapper:
     def _associate(self, keyframe: Keyframe) -> tuple[Keyframe, Association]:
         """Per-frame mask ids: the keyframe with its segments in the colors of the objects they were
         associated with (core.association), after merging the objects the association found to be one."""
-        if self._labels is None:
-            self._labels = self.state.labels()
+        ids, conf = self._vote_labels()
         keyframe, association = associate_keyframe(
-            self.associator, self.gaussians, self._labels[0], keyframe,
+            self.associator, self.gaussians, ids, keyframe,
             metric=self.config.metric, min_snap_margin=self.config.min_snap_margin,
         )  # fmt: skip
         for keep, drop in association.merges:
             rows = self.state.merge_objects(keep, drop)
-            self._labels[0][rows], self._labels[1][rows] = self.state.labels(rows)
+            self.state.relabel(rows, ids, conf)
             self.palette_builder.merge_ids(keep, drop)
             self.segment_labels.merge_objects(keep, drop)
         return keyframe, association
+
+    def _vote_labels(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every Gaussian's current object id and confidence (vote mode), kept between calls."""
+        if self._labels is None:
+            self._labels, self._dirty = self.state.labels(), []
+        if self._dirty:  # only what the keyframes since the last call touched can have changed
+            touched = np.zeros(len(self.state), bool)
+            for rows in self._dirty:
+                touched[rows] = True
+            self.state.relabel(np.flatnonzero(touched), *self._labels)
+            self._dirty = []
+        return self._labels
 
     def _integrate_scd(self, keyframe: Keyframe) -> IntegrationReport:
         valid = None
@@ -259,9 +271,7 @@ class SemanticMapper:
         self.state.add(votes.rows, objects, weights, pooled, keyframe.stamp_ns)
         self.palette_builder = self.palette_builder.merged(own)
         if self._labels is not None:
-            ids, conf = self.state.labels(votes.rows)
-            self._labels[0][votes.rows] = ids
-            self._labels[1][votes.rows] = conf
+            self._dirty.append(votes.rows)
         return IntegrationReport(
             keyframe.stamp_ns,
             0.0,
@@ -282,9 +292,7 @@ class SemanticMapper:
             if self.config.semantic_mode == "scd":
                 self._result = label_gaussians(self.state, palette, self.config.metric)
             else:
-                if self._labels is None:
-                    self._labels = self.state.labels()
-                ids, conf = self._labels
+                ids, conf = self._vote_labels()
                 self._result = SemanticResult(palette, ids.copy(), conf.copy(), ids != UNOBSERVED_ID)
         return self._result
 
@@ -330,5 +338,5 @@ class SemanticMapper:
         self.state = state
         self.map_version += 1
         self._result = None
-        self._labels = None
+        self._labels, self._dirty = None, []
         return MapUpdateReport(carried=carried, dropped=old_observed - carried, gaussians=len(gaussians), by=by)

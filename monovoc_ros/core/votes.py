@@ -167,6 +167,13 @@ class VoteState(GaussianEvidence):
     def total_weight(self) -> np.ndarray:
         return self.votes.sum(axis=1) + self.other
 
+    def relabel(self, rows: np.ndarray, ids: np.ndarray, confidence: np.ndarray) -> None:
+        """Writes `labels` of the Gaussians `rows` into `ids` (N,) uint32 and `confidence` (N,) float32
+        (the numba twin of `labels`, for the few rows a keyframe touched)."""
+        from monovoc_ros.core.vote_kernels import label_rows
+
+        label_rows(self.objects, self.votes, self.other, np.asarray(rows, np.int64), ids, confidence)
+
     def labels(self, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Object id (uint32, UNOBSERVED_ID where unobserved) and confidence (float32 vote margin
         (V1 - V2) / sum V, 0 where unobserved) of every Gaussian, or of `rows` alone."""
