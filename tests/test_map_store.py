@@ -131,7 +131,7 @@ def test_merge_command_of_two_halves_equals_the_whole(small_scene, tmp_path, cap
 
 def test_evidence_of_another_mode_or_slot_count_is_refused_on_resume(small_scene, tmp_path):
     save_snapshot(mapped(small_scene), tmp_path)
-    for change in ({"semantic_mode": "scd"}, {"vote_slots": 6}, {"weight_power": 2}):
+    for change in ({"semantic_mode": "scd"}, {"vote_slots": 6}, {"weight_power": 2}, {"void_policy": "include"}):
         with pytest.raises(MapStoreError, match=next(iter(change))):
             load_snapshot(tmp_path, MapperConfig(metric="ciede2000", **change))
     assert load_snapshot(tmp_path, MapperConfig(metric="ciede2000", impl="reference")).n_keyframes == 3

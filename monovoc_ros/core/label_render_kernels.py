@@ -17,11 +17,11 @@ from numba import njit, prange
 
 from monovoc_ros.core.raster.constants import TILE
 from monovoc_ros.core.raster.numba_kernels import (
-    _F_T_MIN,
     _FASTMATH,
     ROW_RED,
     _alpha,
     _any_live,
+    _blend,
     _block_rows,
     _fetch_add,
     _footprint,
@@ -71,12 +71,7 @@ def _label_tile(t, rows, tile_start, tile_list, gx, width, height, out_label, ou
         for br in range(br0, br1 + 1):
             k0, k1 = _pixel_span(rows, r, ox, oy, br)
             for k in range(k0, k1):
-                a = _alpha(px[k], py[k], u, v, A, R, S, o)
-                Tk = T[k]
-                nT = Tk * (_F1 - a)
-                go = nT >= _F_T_MIN
-                w = a * Tk if go else _F0
-                T[k] = nT if go else -abs(Tk)
+                w = _blend(T, k, _alpha(px[k], py[k], u, v, A, R, S, o))
                 acc[k] += w
         if (j - j0) % 32 == 31 and not _any_live(T):
             break

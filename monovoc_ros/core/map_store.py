@@ -26,7 +26,7 @@ import numpy as np
 
 from monovoc_ros.core.association import Associator
 from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, evidence_mismatch
 from monovoc_ros.core.palette import PaletteBuilder
 from monovoc_ros.core.ply import save_semantic_ply
 from monovoc_ros.core.segment_labels import LabelHistogram
@@ -221,14 +221,12 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
         raise MapStoreError(f"{snap}: meta.json says {meta['gaussians']} Gaussians, gaussians.npz has {len(gaussians)}")
     if isinstance(state, VoteState) and state.slots != saved_config.vote_slots:
         raise MapStoreError(f"{snap}: state.npz has {state.slots} vote slots, meta.json says {saved_config.vote_slots}")
-    if config is not None and len(state.stamps_ns):
-        for name in ("semantic_mode", "weight_power", "vote_slots", "object_colors", "mask_ids"):
-            mine, theirs = getattr(config, name), getattr(saved_config, name)
-            if mine != theirs and (name not in ("vote_slots", "object_colors") or store is VoteState):
-                raise MapStoreError(
-                    f"{snap}: its evidence was accumulated with {name} {theirs!r}, not {mine!r}: "
-                    f"the two cannot be mixed (reset the map or keep {name})"
-                )
+    name, mine, theirs = evidence_mismatch(config, saved_config) if config is not None else ("", None, None)
+    if name and len(state.stamps_ns):
+        raise MapStoreError(
+            f"{snap}: its evidence was accumulated with {name} {theirs!r}, not {mine!r}: "
+            f"the two cannot be mixed (reset the map or keep {name})"
+        )
     mapper = SemanticMapper(gaussians, config or saved_config)
     if len(state.stamps_ns):  # else the mapper's own empty state, of the configuration in force
         mapper.state = state

@@ -34,6 +34,12 @@ from monovoc_ros.core.votes import DEFAULT_SLOTS, VoteState
 
 VOID_POLICIES = ("skip", "include")
 SEMANTIC_MODES = ("vote", "scd")
+# Per semantic mode, the MapperConfig fields that change what a keyframe adds to the evidence.
+_EVIDENCE_SETTINGS = {
+    "scd": ("semantic_mode", "weight_power", "void_policy"),
+    "vote": ("semantic_mode", "weight_power", "void_policy", "vote_slots", "metric", "min_snap_margin",
+             "object_colors", "mask_ids"),
+}  # fmt: skip
 
 
 class DuplicateKeyframeError(ValueError):
@@ -99,6 +105,11 @@ class MapperConfig:
         if self.mask_ids == "per_frame" and self.object_colors:
             raise ValueError("mask_ids 'per_frame' cannot take object_colors: per-frame mask colors name no object")
 
+    def evidence_settings(self) -> dict:
+        """The settings that shape accumulated evidence: maps whose evidence settings differ can be
+        neither merged nor resumed into each other (the other settings may change freely)."""
+        return {name: getattr(self, name) for name in _EVIDENCE_SETTINGS[self.semantic_mode]}
+
     def empty_state(self, n: int, ids: np.ndarray | None) -> GaussianEvidence:
         """The evidence store of this configuration's semantic mode for a map of n Gaussians."""
         if self.semantic_mode == "vote":
@@ -152,6 +163,15 @@ def label_gaussians(state: SemanticState, palette: Palette, metric: str) -> Sema
     object_ids[known] = palette.ids[q.index[known]]
     conf = np.where(known, confidence(q), 0.0).astype(np.float32)
     return SemanticResult(palette, object_ids, conf, state.observed.copy(), q)
+
+
+def evidence_mismatch(a: MapperConfig, b: MapperConfig) -> tuple[str, object, object]:
+    """The first evidence setting on which `a` and `b` differ and its two values, or ("", None, None)."""
+    mine, theirs = a.evidence_settings(), b.evidence_settings()
+    for name in dict.fromkeys([*mine, *theirs]):
+        if mine.get(name) != theirs.get(name):
+            return name, getattr(a, name), getattr(b, name)
+    return "", None, None
 
 
 class SemanticMapper:
@@ -269,7 +289,7 @@ class SemanticMapper:
         pooled = votes.other + np.where(void, votes.weights, 0.0).sum(axis=1)
         weights = np.where(named & ~void, votes.weights, 0.0)
         self.state.add(votes.rows, objects, weights, pooled, keyframe.stamp_ns)
-        self.palette_builder = self.palette_builder.merged(own)
+        self.palette_builder.absorb(own)
         if self._labels is not None:
             self._dirty.append(votes.rows)
         return IntegrationReport(
@@ -301,11 +321,9 @@ class SemanticMapper:
         same Gaussian map. The evidence settings must agree and no keyframe may be in both."""
         if self.associator is not None or other.associator is not None:
             raise ValueError("cannot merge maps built with per-frame mask ids (their object ids are their own)")
-        settings = ("semantic_mode", "weight_power", "vote_slots", "void_policy", "metric", "min_snap_margin")
-        for name in (*settings, "object_colors"):
-            mine, theirs = getattr(self.config, name), getattr(other.config, name)
-            if mine != theirs and (name != "vote_slots" or self.config.semantic_mode == "vote"):
-                raise ValueError(f"cannot merge maps built with different {name} ({mine!r} vs {theirs!r})")
+        name, mine, theirs = evidence_mismatch(self.config, other.config)
+        if name:
+            raise ValueError(f"cannot merge maps built with different {name} ({mine!r} vs {theirs!r})")
         if len(self.gaussians) != len(other.gaussians) or not (
             np.array_equal(self.gaussians.ids, other.gaussians.ids)
             if self.gaussians.ids is not None and other.gaussians.ids is not None

@@ -225,11 +225,15 @@ class PaletteBuilder:
             self.counts[name] = total
         self.ids = all_ids
 
+    def absorb(self, other: PaletteBuilder) -> None:
+        """Adds `other`'s counts to this builder, in place."""
+        self._add(other.ids, *(other.counts[name] for name in _COUNT_FIELDS))
+        self.n_masks += other.n_masks
+
     def merged(self, other: PaletteBuilder) -> PaletteBuilder:
         """A builder holding both builders' counts (e.g. two bags of the same scene)."""
         out = PaletteBuilder.from_arrays(self.to_arrays())
-        out._add(other.ids, *(other.counts[name] for name in _COUNT_FIELDS))
-        out.n_masks += other.n_masks
+        out.absorb(other)
         return out
 
     def merge_ids(self, keep: int, drop: int) -> None:

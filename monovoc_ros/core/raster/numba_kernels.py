@@ -480,6 +480,17 @@ def _alpha(px, py, u, v, A, R, S, o):
     return a if (a >= _F_ALPHA_MIN and power <= _F0) else _F0
 
 
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, inline="always")
+def _blend(T, k, a):
+    """Composites alpha `a` over pixel k: returns its weight a T and updates T, or, when T would fall
+    below T_MIN, stops the pixel (T negated: it keeps its final value and blends nothing more)."""
+    Tk = T[k]
+    nT = Tk * (_F1 - a)
+    go = nT >= _F_T_MIN
+    T[k] = nT if go else -abs(Tk)
+    return a * Tk if go else _F0
+
+
 @njit(cache=True, nogil=True)
 def _any_live(T):
     for k in range(T.shape[0]):
@@ -500,10 +511,7 @@ def _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T):
         for br in range(br0, br1 + 1):
             k0, k1 = _pixel_span(rows, r, ox, oy, br)
             for k in range(k0, k1):
-                a = _alpha(px[k], py[k], u, v, A, R, S, o)
-                Tk = T[k]
-                nT = Tk * (_F1 - a)
-                T[k] = nT if nT >= _F_T_MIN else -abs(Tk)
+                _blend(T, k, _alpha(px[k], py[k], u, v, A, R, S, o))
         if (j - j0) % 32 == 31 and not _any_live(T):
             break
 
@@ -570,12 +578,7 @@ def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, heigh
         for br in range(br0, br1 + 1):
             k0, k1 = _pixel_span(rows, r, ox, oy, br)
             for k in range(k0, k1):
-                a = _alpha(px[k], py[k], u, v, A, R, S, o)
-                Tk = T[k]
-                nT = Tk * (_F1 - a)
-                go = nT >= _F_T_MIN
-                w = a * Tk if go else _F0
-                T[k] = nT if go else -abs(Tk)
+                w = _blend(T, k, _alpha(px[k], py[k], u, v, A, R, S, o))
                 # w^power for power 1..4 by selects, which keep the loop vectorized (a pow call would not).
                 w2 = w * w
                 w = w if power == 1 else (w2 if power == 2 else (w2 * w if power == 3 else w2 * w2))
@@ -772,12 +775,7 @@ def _render_tile(t, rows, tile_start, tile_list, gx, width, height, bg, image, t
         for br in range(br0, br1 + 1):
             k0, k1 = _pixel_span(rows, r, ox, oy, br)
             for k in range(k0, k1):
-                a = _alpha(px[k], py[k], u, v, A, R, S, o)
-                Tk = T[k]
-                nT = Tk * (_F1 - a)
-                go = nT >= _F_T_MIN
-                w = a * Tk if go else _F0
-                T[k] = nT if go else -abs(Tk)
+                w = _blend(T, k, _alpha(px[k], py[k], u, v, A, R, S, o))
                 c0[k] += w * cr
                 c1[k] += w * cg
                 c2[k] += w * cb
