@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 
 from msg_adapters.buffers import bytes_view, to_byte_array
+from msg_adapters.camera_info import MAX_IMAGE_SIDE as MAX_SIDE  # one plausibility bound for cameras and images
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import make_header
 
-MAX_SIDE = 16384  # the camera plausibility bound (msg_adapters.camera_info.MAX_IMAGE_SIDE)
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}  # color type -> decoded channels (palette -> RGB)
 # JPEG start-of-frame markers (SOF0..SOF15 without DHT C4, JPG C8, DAC CC)

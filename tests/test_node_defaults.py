@@ -23,12 +23,12 @@ def test_fast_replay_of_the_bundled_bag_with_the_shipped_yaml_loses_nothing(tmp_
     node_args = ["-m", "monovoc_ros.nodes.object_query", "--ros-args", *config, "-p", "diagnostics_period_s:=0.5"]
     with RosProcess.python(node_args, env, name="semantic_mapper") as node, RosClientNode(env) as client:
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        node.wait_for_output("ready:", 60.0)
+        diagnostics.wait_for(lambda v: v["keyframes_processed"] == "0", 60.0, process=node)  # up and idle
         replay = ["-m", "monovoc_ros.cli", "replay", str(BAG), "--fast", "--wait-subscribers", "1"]
         with RosProcess.python(replay, env, name="replay") as player:
             wait_until(lambda: player.returncode is not None, 120.0, "the replay to finish", process=node)
             assert player.returncode == 0, player.describe()
         done = diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(n), 120.0, process=node)
-        assert "queue 100" in node.output()
+        node.wait_for_output("queue 100", 10.0)  # the shipped default, as the node reports it at start
     assert done["keyframes_received"] == str(n) and done["keyframes_dropped"] == "0" and n == 60
     assert done["rejected_total"] == "0"

@@ -181,3 +181,16 @@ def test_config_round_trips_through_a_dict():
     config = IndexConfig(labels={0x112233: "chair"}, crop_mode="hard", up_axis="-y")
     again = IndexConfig.from_dict(config.to_dict())
     assert again == config and again.labels == {0x112233: "chair"}
+
+
+def test_query_text_cache_is_bounded_and_survives_refreshes():
+    """More distinct queries than the cache holds, refreshes between them, repeats: all answered alike."""
+    from monovoc_ros.objects.index import TEXT_CACHE_SIZE
+
+    mapper, index = room_map()
+    first = [(r.id, s) for r, s in index.query("a sofa", top_k=3)]
+    for n in range(TEXT_CACHE_SIZE + 10):
+        assert index.query(f"object number {n}", top_k=1)
+        if n % 100 == 0:
+            index.refresh(mapper)
+    assert [(r.id, s) for r, s in index.query("a sofa", top_k=3)] == first

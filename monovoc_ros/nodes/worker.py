@@ -243,7 +243,6 @@ class MapWorker:
         self._last_save = time.monotonic()
         self._on_reset: list[Callable[[], None]] = []
         self._on_save: list[Callable[[str, SnapshotInfo, SemanticMapper], None]] = []
-        self._on_load: list[Callable[[str], None]] = []
         self._load_checks: list[LoadCheck] = []
         self._refresh_map_stats()
 
@@ -267,10 +266,6 @@ class MapWorker:
     def add_save_listener(self, fn: Callable[[str, SnapshotInfo, SemanticMapper], None]) -> None:
         """fn(directory, info, mapper) runs on the worker thread after every snapshot (service, periodic, final)."""
         self._on_save.append(fn)
-
-    def add_load_listener(self, fn: Callable[[str], None]) -> None:
-        """fn(path) runs on the worker thread after load (a snapshot directory or a PLY file)."""
-        self._on_load.append(fn)
 
     def add_load_check(self, fn: LoadCheck) -> None:
         """fn(path, mapper) runs on the worker thread after a map was read and before it replaces the current
@@ -369,8 +364,6 @@ class MapWorker:
                 commit()
         self._changed(unsaved=p.resolve() != _resolved(self.settings.map_directory))
         self.log.info(f"loaded {source}: {len(mapper.gaussians)} Gaussians")
-        for fn in self._on_load:
-            fn(path)
         return mapper
 
     def reset(self, keep_gaussians: bool) -> None:

@@ -158,7 +158,7 @@ class ObjectIndex:
         self._lock = threading.Lock()
         # Query texts embedded lately (a robot asks the same few things again and again): a hit skips the text
         # encoder, which shares the CPU with the image encoder and the rasterizer while the node maps.
-        self._text_cache: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._query_cache: OrderedDict[str, np.ndarray] = OrderedDict()
         # Immutable snapshot for queries: (records in id order, (M, d) embedding matrix).
         self._snapshot: tuple[tuple[ObjectRecord, ...], np.ndarray] = ((), np.zeros((0, 0), np.float32))
         self._summaries: dict[int, ObjectSummary] = {}
@@ -462,16 +462,19 @@ class ObjectIndex:
             waiting = self.pending()
             why = f"{self.views.keyframes} keyframes seen" + (f", {waiting} objects being embedded" if waiting else "")
             return QueryResult(cleaned, [], "; ".join([f"no objects in the map yet ({why})", *notes]), 0, truncated)
-        query = self._text_cache.get(cleaned)
+        with self._lock:
+            query = self._query_cache.get(cleaned)
+            if query is not None:
+                self._query_cache.move_to_end(cleaned)  # least recently used goes first
         if query is None:
             try:
                 query = self.backend.embed_texts([cleaned])[0]
             except ModelMissingError as exc:
                 raise QueryError(f"cannot embed the query: {exc}") from exc
             with self._lock:
-                self._text_cache[cleaned] = query
-                while len(self._text_cache) > TEXT_CACHE_SIZE:
-                    self._text_cache.popitem(last=False)
+                self._query_cache[cleaned] = query
+                while len(self._query_cache) > TEXT_CACHE_SIZE:
+                    self._query_cache.popitem(last=False)
         if query.shape[0] != matrix.shape[1]:
             raise QueryError(
                 f"the query embedding has dimension {query.shape[0]} but the objects have {matrix.shape[1]}: "
