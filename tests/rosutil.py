@@ -244,11 +244,26 @@ def wait_for_service(client: Any, timeout: float = 10.0, *, process: Any = None)
     wait_until(client.service_is_ready, timeout, f"service {client.srv_name}", process=process, interval=0.05)
 
 
-def call_service(client: Any, request: Any, timeout: float = 10.0, *, process: Any = None) -> Any:
-    """Calls the service and returns the response (the node's executor must be spinning)."""
-    future = client.call_async(request)
-    wait_until(future.done, timeout, f"a response from {client.srv_name}", process=process, interval=0.005)
-    return future.result()
+def call_service(
+    client: Any, request: Any, timeout: float = 10.0, *, process: Any = None, resend_s: float | None = 2.0
+) -> Any:
+    """Calls the service and returns the response (the node's executor must be spinning). The request is sent
+    again while unanswered (a lost first response, monovoc_ros.nodes.service_call); ``resend_s`` None for
+    requests that must run once."""
+    from monovoc_ros.nodes import service_call
+
+    processes = [] if process is None else [process] if isinstance(process, RosProcess) else list(process)
+
+    def poll() -> None:
+        for p in processes:
+            p.check_running()
+
+    response = service_call.call_service(client, request, timeout, time.sleep, resend_s=resend_s, poll=poll)
+    if response is None:
+        details = "\n".join(p.describe() for p in processes)
+        what = f"a response from {client.srv_name}"
+        raise AssertionError(f"timed out after {timeout:.1f} s waiting for {what}\n{details}")
+    return response
 
 
 def wait_for_topic(node: Any, topic: str, timeout: float = 10.0, *, process: Any = None) -> list[str]:

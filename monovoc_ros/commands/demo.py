@@ -165,7 +165,7 @@ def _session(client, alive, bag, out, n_keyframes, queries, rate, top_k, timeout
         f"{diag['objects']} objects, {diag['objects.indexed']} embedded after {indexed_s:.1f} s",
         flush=True,
     )
-    saved = client.call(save, SaveMap.Request(), timeout, alive)
+    saved = client.call(save, SaveMap.Request(), timeout, alive, resend_s=None)
     if not saved.success:
         raise DemoError(f"save_map failed: {saved.message}")
 

@@ -13,7 +13,6 @@ import argparse
 import json
 import math
 import sys
-import time
 
 
 def register(subparsers) -> None:
@@ -91,6 +90,7 @@ def _online(args: argparse.Namespace) -> int:
 
     import msg_adapters as ma
     from monovoc_interfaces.srv import TextQuery
+    from monovoc_ros.nodes import service_call
 
     service = args.namespace.rstrip("/") + "/query"
     context = rclpy.Context()
@@ -108,14 +108,12 @@ def _online(args: argparse.Namespace) -> int:
             )
             return 2
         request = TextQuery.Request(text=args.text, top_k=args.top_k, min_score=args.min_score)
-        future = client.call_async(request)
-        deadline = time.monotonic() + args.timeout
-        while not future.done() and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=min(0.1, max(deadline - time.monotonic(), 0.0)))
-        if not future.done():
+        response = service_call.call_service(
+            client, request, args.timeout, lambda s: executor.spin_once(timeout_sec=max(s, 0.0))
+        )
+        if response is None:
             print(f"monovoc query: no answer from {service} within {args.timeout:g} s", file=sys.stderr)
             return 2
-        response = future.result()
         objects = [ma.semantic_object_to_dict(o) for o in response.objects]
         if response.success or args.json:
             _print({"success": bool(response.success), "message": response.message, "objects": objects}, args.json)

@@ -19,6 +19,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from monovoc_ros.nodes import service_call
+
 NAMESPACE = "/monovoc"
 WITH_OBJECTS = "monovoc_ros.nodes.object_query"  # semantic_mapper + object database + query service
 MAPPING_ONLY = "monovoc_ros.nodes.semantic_mapper"
@@ -158,13 +160,11 @@ class MapperClient:
                 raise MapperError(f"service {name} did not appear within {timeout:g} s")
         return client
 
-    def call(self, client: Any, request: Any, timeout: float, alive: Callable[[], None]) -> Any:
-        done = threading.Event()
-        future = client.call_async(request)
-        future.add_done_callback(lambda _: done.set())
-        deadline = time.monotonic() + timeout
-        while not done.wait(0.2):
-            alive()
-            if time.monotonic() > deadline:
-                raise MapperError(f"no answer from {client.srv_name} within {timeout:g} s")
-        return future.result()
+    def call(
+        self, client: Any, request: Any, timeout: float, alive: Callable[[], None], *, resend_s: float | None = 2.0
+    ) -> Any:
+        """The response; the request is sent again while unanswered unless ``resend_s`` is None (see service_call)."""
+        response = service_call.call_service(client, request, timeout, time.sleep, resend_s=resend_s, poll=alive)
+        if response is None:
+            raise MapperError(f"no answer from {client.srv_name} within {timeout:g} s")
+        return response
