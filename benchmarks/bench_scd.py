@@ -8,7 +8,7 @@ A scene source is one function (n_gaussians, width, height) -> (map, intrinsics,
 mask)]); SCENES maps names to them. "replica" reads the Replica office_0 map under shared/data in
 place: a random subset for sizes up to the map's 204k, jittered copies with smaller scales beyond it
 (density grows as in a finer SLAM map), cameras from traj.txt, masks resized (nearest) to each
-resolution. "synthetic" is monovoc_ros.core.synthetic's furnished room at the requested size.
+resolution. "synthetic" is monovoc_ros.synthetic's furnished room at the requested size.
 Each configuration runs in a fresh subprocess so that its peak memory is its own. Timings follow a
 warm-up pass; each repeat processes every benchmark keyframe once, and a keyframe's time is the
 repeat's total over the number of keyframes. Other users of the CPU show in `loadavg` beside the
@@ -73,8 +73,8 @@ def replica_scene(n_gaussians: int, width: int, height: int, n_keyframes: int = 
 
 
 def synthetic_scene(n_gaussians: int, width: int, height: int, n_keyframes: int = 4, seed: int = 0):
-    """The same from monovoc_ros.core.synthetic's furnished room (masks ray cast from its analytic surfaces)."""
-    from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+    """The same from monovoc_ros.synthetic's furnished room (masks ray cast from its analytic surfaces)."""
+    from monovoc_ros.synthetic import SceneConfig, generate_scene
 
     config = SceneConfig.at_resolution(width, height, seed=seed, n_gaussians=n_gaussians, n_keyframes=n_keyframes)
     scene = generate_scene(config)

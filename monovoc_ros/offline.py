@@ -47,7 +47,7 @@ class RunStats:
 def open_source(spec: str, layout: str = "auto", **options) -> Sequence:
     """A dataset folder (plain / nice-slam / hislam2 layout) or `synthetic[:VARIANT]`."""
     if spec == "synthetic" or spec.startswith("synthetic:"):
-        from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+        from monovoc_ros.synthetic import SceneConfig, generate_scene
 
         variant = spec.partition(":")[2] or "clean"
         return generate_scene(SceneConfig(variant=variant))

@@ -221,7 +221,7 @@ def test_per_frame_config_rules():
 
 @pytest.fixture(scope="module")
 def small_room():
-    from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+    from monovoc_ros.synthetic import SceneConfig, generate_scene
 
     return generate_scene(SceneConfig(n_gaussians=12_000, n_keyframes=12, width=308, height=172, fx=154.0,
                                       fy=151.8, cx=153.9, cy=85.9))  # fmt: skip

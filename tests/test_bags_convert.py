@@ -29,8 +29,8 @@ from monovoc_ros.cli import main as monovoc
 from monovoc_ros.core.datasets import open_sequence
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.synthetic import SceneConfig, generate_scene
 from monovoc_ros.ingest import IngestConfig, KeyframeAssembler, Rejection
+from monovoc_ros.synthetic import SceneConfig, generate_scene
 
 TOPICS = topic_names()
 N_KF = 6

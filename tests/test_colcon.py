@@ -25,8 +25,8 @@ import pytest
 from test_packaging import RVIZ, parse_launch, rviz_topics
 
 from monovoc_ros.embed import default_model_dir
+from tests.object_room import copy_directory, room_directory, room_id
 from tests.rosutil import REPO, RosClientNode, RosProcess, call_service, ros_environment, wait_for_service, wait_until
-from tests.test_objects_support import copy_directory, room_directory, room_id
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -23,7 +23,7 @@ from monovoc_ros.core.datasets import (
     write_plain,
 )
 from monovoc_ros.core.ply import save_ply
-from monovoc_ros.core.synthetic import SceneConfig, SyntheticScene, generate_scene
+from monovoc_ros.synthetic import SceneConfig, SyntheticScene, generate_scene
 
 MASK_SIZE = (154, 86)
 

@@ -19,8 +19,8 @@ from monovoc_ros.cli import main
 from monovoc_ros.commands.eval import bag_frames, score
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.embed import default_model_dir
+from tests.node_scene import N_KEYFRAMES, small_scene
 from tests.rosutil import VENV_PYTHON, ros_environment
-from tests.test_node_support import N_KEYFRAMES, small_scene
 
 pytestmark = pytest.mark.ros
 

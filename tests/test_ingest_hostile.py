@@ -114,7 +114,7 @@ def test_bombs_are_refused_from_their_header_without_a_camera():
 def test_offline_bag_mapping_refuses_the_maps_the_node_refuses():
     from monovoc_ros.ingest import map_update_refusal
     from monovoc_ros.offline import map_events
-    from tests.test_node_support import small_scene
+    from tests.node_scene import small_scene
 
     gaussians = small_scene().gaussians
     n = len(gaussians)

@@ -15,7 +15,7 @@ import pytest
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot, save_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.ply import read_ply_vertices
-from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+from monovoc_ros.synthetic import SceneConfig, generate_scene
 from tests.evidence import assert_same_evidence
 
 
@@ -82,7 +82,7 @@ def test_sigkill_during_repeated_saves_never_leaves_a_broken_map(tmp_path):
         import sys
         from monovoc_ros.core.map_store import save_snapshot
         from monovoc_ros.core.mapping import SemanticMapper
-        from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+        from monovoc_ros.synthetic import SceneConfig, generate_scene
         scene = generate_scene(SceneConfig.at_resolution(120, 68, n_gaussians=60_000, n_keyframes=40))
         mapper = SemanticMapper(scene.gaussians)
         for i in range(len(scene)):

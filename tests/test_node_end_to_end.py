@@ -16,6 +16,7 @@ from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labe
 from monovoc_ros.core.palette import UNOBSERVED_ID, pack_rgb
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from monovoc_ros.nodes.qos import latched_qos
+from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
 from tests.rosutil import (
     DiagnosticsMonitor,
     MessageCollector,
@@ -28,7 +29,6 @@ from tests.rosutil import (
     wait_for_subscribers,
     wait_until,
 )
-from tests.test_node_support import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
 
 pytestmark = pytest.mark.ros
 

@@ -18,6 +18,7 @@ from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from tests.evidence import assert_same_evidence
+from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, small_scene
 from tests.rosutil import (
     DiagnosticsMonitor,
     RosClientNode,
@@ -29,7 +30,6 @@ from tests.rosutil import (
     wait_for_subscribers,
 )
 from tests.test_node_bombs import jpeg_bomb, png_bomb
-from tests.test_node_support import N_KEYFRAMES, NODE, assemble, offline_mapper, small_scene
 
 pytestmark = pytest.mark.ros
 

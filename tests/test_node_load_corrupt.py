@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase
+from tests.object_room import copy_directory, room_directory
 from tests.rosutil import RosClientNode, RosProcess, call_service, ros_args, wait_for_service
-from tests.test_objects_support import copy_directory, room_directory
 from tests.test_query_service import NODE, _environment, _query
 
 pytestmark = pytest.mark.ros

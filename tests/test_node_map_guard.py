@@ -12,6 +12,7 @@ from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from tests.evidence import assert_same_evidence
+from tests.node_scene import NODE, assemble, offline_mapper, scene_messages, small_scene
 from tests.rosutil import (
     DiagnosticsMonitor,
     RosClientNode,
@@ -22,7 +23,6 @@ from tests.rosutil import (
     wait_for_service,
     wait_for_subscribers,
 )
-from tests.test_node_support import NODE, assemble, offline_mapper, scene_messages, small_scene
 
 pytestmark = pytest.mark.ros
 

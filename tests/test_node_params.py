@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from monovoc_ros.nodes.params import DEFAULTS, PARAMETERS, NodeParams, ParameterError, load_labels
+from tests.node_scene import NODE
 from tests.rosutil import (
     REPO,
     VENV_PYTHON,
@@ -19,7 +20,6 @@ from tests.rosutil import (
     ros_environment,
     wait_for_service,
 )
-from tests.test_node_support import NODE
 
 CONFIG = REPO / "config" / "semantic_mapper.yaml"
 

@@ -14,6 +14,7 @@ from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.qos import latched_qos
+from tests.node_scene import NODE
 from tests.rosutil import (
     DiagnosticsMonitor,
     MessageCollector,
@@ -24,7 +25,6 @@ from tests.rosutil import (
     wait_until,
 )
 from tests.test_bags_ros import finish, replay_process
-from tests.test_node_support import NODE
 
 pytestmark = pytest.mark.ros
 

@@ -18,6 +18,7 @@ from monovoc_ros.core.map_store import current_snapshot, load_snapshot
 from monovoc_ros.core.votes import VoteState
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from tests.evidence import assert_same_evidence
+from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
 from tests.rosutil import (
     DiagnosticsMonitor,
     RosClientNode,
@@ -27,7 +28,6 @@ from tests.rosutil import (
     wait_for_subscribers,
     wait_until,
 )
-from tests.test_node_support import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
 
 pytestmark = pytest.mark.ros
 

@@ -10,8 +10,8 @@ import pytest
 
 import msg_adapters as ma
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
+from tests.node_scene import NODE, scene_messages, small_scene
 from tests.rosutil import DiagnosticsMonitor, RosClientNode, RosProcess, ros_args, ros_environment, wait_for_subscribers
-from tests.test_node_support import NODE, scene_messages, small_scene
 
 pytestmark = pytest.mark.ros
 

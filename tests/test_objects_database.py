@@ -20,8 +20,8 @@ from monovoc_ros.objects.database import (
 )
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex
 from monovoc_ros.objects.memory import TARGET_SEMANTIC_BYTES, measure_memory, semantic_memory
+from tests.object_room import backend, room_labels, room_map
 from tests.rosutil import REPO, VENV_PYTHON, wait_until
-from tests.test_objects_support import backend, room_labels, room_map
 
 
 def test_round_trip_is_exact(tmp_path):
@@ -199,7 +199,7 @@ def test_semantic_memory_per_scene():
 def test_a_restored_index_keeps_given_labels_when_it_re_embeds(tmp_path):
     """A node resumed without the labels file keeps the names its database was written with, also
     after re-embedding (before, every object fell back to its ImageNet class a few seconds after start)."""
-    from tests.test_objects_support import CountingBackend
+    from tests.object_room import CountingBackend
 
     mapper, index = room_map()
     save_object_index(index, tmp_path, snapshot="snap-000001", map_version=0, keyframes=mapper.n_keyframes)

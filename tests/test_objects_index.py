@@ -14,7 +14,7 @@ from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.objects.evaluation import evaluate_index, load_queries
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, backend_identity, lazy_backend
 from monovoc_ros.objects.records import QueryError
-from tests.test_objects_support import (
+from tests.object_room import (
     SYNTHETIC_QUERIES,
     CountingBackend,
     backend,

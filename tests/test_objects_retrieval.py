@@ -30,7 +30,7 @@ from monovoc_ros.objects.evaluation import (
 )
 from monovoc_ros.objects.labels import load_labels
 from monovoc_ros.objects.views import ObjectViews, ViewConfig
-from tests.test_objects_support import (
+from tests.object_room import (
     REPLICA_QUERIES,
     SYNTHETIC_QUERIES,
     backend,

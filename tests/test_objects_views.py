@@ -6,7 +6,7 @@ import pytest
 from monovoc_ros.core.palette import pack_rgb
 from monovoc_ros.embed.crops import crop_object, resize_mask
 from monovoc_ros.objects.views import ObjectViews, ViewConfig
-from tests.test_objects_support import make_keyframe
+from tests.object_room import make_keyframe
 
 RED, GREEN, BLUE, WHITE = (200, 30, 30), (30, 200, 30), (30, 30, 200), (255, 255, 255)
 RED_ID, GREEN_ID, BLUE_ID = (int(pack_rgb(np.array(c, np.uint8))) for c in (RED, GREEN, BLUE))

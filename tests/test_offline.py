@@ -12,9 +12,9 @@ from monovoc_ros.core.datasets import write_plain
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.mapping import MapperConfig
 from monovoc_ros.core.segment_noise import CorruptedMasks
-from monovoc_ros.core.synthetic import SceneConfig, generate_scene
 from monovoc_ros.ingest import Rejection
 from monovoc_ros.offline import map_events, map_sequence
+from monovoc_ros.synthetic import SceneConfig, generate_scene
 from tests.evidence import assert_same_evidence
 
 

@@ -3,7 +3,7 @@
 import json
 
 from monovoc_ros.cli import main as cli_main
-from tests.test_objects_support import room_directory, room_id
+from tests.object_room import room_directory, room_id
 
 
 def test_offline_query_prints_the_ranking(capsys):

@@ -10,6 +10,7 @@ import pytest
 
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.query_load import open_loop_queries, query_client
+from tests.object_room import copy_directory, room, room_directory
 from tests.rosutil import (
     DiagnosticsMonitor,
     RosClientNode,
@@ -19,7 +20,6 @@ from tests.rosutil import (
     wait_for_service,
     wait_for_subscribers,
 )
-from tests.test_objects_support import copy_directory, room, room_directory
 from tests.test_query_service import NODE, _environment
 
 pytestmark = pytest.mark.ros

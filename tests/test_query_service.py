@@ -20,6 +20,7 @@ from monovoc_ros.embed import default_model_dir
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase
+from tests.object_room import copy_directory, room, room_directory, room_id, room_map
 from tests.rosutil import (
     VENV_PYTHON,
     MessageCollector,
@@ -32,7 +33,6 @@ from tests.rosutil import (
     wait_for_subscribers,
     wait_until,
 )
-from tests.test_objects_support import copy_directory, room, room_directory, room_id, room_map
 
 pytestmark = pytest.mark.ros
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.camera import quat_wxyz_to_matrix
+from monovoc_ros.core.color import srgb_to_lab
 from monovoc_ros.core.datasets import Sequence
-from monovoc_ros.core.synthetic import (
+from monovoc_ros.synthetic import (
     FLOATER,
     UNLABELLED,
     VARIANTS,
@@ -18,12 +19,12 @@ from monovoc_ros.core.synthetic import (
     SyntheticScene,
     generate_scene,
 )
-from monovoc_ros.core.synthetic.corruption import boundary_pixels
-from monovoc_ros.core.synthetic.palette import VOID_RGB, srgb_to_lab
-from monovoc_ros.core.synthetic.primitives import Cylinder, Sphere
-from monovoc_ros.core.synthetic.raycast import camera_rays, cast_rays, cast_rays_reference
-from monovoc_ros.core.synthetic.sampling import CONTACT_EPS, CURVED_INSET_PX, FLOATER_CLEARANCE
-from monovoc_ros.core.synthetic.visibility import typical_pixel_size
+from monovoc_ros.synthetic.corruption import boundary_pixels
+from monovoc_ros.synthetic.palette import VOID_RGB
+from monovoc_ros.synthetic.primitives import Cylinder, Sphere
+from monovoc_ros.synthetic.raycast import camera_rays, cast_rays, cast_rays_reference
+from monovoc_ros.synthetic.sampling import CONTACT_EPS, CURVED_INSET_PX, FLOATER_CLEARANCE
+from monovoc_ros.synthetic.visibility import typical_pixel_size
 
 HALF_RES = (308, 172)
 

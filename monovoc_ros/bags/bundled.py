@@ -26,7 +26,7 @@ def bundled_bag(name: str = SYNTHETIC_BAG) -> Path:
 
 
 def make_synthetic_bag(out_dir: str | os.PathLike = BUNDLED_DIR, *, progress: bool = False) -> ConvertReport:
-    from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+    from monovoc_ros.synthetic import SceneConfig, generate_scene
 
     return sequence_to_bag(generate_scene(SceneConfig()), Path(out_dir) / SYNTHETIC_BAG, progress=progress)
 
@@ -35,7 +35,7 @@ def per_frame_scene():
     """The scene of the per-frame bag: a small synthetic room (30k Gaussians, 20 keyframes at 308x172)
     whose every mask is renumbered at random (core.segment_noise, seed 0): segment ids hold per frame."""
     from monovoc_ros.core.segment_noise import CorruptedMasks
-    from monovoc_ros.core.synthetic import SceneConfig, generate_scene
+    from monovoc_ros.synthetic import SceneConfig, generate_scene
 
     scene = generate_scene(SceneConfig.at_resolution(308, 172, n_gaussians=30_000, n_keyframes=20))
     return CorruptedMasks(scene, shuffled=True, seed=0)

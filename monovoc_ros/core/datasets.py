@@ -47,6 +47,7 @@ import cv2
 import numpy as np
 
 from monovoc_ros.core.camera import Intrinsics, pose_from_translation_quat, validate_pose
+from monovoc_ros.core.color import srgb_to_lab
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.ply import load_ply, save_ply
@@ -206,8 +207,6 @@ def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
 @functools.cache
 def _palette_table() -> np.ndarray:
     # Colors on a grid of multiples of 36 (0..252), in farthest-first order in CIELAB from pure red.
-    from monovoc_ros.core.synthetic.palette import srgb_to_lab  # here: the synthetic package imports this module
-
     levels = np.arange(0, 253, 36)
     grid = np.stack(np.meshgrid(levels, levels, levels, indexing="ij"), -1).reshape(-1, 3)
     lab = srgb_to_lab(grid)

@@ -18,7 +18,7 @@ import numba
 import numpy as np
 
 from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.synthetic.raycast import (
+from monovoc_ros.synthetic.raycast import (
     _box,
     _cylinder,
     _outside_sphere,

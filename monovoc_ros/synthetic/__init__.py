@@ -4,8 +4,8 @@ Masks, depth and RGB are ray cast from the analytic surfaces, independent of the
 ``scene`` for the API and ``layout`` for the world frame (metres, z up, floor at z = 0).
 """
 
-from monovoc_ros.core.synthetic.errors import SyntheticError
-from monovoc_ros.core.synthetic.scene import (
+from monovoc_ros.synthetic.errors import SyntheticError
+from monovoc_ros.synthetic.scene import (
     FLOATER,
     UNLABELLED,
     VARIANTS,

@@ -1,6 +1,6 @@
 """How close a synthetic map is to a converged SLAM map, and what the method gets out of it: figures as JSON.
 
-``python -m monovoc_ros.core.synthetic.quality [--n-gaussians N] [--stride 3] [--no-pipeline] ...``
+``python -m monovoc_ros.synthetic.quality [--n-gaussians N] [--stride 3] [--no-pipeline] ...``
 
 On the keyframes ``0, stride, 2 stride, ...``, against the clean ground-truth masks:
 - ``ground_truth``: each Gaussian labelled with its surface's true object, rendered through the Gaussians
@@ -23,9 +23,9 @@ import numpy as np
 
 from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
 from monovoc_ros.core.palette import VOID_ID, pack_rgb
-from monovoc_ros.core.synthetic.raycast import bounding_spheres
-from monovoc_ros.core.synthetic.scene import FLOATER, SceneConfig, SyntheticScene, generate_scene
-from monovoc_ros.core.synthetic.visibility import observed_views
+from monovoc_ros.synthetic.raycast import bounding_spheres
+from monovoc_ros.synthetic.scene import FLOATER, SceneConfig, SyntheticScene, generate_scene
+from monovoc_ros.synthetic.visibility import observed_views
 
 POINT_SIZE = 0.05  # metres: the paper's disc size
 

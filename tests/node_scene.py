@@ -7,9 +7,9 @@ import functools
 
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.mapping import SemanticMapper
-from monovoc_ros.core.synthetic import SceneConfig, SyntheticScene, generate_scene
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.keyframe_publisher import ROLE_ORDER, keyframe_messages
+from monovoc_ros.synthetic import SceneConfig, SyntheticScene, generate_scene
 
 NODE = ["-m", "monovoc_ros.nodes.semantic_mapper"]
 N_KEYFRAMES = 16

@@ -35,10 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from monovoc_ros.core.synthetic.appearance import Appearance
-from monovoc_ros.core.synthetic.charts import CHART_KINDS, Chart
-from monovoc_ros.core.synthetic.contacts import CONTACT_EPS, contact_limits, contact_limits_reference, neighbour_lists
-from monovoc_ros.core.synthetic.primitives import Primitive, SurfaceSamples, pack
+from monovoc_ros.synthetic.appearance import Appearance
+from monovoc_ros.synthetic.charts import CHART_KINDS, Chart
+from monovoc_ros.synthetic.contacts import CONTACT_EPS, contact_limits, contact_limits_reference, neighbour_lists
+from monovoc_ros.synthetic.primitives import Primitive, SurfaceSamples, pack
 
 GRID_JITTER = 0.5  # fraction of a grid cell a sample may move: uniform-looking, yet no large gaps
 FLOATER_CLEARANCE = 0.10  # floaters keep this far from every surface, so they are unambiguous

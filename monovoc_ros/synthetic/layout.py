@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.synthetic.appearance import Material
-from monovoc_ros.core.synthetic.primitives import Box, Cylinder, Primitive, RoomFace, Sphere
+from monovoc_ros.synthetic.appearance import Material
+from monovoc_ros.synthetic.primitives import Box, Cylinder, Primitive, RoomFace, Sphere
 
 HALF_X, HALF_Y, HEIGHT = 3.0, 2.5, 2.7
 ROOM_MIN = np.array([-HALF_X, -HALF_Y, 0.0])

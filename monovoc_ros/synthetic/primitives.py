@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.synthetic.charts import Chart, DiscChart, RectChart, SphereChart, TubeChart
+from monovoc_ros.synthetic.charts import Chart, DiscChart, RectChart, SphereChart, TubeChart
 
 KIND_BOX = 0
 KIND_CYLINDER = 1

@@ -14,7 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from monovoc_ros.core.synthetic.errors import SyntheticError
+from monovoc_ros.synthetic.errors import SyntheticError
 
 
 def _codes(labels: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map_store import save_snapshot
-from monovoc_ros.core.synthetic import SceneConfig, SyntheticScene, generate_scene
+from monovoc_ros.synthetic import SceneConfig, SyntheticScene, generate_scene
 
 # 40k Gaussians, 20 keyframes at 462x258: ~10 s to generate, map and index, and every class query of
 # config/queries/synthetic_room.json still has views of its object.

@@ -18,8 +18,8 @@ import numba
 import numpy as np
 
 from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.synthetic.errors import SyntheticError
-from monovoc_ros.core.synthetic.primitives import KIND_BOX, KIND_CYLINDER, KIND_PLANE, KIND_SPHERE
+from monovoc_ros.synthetic.errors import SyntheticError
+from monovoc_ros.synthetic.primitives import KIND_BOX, KIND_CYLINDER, KIND_PLANE, KIND_SPHERE
 
 T_MIN = 1e-6  # hits nearer than this are ignored (cameras are kept outside every solid)
 _PARALLEL = 1e-12  # |direction component| below which a ray counts as parallel to a slab or plane

@@ -15,16 +15,16 @@ from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.datasets import Sequence
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.synthetic import corruption
-from monovoc_ros.core.synthetic.appearance import Appearance
-from monovoc_ros.core.synthetic.errors import SyntheticError
-from monovoc_ros.core.synthetic.layout import ROOM_MAX, ROOM_MIN, SurfaceSpec, room_layout
-from monovoc_ros.core.synthetic.palette import VOID_RGB, distinct_palette, make_confusable
-from monovoc_ros.core.synthetic.primitives import Primitive, pack
-from monovoc_ros.core.synthetic.raycast import bounding_spheres, camera_rays, cast_rays
-from monovoc_ros.core.synthetic.sampling import sample_map
-from monovoc_ros.core.synthetic.trajectory import camera_loop
-from monovoc_ros.core.synthetic.visibility import observed_views, typical_pixel_size
+from monovoc_ros.synthetic import corruption
+from monovoc_ros.synthetic.appearance import Appearance
+from monovoc_ros.synthetic.errors import SyntheticError
+from monovoc_ros.synthetic.layout import ROOM_MAX, ROOM_MIN, SurfaceSpec, room_layout
+from monovoc_ros.synthetic.palette import VOID_RGB, distinct_palette, make_confusable
+from monovoc_ros.synthetic.primitives import Primitive, pack
+from monovoc_ros.synthetic.raycast import bounding_spheres, camera_rays, cast_rays
+from monovoc_ros.synthetic.sampling import sample_map
+from monovoc_ros.synthetic.trajectory import camera_loop
+from monovoc_ros.synthetic.visibility import observed_views, typical_pixel_size
 
 VARIANTS = ("clean", "confusable", "boundary_noise", "label_noise", "mixed_boundary", "region_artifacts")
 FLOATER = -1  # gaussian_object of a Gaussian in free space

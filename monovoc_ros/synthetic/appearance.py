@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.synthetic.errors import SyntheticError
+from monovoc_ros.synthetic.errors import SyntheticError
 
 PATTERNS = ("plain", "noise", "grain", "checker", "stripes")
 LIGHT_POSITION = np.array([0.4, -0.3, 2.45])

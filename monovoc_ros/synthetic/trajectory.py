@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from monovoc_ros.core.synthetic.errors import SyntheticError
+from monovoc_ros.synthetic.errors import SyntheticError
 
 _UP = np.array([0.0, 0.0, 1.0])
 

@@ -7,23 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from monovoc_ros.core.synthetic.errors import SyntheticError
+from monovoc_ros.core.color import srgb_to_lab
+from monovoc_ros.synthetic.errors import SyntheticError
 
 VOID_RGB = np.array([255, 255, 255], dtype=np.uint8)
 _LEVELS = np.array([0, 51, 102, 153, 204, 255])  # a 6-level grid, the look of Replica's palette
 _MAX_LIGHTNESS = 90.0  # near-white candidates are left out: blends toward void would reach them
-
-
-def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
-    """CIELAB (D65) of sRGB colors given as uint8 or floats in [0, 255]; shape (..., 3)."""
-    c = np.asarray(rgb, dtype=np.float64) / 255.0
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    m = np.array(
-        [[0.4124564, 0.3575761, 0.1804375], [0.2126729, 0.7151522, 0.0721750], [0.0193339, 0.1191920, 0.9503041]]
-    )
-    xyz = lin @ m.T / np.array([0.95047, 1.0, 1.08883])
-    f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
-    return np.stack([116 * f[..., 1] - 16, 500 * (f[..., 0] - f[..., 1]), 200 * (f[..., 1] - f[..., 2])], axis=-1)
 
 
 def distinct_palette(n: int, rng: np.random.Generator) -> np.ndarray:

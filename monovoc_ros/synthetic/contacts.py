@@ -18,7 +18,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from monovoc_ros.core.synthetic.primitives import Primitive
+from monovoc_ros.synthetic.primitives import Primitive
 
 CONTACT_EPS = 0.003  # metres: points this close to another solid are hidden against it
 GRADIENT_STEP = 1e-5  # metres: central differences of the signed distance
