@@ -33,13 +33,16 @@ sys.path.insert(0, str(REPO))
 from monovoc_ros.bags import bag_events, bag_info, iter_messages, replay, topic_names  # noqa: E402
 from monovoc_ros.core.keyframe import Keyframe  # noqa: E402
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper  # noqa: E402
-from monovoc_ros.nodes.mapper_process import (  # noqa: E402
+from monovoc_ros.ros_harness import (  # noqa: E402
     MAPPING_ONLY,
-    WITH_OBJECTS,
-    MapperClient,
-    MapperProcess,
+    SEMANTIC_MAPPER,
+    ClientNode,
+    CloudMonitor,
+    DiagnosticsMonitor,
+    NodeProcess,
+    keyframes_settled,
     loopback_environment,
-    settled,
+    ros_args,
 )
 
 
@@ -50,10 +53,13 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
     first_log = info.start_ns
     params = {"publish_rate_hz": publish_rate, "diagnostics_period_s": 0.2, "queue_size": max(32, n)}
+    log = work / f"node-{'fast' if fast else 'rate'}.log"
     with (
-        MapperProcess(params, work / f"node-{'fast' if fast else 'rate'}.log", module) as node,
-        MapperClient() as client,
+        NodeProcess.python(["-m", module, *ros_args(params)], name="semantic_mapper", output_path=log) as node,
+        ClientNode() as client,
     ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic mapping")
+        clouds = CloudMonitor(client.node)
         started: list[float] = []
         replay(
             bag,
@@ -63,7 +69,7 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
             wait_timeout=60.0,
             on_started=lambda: started.append(time.monotonic()),
         )
-        done = client.wait_diagnostics(lambda d: settled(d, n), 600.0, node.check, "all keyframes")
+        done = diagnostics.wait_for(lambda d: keyframes_settled(d, n), 600.0, what="all keyframes", process=node)
         finished = time.monotonic()
         time.sleep(0.5)  # the last cloud
         out = {
@@ -80,12 +86,12 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
         for stamp in stamps:
             scheduled = started[0] + (stamp - first_log) / 1e9 / rate
             # Clouds before the first keyframe carry the node's clock, not a bag stamp: not counted.
-            arrivals = [t for s, t in client.cloud_arrivals.items() if stamp <= s <= stamps[-1]]
+            arrivals = [t for s, t in clouds.arrivals.items() if stamp <= s <= stamps[-1]]
             if arrivals:
                 latencies.append(1e3 * (min(arrivals) - scheduled))
         lat = np.array(latencies)
         if not len(lat):
-            raise SystemExit(f"no cloud carried a keyframe stamp: {sorted(client.cloud_arrivals)[:5]} vs {stamps[:3]}")
+            raise SystemExit(f"no cloud carried a keyframe stamp: {sorted(clouds.arrivals)[:5]} vs {stamps[:3]}")
         out.update(
             keyframes_with_cloud=len(lat),
             latency_ms_p50=round(float(np.percentile(lat, 50)), 1),
@@ -125,7 +131,7 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="monovoc_bench_mapper_"))
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 232)))
     loopback_environment(work / "ros_log")
-    module = MAPPING_ONLY if args.mapping_only else WITH_OBJECTS
+    module = MAPPING_ONLY if args.mapping_only else SEMANTIC_MAPPER
     bag = Path(args.bag)
     report = {
         "bag": str(bag),

@@ -13,13 +13,14 @@ from geometry_msgs.msg import PoseStamped
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from rosgraph_msgs.msg import Clock
-from rosutil import MessageCollector, RosClientNode, RosProcess, ros_environment, wait_until
 from sensor_msgs.msg import CameraInfo, CompressedImage, PointCloud2
 from test_bags_convert import assert_same_map, moved, small_scene
 
 import msg_adapters as ma
 from monovoc_ros.bags import bag_info, iter_messages, record, replay, sequence_to_bag, topic_names
 from monovoc_ros.bags.schemas import canonical_cdr
+from monovoc_ros.ros_harness import ClientNode, MessageCollector, NodeProcess, wait_until
+from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -52,18 +53,18 @@ def qos(role: str):
     return QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=durability)
 
 
-def replay_process(bag: Path, env: dict, *args: str) -> RosProcess:
-    return RosProcess.python(["-m", "monovoc_ros.cli", "replay", str(bag), *args], env, name="replay")
+def replay_process(bag: Path, env: dict, *args: str) -> NodeProcess:
+    return NodeProcess.python(["-m", "monovoc_ros.cli", "replay", str(bag), *args], env, name="replay")
 
 
-def finish(process: RosProcess, timeout: float = 60.0) -> dict:
+def finish(process: NodeProcess, timeout: float = 60.0) -> dict:
     """Waits for the process to exit with 0; returns the JSON summary it printed."""
     wait_until(lambda: process.returncode is not None, timeout, f"{process.name} to exit")
     assert process.returncode == 0, process.describe()
     return printed_summary(process)
 
 
-def printed_summary(process: RosProcess) -> dict:
+def printed_summary(process: NodeProcess) -> dict:
     text = process.output()
     return json.loads(text[text.index("{\n") : text.index("\n}") + 2])
 
@@ -75,7 +76,7 @@ def bag_messages(bag: Path, role: str) -> list:
 def test_replay_fast_delivers_every_message_and_remaps(bag: Path, tmp_path: Path) -> None:
     env = ros_environment(tmp_path)
     counts = {t.name: t.count for t in bag_info(bag).topics.values()}
-    with RosClientNode(env) as client:
+    with ClientNode(env) as client:
         received = {role: MessageCollector() for role in TYPES}
         for role, cls in TYPES.items():
             name = "/cam/image" if role == "image" else TOPICS[role]
@@ -113,7 +114,7 @@ def test_replay_keeps_the_recorded_rate_and_publishes_clock(bag: Path, tmp_path:
     env = ros_environment(tmp_path)
     info = bag_info(bag)
     masks, clock = _Arrivals(), _Arrivals()
-    with RosClientNode(env) as client:
+    with ClientNode(env) as client:
         client.node.create_subscription(CompressedImage, TOPICS["mask"], masks, qos("mask"))
         client.node.create_subscription(PoseStamped, TOPICS["pose"], MessageCollector(), qos("pose"))
         client.node.create_subscription(Clock, "/clock", clock, qos("clock"))
@@ -137,7 +138,7 @@ def test_late_subscriber_gets_the_latched_map_and_ctrl_c_exits_cleanly(scene, ba
     env = ros_environment(tmp_path)
     with replay_process(bag, env, "--rate", "4", "--hold", "60") as p:
         p.wait_for_output('"total"', timeout=30.0)  # playback over; the publishers are held
-        with RosClientNode(env) as client:
+        with ClientNode(env) as client:
             maps = MessageCollector()
             client.node.create_subscription(PointCloud2, TOPICS["gaussians"], maps, qos("gaussians"))
             maps.wait_for(2, timeout=10.0, process=p)
@@ -161,7 +162,7 @@ def test_record_a_replay_gives_the_same_bag(bag: Path, tmp_path: Path, monkeypat
     out = tmp_path / "recorded.mcap"
     total = bag_info(bag).message_count
     args = ["-m", "monovoc_ros.cli", "record", "-o", str(out), *TOPICS.values()]
-    with RosProcess.python([*args, "--count", str(total), "--log-time", "header"], env, name="record") as rec:
+    with NodeProcess.python([*args, "--count", str(total), "--log-time", "header"], env, name="record") as rec:
         rec.wait_for_output("monovoc record: recording", timeout=30.0)
         summary = replay(bag, fast=True, wait_subscribers=1, wait_timeout=30.0)
         assert sum(summary.messages.values()) == total and not summary.unacked
@@ -186,7 +187,7 @@ def test_record_stops_on_ctrl_c_and_on_duration(tmp_path: Path, monkeypatch) -> 
     env = ros_environment(tmp_path)
     _use_ros_env(env, monkeypatch)
     out = tmp_path / "interrupted.mcap"
-    with RosProcess.python(["-m", "monovoc_ros.cli", "record", "-o", str(out), "/nobody/publishes"], env) as rec:
+    with NodeProcess.python(["-m", "monovoc_ros.cli", "record", "-o", str(out), "/nobody/publishes"], env) as rec:
         rec.wait_for_output("monovoc record: recording", timeout=30.0)
         assert rec.stop() == 0, rec.describe()
     summary = printed_summary(rec)

@@ -22,15 +22,8 @@ import msg_adapters as ma
 from monovoc_interfaces.msg import SemanticObjectArray
 from monovoc_ros.bags import BagWriter, bag_info, iter_messages
 from monovoc_ros.bags.schemas import type_hash, typestore
-from tests.rosutil import (
-    VENV,
-    VENV_PYTHON,
-    RosClientNode,
-    RosProcess,
-    ros_environment,
-    wait_for_subscribers,
-    wait_until,
-)
+from monovoc_ros.ros_harness import ClientNode, NodeProcess, wait_for_subscribers, wait_until
+from tests.rosutil import VENV, VENV_PYTHON, ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -99,7 +92,7 @@ def test_record_format_rosbag2_writes_a_bag_directory_rosbags_opens(tmp_path: Pa
     per_topic = 3
     total = per_topic * len(TYPES)
     args = ["-m", "monovoc_ros.cli", "record", "--format", "rosbag2", "-o", str(out), *TYPES, "--count", str(total)]
-    with RosProcess.python(args, env, name="record") as rec, RosClientNode(env) as client:
+    with NodeProcess.python(args, env, name="record") as rec, ClientNode(env) as client:
         latched = QoSProfile(
             depth=5, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
         )

@@ -25,8 +25,9 @@ import pytest
 from test_packaging import RVIZ, parse_launch, rviz_topics
 
 from monovoc_ros.embed import default_model_dir
+from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, wait_for_service, wait_until
 from tests.object_room import copy_directory, room_directory, room_id
-from tests.rosutil import REPO, RosClientNode, RosProcess, call_service, ros_environment, wait_for_service, wait_until
+from tests.rosutil import REPO, ros_environment
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -148,8 +149,8 @@ def test_the_installed_node_answers_a_query_and_publishes_what_rviz_shows(worksp
     copy_directory(room_directory(), Path(env["HOME"]) / "maps" / "office")
     node_command = node_line.removesuffix("&").strip()
     assert node_command.startswith("install/monovoc_ros/lib/monovoc_ros/semantic_mapper --ros-args ")
-    with RosProcess(workspace.sourced("exec " + node_command), env, name="installed_semantic_mapper") as node:
-        with RosClientNode(env) as client:
+    with NodeProcess(workspace.sourced("exec " + node_command), env, name="installed_semantic_mapper") as node:
+        with ClientNode(env) as client:
             service = client.node.create_client(TextQuery, "/monovoc/query")
             wait_for_service(service, 60.0, process=node)
             answer = call_service(service, TextQuery.Request(text="a sofa", top_k=3), 30.0, process=node)

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
-from rosutil import REPO, VENV, RosClientNode, RosProcess, call_service, ros_environment, wait_for_service
 
 from monovoc_interfaces.msg import SemanticObject, SemanticObjectArray
 from monovoc_interfaces.srv import LoadMap, Reset, SaveMap, TextQuery
+from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, wait_for_service
+from tests.rosutil import REPO, VENV, ros_environment
 
 SOURCE = REPO / "monovoc_interfaces"
 SERVICE = "/monovoc_test/text_query"
@@ -134,7 +135,7 @@ def test_text_query_between_two_processes(tmp_path: Path) -> None:
     env = ros_environment(tmp_path)
     script = tmp_path / "text_query_server.py"
     script.write_text(SERVER)
-    with RosProcess.python([script, SERVICE], env, name="text_query_server") as server, RosClientNode(env) as client:
+    with NodeProcess.python([script, SERVICE], env, name="text_query_server") as server, ClientNode(env) as client:
         cli = client.node.create_client(TextQuery, SERVICE)
         server.wait_for_output("ready", timeout=15.0)
         wait_for_service(cli, timeout=10.0, process=server)

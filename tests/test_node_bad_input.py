@@ -15,20 +15,20 @@ from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
-from tests.evidence import assert_same_evidence
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, small_scene
-from tests.rosutil import (
+from monovoc_ros.ros_harness import (
+    ClientNode,
     DiagnosticsMonitor,
     MessageCollector,
-    RosClientNode,
-    RosProcess,
+    NodeProcess,
     call_service,
     ros_args,
-    ros_environment,
     wait_for_service,
     wait_for_subscribers,
     wait_until,
 )
+from tests.evidence import assert_same_evidence
+from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, small_scene
+from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -112,8 +112,8 @@ def test_bad_messages_are_counted_and_change_nothing(tmp_path):
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
     with (
-        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        RosClientNode(env) as client,
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
     ):
         clouds = MessageCollector()
         client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())

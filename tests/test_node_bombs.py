@@ -14,8 +14,9 @@ import pytest
 
 import msg_adapters as ma
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
+from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, ros_args, wait_for_subscribers
 from tests.node_scene import NODE, scene_messages, small_scene
-from tests.rosutil import DiagnosticsMonitor, RosClientNode, RosProcess, ros_args, ros_environment, wait_for_subscribers
+from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -85,8 +86,8 @@ def test_bombs_are_refused_before_decoding(tmp_path):
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
     with (
-        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        RosClientNode(env) as client,
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
     ):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher = KeyframePublisher(client.node)

@@ -8,7 +8,8 @@ import pytest
 
 from monovoc_ros.bags import bag_info
 from monovoc_ros.embed import default_model_dir
-from tests.rosutil import REPO, DiagnosticsMonitor, RosClientNode, RosProcess, ros_environment, wait_until
+from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, wait_until
+from tests.rosutil import REPO, ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -21,11 +22,11 @@ def test_fast_replay_of_the_bundled_bag_with_the_shipped_yaml_loses_nothing(tmp_
     config = ["--params-file", str(REPO / "config" / "semantic_mapper.yaml")]
     config += ["--params-file", str(REPO / "config" / "object_query.yaml")]
     node_args = ["-m", "monovoc_ros.nodes.object_query", "--ros-args", *config, "-p", "diagnostics_period_s:=0.5"]
-    with RosProcess.python(node_args, env, name="semantic_mapper") as node, RosClientNode(env) as client:
+    with NodeProcess.python(node_args, env, name="semantic_mapper") as node, ClientNode(env) as client:
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         diagnostics.wait_for(lambda v: v["keyframes_processed"] == "0", 60.0, process=node)  # up and idle
         replay = ["-m", "monovoc_ros.cli", "replay", str(BAG), "--fast", "--wait-subscribers", "1"]
-        with RosProcess.python(replay, env, name="replay") as player:
+        with NodeProcess.python(replay, env, name="replay") as player:
             wait_until(lambda: player.returncode is not None, 120.0, "the replay to finish", process=node)
             assert player.returncode == 0, player.describe()
         done = diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(n), 120.0, process=node)

@@ -16,19 +16,19 @@ from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labe
 from monovoc_ros.core.palette import UNOBSERVED_ID, pack_rgb
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from monovoc_ros.nodes.qos import latched_qos
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
-from tests.rosutil import (
+from monovoc_ros.ros_harness import (
+    ClientNode,
     DiagnosticsMonitor,
     MessageCollector,
-    RosClientNode,
-    RosProcess,
+    NodeProcess,
     call_service,
     ros_args,
-    ros_environment,
     wait_for_service,
     wait_for_subscribers,
     wait_until,
 )
+from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
+from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -72,8 +72,8 @@ def test_live_node_matches_offline_mapping(tmp_path, scene):
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "labels_file": str(labels_file), "diagnostics_period_s": 0.2}
     with (
-        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        RosClientNode(env) as client,
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
     ):
         clouds, objects, markers = MessageCollector(), MessageCollector(), MessageCollector()
         client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())

@@ -17,18 +17,18 @@ import msg_adapters as ma
 from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
-from tests.evidence import assert_same_evidence
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, small_scene
-from tests.rosutil import (
+from monovoc_ros.ros_harness import (
+    ClientNode,
     DiagnosticsMonitor,
-    RosClientNode,
-    RosProcess,
+    NodeProcess,
     call_service,
     ros_args,
-    ros_environment,
     wait_for_service,
     wait_for_subscribers,
 )
+from tests.evidence import assert_same_evidence
+from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, small_scene
+from tests.rosutil import ros_environment
 from tests.test_node_bombs import jpeg_bomb, png_bomb
 
 pytestmark = pytest.mark.ros
@@ -227,8 +227,8 @@ def test_seeded_fuzz_corpus_changes_nothing(tmp_path):
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "input_depth": 1000}
     with (
-        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        RosClientNode(env) as client,
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
     ):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher = KeyframePublisher(client.node)

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase
+from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, ros_args, wait_for_service
 from tests.object_room import copy_directory, room_directory
-from tests.rosutil import RosClientNode, RosProcess, call_service, ros_args, wait_for_service
 from tests.test_query_service import NODE, _environment, _query
 
 pytestmark = pytest.mark.ros
@@ -99,7 +99,7 @@ def test_corrupt_snapshots_through_load_map(tmp_path):
     env = _environment(tmp_path)
     params = {"map_directory": str(directory), "resume": True, "save_period_s": 0.0, "diagnostics_period_s": 5.0,
               "labels_file": str(good / "labels.json")}  # fmt: skip
-    with RosProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, RosClientNode(env) as client:
+    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
         service = client.node.create_client(TextQuery, "/monovoc/query")
         load = client.node.create_client(LoadMap, "/monovoc/load_map")
         save = client.node.create_client(SaveMap, "/monovoc/save_map")
@@ -140,7 +140,7 @@ def test_resume_keeps_an_unreadable_objects_db_aside(tmp_path):
     damaged = (directory / DB_NAME).read_bytes()
     env = _environment(tmp_path)
     params = {"map_directory": str(directory), "resume": True, "save_period_s": 0.0, "diagnostics_period_s": 5.0}
-    with RosProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, RosClientNode(env) as client:
+    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
         save = client.node.create_client(SaveMap, "/monovoc/save_map")
         service = client.node.create_client(TextQuery, "/monovoc/query")
         for cli in (save, service):

@@ -11,18 +11,18 @@ import msg_adapters as ma
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
-from tests.evidence import assert_same_evidence
-from tests.node_scene import NODE, assemble, offline_mapper, scene_messages, small_scene
-from tests.rosutil import (
+from monovoc_ros.ros_harness import (
+    ClientNode,
     DiagnosticsMonitor,
-    RosClientNode,
-    RosProcess,
+    NodeProcess,
     call_service,
     ros_args,
-    ros_environment,
     wait_for_service,
     wait_for_subscribers,
 )
+from tests.evidence import assert_same_evidence
+from tests.node_scene import NODE, assemble, offline_mapper, scene_messages, small_scene
+from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -66,8 +66,8 @@ def test_map_updates_that_would_wipe_the_map_are_refused(tmp_path):
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
     with (
-        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        RosClientNode(env) as client,
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
     ):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher = KeyframePublisher(client.node)

@@ -9,17 +9,9 @@ import pytest
 import yaml
 
 from monovoc_ros.nodes.params import DEFAULTS, PARAMETERS, NodeParams, ParameterError, load_labels
+from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, ros_args, wait_for_service
 from tests.node_scene import NODE
-from tests.rosutil import (
-    REPO,
-    VENV_PYTHON,
-    RosClientNode,
-    RosProcess,
-    call_service,
-    ros_args,
-    ros_environment,
-    wait_for_service,
-)
+from tests.rosutil import REPO, VENV_PYTHON, ros_environment
 
 CONFIG = REPO / "config" / "semantic_mapper.yaml"
 
@@ -102,7 +94,7 @@ def test_params_file_loads_under_a_remapped_name_and_namespace(tmp_path):
     path.write_text(yaml.safe_dump(params))
     env = ros_environment(tmp_path)
     args = [*NODE, "--ros-args", "--params-file", str(path), "-r", "__node:=mapper2", "-r", "__ns:=/robot1"]
-    with RosProcess.python(args, env, name="semantic_mapper") as node, RosClientNode(env) as client:
+    with NodeProcess.python(args, env, name="semantic_mapper") as node, ClientNode(env) as client:
         get = client.node.create_client(GetParameters, "/robot1/mapper2/get_parameters")
         wait_for_service(get, timeout=20.0, process=node)
         response = call_service(get, GetParameters.Request(names=["queue_size", "metric", "marker_up"]), process=node)

@@ -14,16 +14,9 @@ from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.qos import latched_qos
+from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, MessageCollector, NodeProcess, ros_args, wait_until
 from tests.node_scene import NODE
-from tests.rosutil import (
-    DiagnosticsMonitor,
-    MessageCollector,
-    RosClientNode,
-    RosProcess,
-    ros_args,
-    ros_environment,
-    wait_until,
-)
+from tests.rosutil import ros_environment
 from tests.test_bags_ros import finish, replay_process
 
 pytestmark = pytest.mark.ros
@@ -51,8 +44,8 @@ def test_live_node_on_the_per_frame_bag_matches_offline_mapping(tmp_path):
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "mask_ids": "per_frame", "diagnostics_period_s": 0.2}
     with (
-        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        RosClientNode(env) as client,
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
     ):
         clouds, objects = MessageCollector(), MessageCollector()
         client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())

@@ -17,17 +17,17 @@ import pytest
 from monovoc_ros.core.map_store import current_snapshot, load_snapshot
 from monovoc_ros.core.votes import VoteState
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
-from tests.evidence import assert_same_evidence
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
-from tests.rosutil import (
+from monovoc_ros.ros_harness import (
+    ClientNode,
     DiagnosticsMonitor,
-    RosClientNode,
-    RosProcess,
+    NodeProcess,
     ros_args,
-    ros_environment,
     wait_for_subscribers,
     wait_until,
 )
+from tests.evidence import assert_same_evidence
+from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
+from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -55,11 +55,11 @@ def test_kill_9_loses_only_the_keyframes_since_the_last_snapshot(tmp_path):
               "publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}  # fmt: skip
     args = [*NODE, *ros_args(params)]
 
-    with RosClientNode(env, "client_1") as client:
+    with ClientNode(env, "client_1") as client:
         publisher = KeyframePublisher(client.node)
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher.publish_map(scene.gaussians)
-        with RosProcess.python(args, env, name="mapper_1") as node:
+        with NodeProcess.python(args, env, name="mapper_1") as node:
             for pub in publisher.all_publishers():
                 wait_for_subscribers(pub, timeout=20.0, process=node)
             for msgs in messages[:6]:
@@ -80,13 +80,13 @@ def test_kill_9_loses_only_the_keyframes_since_the_last_snapshot(tmp_path):
     assert load_snapshot(map_dir).n_keyframes == kept  # intact after SIGKILL
 
     # A fresh client: the killed node's participant would linger in the old one's graph.
-    with RosClientNode(env, "client_2") as client:
+    with ClientNode(env, "client_2") as client:
         publisher = KeyframePublisher(client.node)
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher.publish_map(scene.gaussians)  # the same map again (latched): must not disturb the state
         # No periodic snapshot this time: the one written at shutdown is the one checked below.
         resumed = [*NODE, *ros_args({**params, "save_period_s": 0.0})]
-        with RosProcess.python(resumed, env, name="mapper_2") as node:
+        with NodeProcess.python(resumed, env, name="mapper_2") as node:
             node.wait_for_output("resumed", 30.0)
             for pub in publisher.all_publishers():
                 wait_for_subscribers(pub, timeout=20.0, process=node)

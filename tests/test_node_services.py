@@ -14,19 +14,19 @@ from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.core.ply import save_ply
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
-from tests.rosutil import (
+from monovoc_ros.ros_harness import (
+    ClientNode,
     DiagnosticsMonitor,
     MessageCollector,
-    RosClientNode,
-    RosProcess,
+    NodeProcess,
     call_service,
     ros_args,
-    ros_environment,
     wait_for_service,
     wait_for_subscribers,
     wait_until,
 )
+from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
+from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -48,8 +48,8 @@ def test_services(tmp_path):
     env = ros_environment(tmp_path)
     params = {"map_directory": str(map_dir), "save_period_s": 0.0, "queue_size": 200, "diagnostics_period_s": 0.2}
     with (
-        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        RosClientNode(env) as client,
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
     ):
         clouds = MessageCollector()
         client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())

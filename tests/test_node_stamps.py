@@ -10,8 +10,9 @@ import pytest
 
 import msg_adapters as ma
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
+from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, ros_args, wait_for_subscribers
 from tests.node_scene import NODE, scene_messages, small_scene
-from tests.rosutil import DiagnosticsMonitor, RosClientNode, RosProcess, ros_args, ros_environment, wait_for_subscribers
+from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -23,8 +24,8 @@ def test_a_far_future_pose_does_not_block_mapping(tmp_path):
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
     with (
-        RosProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        RosClientNode(env) as client,
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
     ):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher = KeyframePublisher(client.node)

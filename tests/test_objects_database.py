@@ -20,8 +20,9 @@ from monovoc_ros.objects.database import (
 )
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex
 from monovoc_ros.objects.memory import TARGET_SEMANTIC_BYTES, measure_memory, semantic_memory
+from monovoc_ros.ros_harness import wait_until
 from tests.object_room import backend, room_labels, room_map
-from tests.rosutil import REPO, VENV_PYTHON, wait_until
+from tests.rosutil import REPO, VENV_PYTHON
 
 
 def test_round_trip_is_exact(tmp_path):

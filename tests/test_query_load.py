@@ -10,16 +10,16 @@ import pytest
 
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.query_load import open_loop_queries, query_client
-from tests.object_room import copy_directory, room, room_directory
-from tests.rosutil import (
+from monovoc_ros.ros_harness import (
+    ClientNode,
     DiagnosticsMonitor,
-    RosClientNode,
-    RosProcess,
+    NodeProcess,
     call_service,
     ros_args,
     wait_for_service,
     wait_for_subscribers,
 )
+from tests.object_room import copy_directory, room, room_directory
 from tests.test_query_service import NODE, _environment
 
 pytestmark = pytest.mark.ros
@@ -36,7 +36,7 @@ def test_no_query_is_lost_at_100_per_second_while_mapping(tmp_path):
     env = _environment(tmp_path)
     params = {"map_directory": str(directory), "resume": True, "save_period_s": 0.0, "diagnostics_period_s": 0.5,
               "labels_file": str(directory / "labels.json"), "publish_rate_hz": 2.0}  # fmt: skip
-    with RosProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, RosClientNode(env) as client:
+    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
         service = query_client(client.node)
         wait_for_service(service, 30.0, process=node)
         assert call_service(service, TextQuery.Request(text="warm up"), 30.0, process=node).success

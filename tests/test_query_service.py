@@ -20,19 +20,18 @@ from monovoc_ros.embed import default_model_dir
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase
-from tests.object_room import copy_directory, room, room_directory, room_id, room_map
-from tests.rosutil import (
-    VENV_PYTHON,
+from monovoc_ros.ros_harness import (
+    ClientNode,
     MessageCollector,
-    RosClientNode,
-    RosProcess,
+    NodeProcess,
     call_service,
     ros_args,
-    ros_environment,
     wait_for_service,
     wait_for_subscribers,
     wait_until,
 )
+from tests.object_room import copy_directory, room, room_directory, room_id, room_map
+from tests.rosutil import VENV_PYTHON, ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -68,7 +67,7 @@ def test_query_service_on_a_resumed_map(tmp_path):
         "query.top_k": 4,
         "diagnostics_period_s": 5.0,
     }
-    with RosProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, RosClientNode(env) as client:
+    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
         highlight, markers = MessageCollector(), MessageCollector()
         client.node.create_subscription(PointCloud2, "/monovoc/query/highlight", highlight, latched_qos())
         client.node.create_subscription(MarkerArray, "/monovoc/query/markers", markers, latched_qos())
@@ -144,7 +143,7 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
         "labels_file": str(labels_file),
         "diagnostics_period_s": 5.0,
     }
-    with RosProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, RosClientNode(env) as client:
+    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
         service = client.node.create_client(TextQuery, "/monovoc/query")
         wait_for_service(service, 30.0, process=node)
         before = _query(service, "a sofa", process=node)

@@ -4,7 +4,7 @@
     monovoc demo --bag bags/replica_office0.mcap --rate 1 --query "a chair" --query "a plant"
 
 Starts the `semantic_mapper` node with its object database and query service (python -m
-monovoc_ros.nodes.object_query) as a separate process, replays the bag into it with `monovoc replay`'s
+monovoc_ros.ros_harness.SEMANTIC_MAPPER) as a separate process, replays the bag into it with `monovoc replay`'s
 player, waits on /diagnostics until every keyframe is integrated and every object embedded, saves the map
 with the save_map service, asks the query service, and scores the semantic map against the bag's masks as
 `monovoc eval` does (the live cloud as discs; the saved map rendered through its Gaussians, with a figure).
@@ -22,13 +22,19 @@ import types
 from pathlib import Path
 from typing import Any
 
-from monovoc_ros.nodes.mapper_process import (
+from monovoc_ros.ros_harness import (
     NAMESPACE,
-    MapperClient,
-    MapperError,
-    MapperProcess,
+    SEMANTIC_MAPPER,
+    ClientNode,
+    CloudMonitor,
+    DiagnosticsMonitor,
+    HarnessError,
+    NodeProcess,
+    call_service,
+    keyframes_settled,
     loopback_environment,
-    settled,
+    ros_args,
+    wait_for_service,
 )
 
 DEFAULT_QUERIES = ("a sofa", "a television", "a potted plant", "the orange ball", "the small box on the table")
@@ -119,18 +125,26 @@ def run_demo(
     log_path = out / "semantic_mapper.log"
     print(f"[demo] starting semantic_mapper (log: {log_path})", flush=True)
     try:
-        with MapperProcess(params, log_path) as mapper, MapperClient() as client:
-            return _session(client, mapper.check, bag, out, n_keyframes, queries, rate, top_k, timeout)
-    except MapperError as exc:
+        command = ["-m", SEMANTIC_MAPPER, *ros_args(params)]
+        with (
+            NodeProcess.python(command, name="semantic_mapper", output_path=log_path) as mapper,
+            ClientNode() as client,
+        ):
+            return _session(client.node, mapper, bag, out, n_keyframes, queries, rate, top_k, timeout)
+    except HarnessError as exc:
         raise DemoError(str(exc)) from exc
 
 
-def _session(client, alive, bag, out, n_keyframes, queries, rate, top_k, timeout) -> Path:
+def _session(node, mapper, bag, out, n_keyframes, queries, rate, top_k, timeout) -> Path:
     from monovoc_interfaces.srv import SaveMap, TextQuery
     from monovoc_ros.bags import replay
 
-    query = client.service(TextQuery, f"{NAMESPACE}/query", timeout, alive)
-    save = client.service(SaveMap, f"{NAMESPACE}/save_map", timeout, alive)
+    diagnostics = DiagnosticsMonitor(node, "semantic mapping")
+    clouds = CloudMonitor(node)
+    query = node.create_client(TextQuery, f"{NAMESPACE}/query")
+    save = node.create_client(SaveMap, f"{NAMESPACE}/save_map")
+    for client in (query, save):
+        wait_for_service(client, timeout, process=mapper)
     how = "as fast as possible" if rate is None else f"at {rate:g}x the recorded rate"
     print(f"[demo] replaying {bag} ({n_keyframes} keyframes) {how}", flush=True)
     started: list[float] = []  # when the node had subscribed to every topic and publishing began
@@ -147,16 +161,18 @@ def _session(client, alive, bag, out, n_keyframes, queries, rate, top_k, timeout
     start = started[0]
     replay_s = time.monotonic() - start
 
-    diag = client.wait_diagnostics(lambda d: settled(d, n_keyframes), timeout, alive, "every keyframe integrated")
+    diag = diagnostics.wait_for(
+        lambda d: keyframes_settled(d, n_keyframes), timeout, what="every keyframe integrated", process=mapper
+    )
     mapped_s = time.monotonic() - start
     if int(diag["keyframes_processed"]) != n_keyframes:
         lost = {k: v for k, v in diag.items() if k.startswith(("sync_", "rejected")) and v != "0"}
         raise DemoError(f"{diag['keyframes_processed']} of {n_keyframes} keyframes integrated: {lost}")
-    diag = client.wait_diagnostics(
+    diag = diagnostics.wait_for(
         lambda d: int(d["objects.indexed"]) > 0 and int(d["objects.pending"]) == 0 and int(d["queue_length"]) == 0,
         timeout,
-        alive,
-        "every object embedded",
+        what="every object embedded",
+        process=mapper,
     )
     indexed_s = time.monotonic() - start
     print(
@@ -165,16 +181,16 @@ def _session(client, alive, bag, out, n_keyframes, queries, rate, top_k, timeout
         f"{diag['objects']} objects, {diag['objects.indexed']} embedded after {indexed_s:.1f} s",
         flush=True,
     )
-    saved = client.call(save, SaveMap.Request(), timeout, alive, resend_s=None)
+    saved = call_service(save, SaveMap.Request(), timeout, process=mapper, resend_s=None)
     if not saved.success:
         raise DemoError(f"save_map failed: {saved.message}")
 
     answers = []
     for text in queries:
-        answer = client.call(query, TextQuery.Request(text=text, top_k=top_k, min_score=-1.0), timeout, alive)
+        answer = call_service(query, TextQuery.Request(text=text, top_k=top_k, min_score=-1.0), timeout, process=mapper)
         answers.append(_print_answer(text, answer))
 
-    cloud = client.latest_cloud()
+    cloud = clouds.latest()
     if cloud is None:
         raise DemoError("no semantic cloud was received")
     evaluation = _render(bag, cloud, Path(saved.directory), out)

@@ -84,43 +84,31 @@ def _offline(args: argparse.Namespace) -> int:
 
 
 def _online(args: argparse.Namespace) -> int:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
     import msg_adapters as ma
     from monovoc_interfaces.srv import TextQuery
-    from monovoc_ros.nodes import service_call
+    from monovoc_ros.ros_harness import ClientNode, HarnessError, call_service, wait_for_service
 
     service = args.namespace.rstrip("/") + "/query"
-    context = rclpy.Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("monovoc_query_client", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    try:
-        client = node.create_client(TextQuery, service)
-        if not client.wait_for_service(timeout_sec=args.timeout):
+    with ClientNode(name="monovoc_query_client") as node:
+        client = node.node.create_client(TextQuery, service)
+        try:
+            wait_for_service(client, args.timeout)
+        except HarnessError:
             print(
                 f"monovoc query: service {service} is not available after {args.timeout:g} s (is the node running, "
-                f"e.g. python -m monovoc_ros.nodes.object_query, in this ROS_DOMAIN_ID?)",
+                f"e.g. ros2 run monovoc_ros semantic_mapper, in this ROS_DOMAIN_ID?)",
                 file=sys.stderr,
             )
             return 2
         request = TextQuery.Request(text=args.text, top_k=args.top_k, min_score=args.min_score)
-        response = service_call.call_service(
-            client, request, args.timeout, lambda s: executor.spin_once(timeout_sec=max(s, 0.0))
-        )
-        if response is None:
+        try:
+            response = call_service(client, request, args.timeout)
+        except HarnessError:
             print(f"monovoc query: no answer from {service} within {args.timeout:g} s", file=sys.stderr)
             return 2
-        objects = [ma.semantic_object_to_dict(o) for o in response.objects]
-        if response.success or args.json:
-            _print({"success": bool(response.success), "message": response.message, "objects": objects}, args.json)
-        else:
-            print(f"monovoc query: {response.message}", file=sys.stderr)
-        return 0 if response.success else 1
-    finally:
-        executor.shutdown(timeout_sec=2.0)
-        node.destroy_node()
-        context.try_shutdown()
+    objects = [ma.semantic_object_to_dict(o) for o in response.objects]
+    if response.success or args.json:
+        _print({"success": bool(response.success), "message": response.message, "objects": objects}, args.json)
+    else:
+        print(f"monovoc query: {response.message}", file=sys.stderr)
+    return 0 if response.success else 1

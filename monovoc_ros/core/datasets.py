@@ -487,7 +487,6 @@ class HiSlam2Sequence(Sequence):
         if match not in ("name", "order"):
             raise SequenceError(f"{self.root}: match must be 'name' or 'order', got {match!r}")
         stamps, self.poses = read_tum_traj(self.root / "traj_kf.txt")
-        self.keyframe_stamps = stamps  # the file's t column
         path = _require_file(self.root / "intrinsics.npy", "intrinsics.npy")
         try:
             k = np.load(path, allow_pickle=False).astype(np.float64).ravel()

@@ -65,11 +65,6 @@ class KeyframePublisher:
             if role in msgs:
                 self.publishers[role].publish(msgs[role])
 
-    def publish_keyframe(self, keyframe: Keyframe, **kwargs: Any) -> dict[str, Any]:
-        msgs = keyframe_messages(keyframe, **kwargs)
-        self.publish_messages(msgs)
-        return msgs
-
     def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int = 0, frame_id: str = "map") -> Any:
         msg = ma.gaussian_map_to_cloud(gaussians, frame_id=frame_id, stamp=stamp_ns)
         self.gaussians.publish(msg)

@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from monovoc_ros.synthetic.appearance import Appearance
 from monovoc_ros.synthetic.charts import CHART_KINDS, Chart
 from monovoc_ros.synthetic.contacts import CONTACT_EPS, contact_limits, contact_limits_reference, neighbour_lists
-from monovoc_ros.synthetic.primitives import Primitive, SurfaceSamples, pack
+from monovoc_ros.synthetic.primitives import Primitive, pack
 
 GRID_JITTER = 0.5  # fraction of a grid cell a sample may move: uniform-looking, yet no large gaps
 FLOATER_CLEARANCE = 0.10  # floaters keep this far from every surface, so they are unambiguous
@@ -355,16 +355,6 @@ def _sites(
     dirs = np.concatenate([p.dirs, cdirs], axis=1)
     return _Sites(p.points[keep], p.normals[keep], p.ta[keep], prim[keep], caps[keep], dirs[keep],
                   inward[keep])  # fmt: skip
-
-
-def visible_surface_samples(primitives: list[Primitive], spacing: float, rng: np.random.Generator):
-    """Jittered samples of every primitive's surface minus those inside or against another solid.
-
-    Returns (SurfaceSamples, primitive index per sample).
-    """
-    atlas = _Atlas(primitives)
-    s = _sites(atlas, _Contacts(primitives, 0.0), spacing, rng, 0.0, adaptive=False)
-    return SurfaceSamples(s.points, s.normals, s.tangents), s.primitive
 
 
 def _surface_sites_exact(
