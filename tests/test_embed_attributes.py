@@ -3,8 +3,11 @@
 import numpy as np
 import pytest
 
+from monovoc_ros.core.color import srgb_to_lab
 from monovoc_ros.embed.attributes import (
+    ALWAYS_BLACK_BELOW_L,
     BASIC_COLORS,
+    DARK_HUE_MIN_CHROMA,
     clean_class_name,
     color_names,
     combine,
@@ -114,3 +117,14 @@ def test_combine_is_unit_and_weighted():
 
 def test_basic_color_table_is_complete():
     assert set(BASIC_COLORS) == set(KNOWN_COLORS)
+
+
+def test_very_dark_pixels_keep_a_clear_hue():
+    # Pixels of office_0's (dimly exposed) blue recycling bin and black trash bin: both below L* 12, the
+    # first with chroma ~20, the second ~4; only the second is black.
+    navy_bin, black_bin = (19, 22, 48), (22, 17, 23)
+    lab = srgb_to_lab(np.array([navy_bin, black_bin]))
+    assert lab[:, 0].max() < ALWAYS_BLACK_BELOW_L
+    assert np.hypot(lab[0, 1], lab[0, 2]) > DARK_HUE_MIN_CHROMA > np.hypot(lab[1, 1], lab[1, 2])
+    assert color_names(np.array([navy_bin, black_bin], np.uint8)) == ["blue", "black"]
+    assert color_names(np.array([(3, 3, 3), (10, 4, 6)], np.uint8)) == ["black", "black"]  # noise in near-black

@@ -33,8 +33,10 @@ _CHROMATIC_PROTOTYPES: dict[str, tuple[tuple[int, int, int], ...]] = {
 ACHROMATIC_CHROMA = 12.0
 BLACK_BELOW_L = 25.0
 WHITE_ABOVE_L = 85.0
-# Anything this dark is black whatever its hue (a navy blue above it stays blue).
+# Anything this dark is black (a navy blue above it stays blue) unless it keeps a clear hue: in a dimly
+# exposed scene (Replica office_0) a blue recycling bin has L* 8.5 and chroma 15, a black bin chroma 4.5.
 ALWAYS_BLACK_BELOW_L = 12.0
+DARK_HUE_MIN_CHROMA = 15.0
 # Per-object pixel budget: colors are named per pixel and voted; an evenly strided subset is plenty.
 MAX_COLOR_PIXELS = 4096
 
@@ -79,7 +81,7 @@ def color_names(pixels: np.ndarray) -> list[str]:
     names[achromatic] = np.where(
         lightness[achromatic] < BLACK_BELOW_L, "black", np.where(lightness[achromatic] > WHITE_ABOVE_L, "white", "gray")
     )
-    names[lightness < ALWAYS_BLACK_BELOW_L] = "black"
+    names[(lightness < ALWAYS_BLACK_BELOW_L) & (chroma < DARK_HUE_MIN_CHROMA)] = "black"
     return names.tolist()
 
 
