@@ -68,6 +68,9 @@ def test_room_retrieval_by_mode_and_description():
     assert not soft["unanswerable"]
     sofa = next(q for q in soft["per_query"] if q["text"] == "a sofa")
     assert sofa["expected"] == [f"#{room_id('sofa'):06x}"]
+    # The map was saved with its labels: only the label-noun variant may name the objects by them.
+    assert "sofa" in labelled["descriptions"][sofa["expected"][0]]
+    assert "sofa" not in soft_desc["descriptions"][sofa["expected"][0]]
 
 
 def test_eval_retrieval_command_writes_a_report(tmp_path, capsys):

@@ -170,6 +170,9 @@ def evaluate_map(
     for mode in modes:
         if mode not in CROP_MODES:
             raise ValueError(f"unknown crop mode {mode!r}; choose from {CROP_MODES}")
+    # A variant without label nouns must not name objects either by the labels the map was saved with
+    # (labels.json or a segmenter's, restored as "given"): imagenet labels are re-derived on refresh.
+    unlabelled = [dataclasses.replace(r, label="", label_source="imagenet") for r in records]
     variants = []
     for mode in modes:
         for weight in description_weights:
@@ -184,7 +187,7 @@ def evaluate_map(
                 index = ObjectIndex(backend, config)
                 # Shared view objects: each mode's crops are embedded once for all its variants.
                 index.restore(
-                    records,
+                    records if nouns else unlabelled,
                     views,
                     observations=db.observations(),
                     floor=float(meta.get("floor") or 0.0),
