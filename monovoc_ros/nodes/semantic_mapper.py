@@ -45,6 +45,7 @@ import msg_adapters as ma
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.ply import load_ply
+from monovoc_ros.core.session import KeyframeListener
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
 from monovoc_ros.nodes.outputs import SemanticOutputs
@@ -52,7 +53,7 @@ from monovoc_ros.nodes.params import PARAMETERS, NodeParams, ParameterError
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
-from monovoc_ros.nodes.worker import KeyframeListener, MapWorker, ResultListener, WorkerSettings, WorkerStopped
+from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
 DEFAULT_NAMESPACE = "/monovoc"
@@ -366,7 +367,7 @@ class SemanticMapperNode(Node):
         from diagnostic_msgs.msg import DiagnosticArray
 
         snapshot = self.stats.snapshot()
-        snapshot["queue_length"] = self.worker.queue.keyframes
+        snapshot["queue_length"] = self.worker.keyframes_waiting
         snapshot["inputs_waiting"] = len(self._reorder)
         snapshot["inputs_released_early"] = self._reorder.released_early
         with self._ingest_lock:
