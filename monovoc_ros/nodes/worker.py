@@ -219,7 +219,8 @@ class MapWorker:
 
     @property
     def keyframes_waiting(self) -> int:
-        """Keyframes not integrated yet: queued, or held by the session until there is a map."""
+        """Keyframes not integrated yet: queued, or held by the session until there is a map (any thread:
+        both are lengths of containers only the worker thread and the queue lock change)."""
         return self.queue.keyframes + self.session.waiting
 
     def add_keyframe_listener(self, fn: KeyframeListener) -> None:
