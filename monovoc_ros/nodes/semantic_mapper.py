@@ -2,8 +2,9 @@
 
 A thin adapter. Subscription callbacks validate and synchronize messages with the same KeyframeAssembler
 that offline bag processing uses (so both give identical keyframes) and queue completed keyframes and
-Gaussian maps for the `MapWorker` thread, which owns the SemanticMapper, integrates, publishes the
-semantic cloud / objects / markers and saves snapshots (monovoc_ros.nodes.worker). Services queue their
+Gaussian maps for the `MapWorker` thread, which runs the same MappingSession as offline mapping
+(monovoc_ros.core.session: the SemanticMapper and its life), publishes the semantic cloud / objects /
+markers and saves snapshots (monovoc_ros.nodes.worker). Services queue their
 operations on the same worker, so they apply in order with keyframes, while separate callback groups on a
 MultiThreadedExecutor keep callbacks and services responsive during a long integration.
 
