@@ -101,7 +101,7 @@ def run(source: str, config_name: str, jpeg: int | None) -> dict:
         "mismatch_nonwhite": round(100 * float(result["mismatch_nonwhite"]), 2),
         "objects": len(ious),
         "worst_objects": {f"{k:06x}": round(100 * float(v), 1) for k, v in sorted(ious.items(), key=_second)[:5]},
-        "keyframes": stats.keyframes,
+        "keyframes": stats.keyframes_processed,
         "mapping_s": round(mapping_s, 1),
     }
 

@@ -17,7 +17,6 @@ import numpy as np
 import msg_adapters as ma
 from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.datasets import instance_palette
-from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import VOID_RGB
 from monovoc_ros.core.sync import StampSynchronizer
@@ -261,28 +260,3 @@ class KeyframeAssembler:
             self._camera_sizes.remove((cam_w, cam_h))
         self._camera_sizes.append((cam_w, cam_h))
         return keyframe
-
-
-def removed_gaussians(old: GaussianMap, new: GaussianMap) -> tuple[int, int]:
-    """(Gaussians of `old` that `new` removes, len(old)): by id when both maps have ids, else by count.
-    Moved Gaussians are not removed, with or without ids (a loop closure keeps its map)."""
-    if old.ids is not None and new.ids is not None:
-        return int((~np.isin(old.ids, new.ids)).sum()), len(old)
-    return max(0, len(old) - len(new)), len(old)
-
-
-def map_update_refusal(old: GaussianMap | None, new: GaussianMap, max_shrink: float) -> tuple[str, str] | None:
-    """(reason, detail) when a Gaussian map must not replace `old` (the live node and offline bag mapping
-    apply the same rule): empty_gaussians for a map without Gaussians, map_shrink when it removes more than
-    `max_shrink` of old's Gaussians (1.0 allows everything); None when it may."""
-    if len(new) == 0:
-        return "empty_gaussians", "it has no Gaussians (the map in use is kept)"
-    if old is None or max_shrink >= 1.0:
-        return None
-    removed, total = removed_gaussians(old, new)
-    if removed > max_shrink * total:
-        return "map_shrink", (
-            f"it removes {removed} of {total} Gaussians ({removed / total:.0%} > map_update_max_shrink "
-            f"{max_shrink:g}); set map_update_max_shrink to 1 to allow it, or reset the map"
-        )
-    return None

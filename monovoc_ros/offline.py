@@ -1,7 +1,9 @@
-"""Offline mapping: a dataset sequence or a recorded bag through a SemanticMapper, no ROS graph.
+"""Offline mapping: a dataset sequence or a recorded bag through a MappingSession, no ROS graph.
 
-Bags go through the same KeyframeAssembler (via `monovoc_ros.bags.bag_events`) and the same map-update
-rule as the live node, so `monovoc map --bag` and a live replay give the same semantic map.
+The live node's worker is a thread around the same session (monovoc_ros.core.session), and bags go
+through the same KeyframeAssembler (via `monovoc_ros.bags.bag_events`), so `monovoc map --bag` and a live
+replay give the same semantic map: keyframes wait for the first map, unchanged maps are skipped, maps
+removing more than `max_shrink` of the Gaussians refused, duplicate stamps refused, all counted alike.
 """
 
 from __future__ import annotations
@@ -9,8 +11,7 @@ from __future__ import annotations
 import statistics
 import sys
 import time
-from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from tqdm import tqdm
@@ -18,28 +19,26 @@ from tqdm import tqdm
 from monovoc_ros.core.datasets import Sequence, open_sequence
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.mapping import DuplicateKeyframeError, MapperConfig, SemanticMapper
-from monovoc_ros.ingest import map_update_refusal
-
-KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.session import DEFAULT_MAX_SHRINK, KeyframeListener, MappingSession, SessionStats
 
 
 @dataclass
-class RunStats:
-    keyframes: int = 0
-    seconds: list[float] = field(default_factory=list)  # SCD integration time per keyframe
-    rejected: Counter = field(default_factory=Counter)  # reason -> count
-    map_updates: int = 0
+class RunStats(SessionStats):
+    """The session's counters and the timing of an offline run."""
+
+    seconds: list[float] = field(default_factory=list)  # integration time per keyframe
     wall_seconds: float = 0.0
 
     def summary(self) -> dict:
         ms = [1e3 * s for s in self.seconds]
         return {
-            "keyframes": self.keyframes,
+            "keyframes": self.keyframes_processed,
             "ms_per_keyframe_mean": round(statistics.fmean(ms), 2) if ms else None,
             "ms_per_keyframe_median": round(statistics.median(ms), 2) if ms else None,
             "rejected": dict(self.rejected),
             "map_updates": self.map_updates,
+            "maps_unchanged": self.maps_unchanged,
             "wall_seconds": round(self.wall_seconds, 2),
         }
 
@@ -69,16 +68,9 @@ def map_sequence(
     gaussians = sequence.load_gaussians()
     if gaussians is None:
         raise ValueError(f"{sequence.name}: the sequence has no Gaussian map (give one with --gaussians)")
-    mapper = SemanticMapper(gaussians, config)
     n = len(sequence) if max_keyframes is None else min(len(sequence), max_keyframes)
-    stats = RunStats()
-    start = time.perf_counter()
-    with _progress(n, progress, "SCD") as bar:
-        for i in range(n):
-            _integrate(mapper, sequence.keyframe(i), stats, on_keyframe)
-            bar.update()
-    stats.wall_seconds = time.perf_counter() - start
-    return mapper, stats
+    events = (gaussians, *(sequence.keyframe(i) for i in range(n)))
+    return _run(events, config, DEFAULT_MAX_SHRINK, None, progress, n, on_keyframe)
 
 
 def map_events(
@@ -86,51 +78,16 @@ def map_events(
     config: MapperConfig | None = None,
     *,
     max_keyframes: int | None = None,
-    max_shrink: float = 0.5,
+    max_shrink: float = DEFAULT_MAX_SHRINK,
     progress: bool = False,
     on_keyframe: KeyframeListener | None = None,
 ) -> tuple[SemanticMapper, RunStats]:
-    """Drives a mapper with bag events (GaussianMap, Keyframe or rejection objects) in order.
-
-    The first map creates the mapper; later maps are SLAM updates. Keyframes that come before any map
-    wait for it, as they do in the live node's queue. `max_keyframes` stops after that many integrated.
-    Maps the live node refuses (empty, or removing more than `max_shrink` of the Gaussians) are refused and
-    counted the same way.
+    """Drives a MappingSession with bag events (GaussianMap, Keyframe or rejection objects) in order, as the
+    live node's worker does: the first map creates the mapper, later maps are SLAM updates (unchanged ones
+    skipped, those removing more than `max_shrink` of the Gaussians refused), keyframes before any map wait
+    for it. `max_keyframes` stops after that many integrated.
     """
-    mapper: SemanticMapper | None = None
-    waiting: list[Keyframe] = []
-    stats = RunStats()
-    start = time.perf_counter()
-    with _progress(None, progress, "SCD") as bar:
-        for event in events:
-            if max_keyframes is not None and stats.keyframes >= max_keyframes:
-                break
-            if isinstance(event, GaussianMap):
-                refusal = map_update_refusal(mapper.gaussians if mapper else None, event, max_shrink)
-                if refusal is not None:  # as the live node refuses it
-                    stats.rejected[refusal[0]] += 1
-                    continue
-                if mapper is None:
-                    mapper = SemanticMapper(event, config)
-                else:
-                    mapper.update_gaussians(event)
-                    stats.map_updates += 1
-                for keyframe in waiting[: None if max_keyframes is None else max(0, max_keyframes - stats.keyframes)]:
-                    _integrate(mapper, keyframe, stats, on_keyframe)
-                    bar.update()
-                waiting.clear()
-            elif isinstance(event, Keyframe):
-                if mapper is None:
-                    waiting.append(event)
-                else:
-                    _integrate(mapper, event, stats, on_keyframe)
-                    bar.update()
-            else:
-                stats.rejected[getattr(event, "reason", "rejected")] += 1
-    if mapper is None:
-        raise ValueError("the bag holds no Gaussian map message")
-    stats.wall_seconds = time.perf_counter() - start
-    return mapper, stats
+    return _run(events, config, max_shrink, max_keyframes, progress, None, on_keyframe)
 
 
 def map_bag(path: str, config: MapperConfig | None = None, ingest_config=None, **kwargs):
@@ -139,13 +96,40 @@ def map_bag(path: str, config: MapperConfig | None = None, ingest_config=None, *
     return map_events(bag_events(path, ingest_config), config, **kwargs)
 
 
-def _integrate(mapper: SemanticMapper, keyframe: Keyframe, stats: RunStats, on_keyframe) -> None:
-    try:
-        report = mapper.integrate(keyframe)
-    except DuplicateKeyframeError:
-        stats.rejected["duplicate_stamp"] += 1  # as the live node counts it
-        return
-    stats.keyframes += 1
-    stats.seconds.append(report.seconds)
+def _run(
+    events: Iterable[object],
+    config: MapperConfig | None,
+    max_shrink: float,
+    max_keyframes: int | None,
+    progress: bool,
+    total: int | None,
+    on_keyframe: KeyframeListener | None,
+) -> tuple[SemanticMapper, RunStats]:
+    stats = RunStats()
+    session = MappingSession(config, max_shrink=max_shrink, stats=stats)
     if on_keyframe is not None:
-        on_keyframe(report.keyframe or keyframe, mapper)  # per-frame mask ids: the mask in object colors
+        session.add_keyframe_listener(on_keyframe)
+
+    def room() -> bool:
+        return max_keyframes is None or stats.keyframes_processed < max_keyframes
+
+    start = time.perf_counter()
+    with _progress(total, progress, "SCD") as bar:
+        for event in events:
+            if isinstance(event, GaussianMap):
+                session.add_map(event)
+            elif isinstance(event, Keyframe):
+                session.add_keyframe(event)
+            else:
+                stats.reject(getattr(event, "reason", "rejected"))
+            while session.keyframes_ready and room():
+                report = session.integrate_next()
+                if report is not None:
+                    stats.seconds.append(report.seconds)
+                    bar.update()
+            if not room():  # stop reading: a map update after the last keyframe must not apply either
+                break
+    if session.mapper is None:
+        raise ValueError(f"no Gaussian map was given, or every one was refused (rejected: {dict(stats.rejected)})")
+    stats.wall_seconds = time.perf_counter() - start
+    return session.mapper, stats

@@ -203,7 +203,7 @@ def test_corrupted_messages_are_rejected_and_the_stream_continues(scene, bag: Pa
     rejections = [(e.reason, e.role) for e in events if isinstance(e, Rejection)]
     assert rejections == [
         ("bad_mask", "mask"),
-        ("bad_map", "gaussians"),
+        ("bad_gaussians", "gaussians"),
         ("bad_pose", "pose"),
         ("bad_camera_info", "camera_info"),
     ]

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map_store import current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
-from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped, same_geometry
+from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped
 from tests.evidence import assert_same_evidence
 
 CAM = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
@@ -86,7 +86,7 @@ def test_queue_drops_the_oldest_keyframe_and_never_maps_or_calls():
     dropped = q.put_keyframe(keyframe(3))
     assert dropped is not None and dropped.stamp_ns == 1
     assert q.keyframes == 2 and len(q) == 4
-    kinds = [q.take(True, 0).kind for _ in range(4)]
+    kinds = [q.take(0).kind for _ in range(4)]
     assert kinds == ["map", "call", "keyframe", "keyframe"]
     assert not future.done()
 
@@ -98,18 +98,24 @@ def test_consecutive_maps_coalesce_but_not_across_keyframes():
     assert q.put_map(b)  # replaces a
     q.put_keyframe(keyframe(1))
     assert not q.put_map(c)
-    tasks = [q.take(True, 0) for _ in range(3)]
+    tasks = [q.take(0) for _ in range(3)]
     assert [t.kind for t in tasks] == ["map", "keyframe", "map"]
     assert tasks[0].payload is b and tasks[2].payload is c
 
 
 def test_without_a_map_keyframes_wait_and_other_tasks_pass():
-    q = TaskQueue(4)
-    q.put_keyframe(keyframe(1))
-    q.put_call(lambda: None)
-    assert q.take(False, 0).kind == "call"
-    assert q.take(False, 0) is None  # only a keyframe left, not runnable without a map
-    assert q.take(True, 0).kind == "keyframe"
+    worker, _, _ = make_worker()
+    worker.submit_keyframe(keyframe(1))
+    worker.start()
+    try:
+        assert worker.submit(lambda mapper: mapper).result(5) is None  # ran behind the waiting keyframe
+        assert worker.keyframes_waiting == 1 and worker.stats.keyframes_processed == 0
+        worker.submit_map(plane_map())
+        drain(worker, timeout=30.0)  # the first integration may load the rasterizer's kernels
+        assert worker.submit(lambda mapper: mapper.state.stamps_ns.tolist()).result(5) == [1]
+        assert worker.keyframes_waiting == 0
+    finally:
+        worker.stop()
 
 
 def test_worker_integrates_in_order_like_an_offline_mapper():

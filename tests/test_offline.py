@@ -94,11 +94,11 @@ def test_bag_event_driver_waits_for_the_map_and_applies_updates(scene):
     # Keyframes before the map wait for it; a rejection is counted; order of evidence does not matter.
     events = [keyframes[0], Rejection("bad_pose", "pose", 1, "nan"), scene.gaussians, *keyframes[1:]]
     mapper, stats = map_events(events, MapperConfig())
-    assert stats.keyframes == len(keyframes) and stats.rejected == {"bad_pose": 1}
+    assert stats.keyframes_processed == len(keyframes) and stats.rejected == {"bad_pose": 1}
     assert_same_evidence(mapper.state, full.state, rtol=1e-12, atol=1e-12)
     # A duplicate keyframe is refused and counted, as in the live node.
     mapper, stats = map_events([scene.gaussians, keyframes[0], keyframes[0]], MapperConfig())
-    assert stats.keyframes == 1 and stats.rejected == {"duplicate_stamp": 1}
+    assert stats.keyframes_processed == 1 and stats.rejected == {"duplicate_stamp": 1}
     # A map update halfway (some Gaussians pruned) keeps the evidence of the survivors (ids).
     keep = np.arange(len(scene.gaussians)) % 10 != 0
     pruned = scene.gaussians.subset(keep)

@@ -6,7 +6,7 @@ The topic contract is in ``topics``.
 """
 
 from monovoc_ros.bags.convert import ConvertReport, sequence_to_bag
-from monovoc_ros.bags.events import BAD_MAP, bag_events
+from monovoc_ros.bags.events import BAD_GAUSSIANS, bag_events
 from monovoc_ros.bags.reader import BagError, BagInfo, BagMessage, TopicInfo, bag_info, bag_metadata, iter_messages
 from monovoc_ros.bags.topics import (
     CAMERA_FRAME,
@@ -38,7 +38,7 @@ def __getattr__(name: str):
 
 
 __all__ = [
-    "BAD_MAP",
+    "BAD_GAUSSIANS",
     "CAMERA_FRAME",
     "DEFAULT_NAMESPACE",
     "LABELS_METADATA",

@@ -2,7 +2,7 @@
 
 Keyframe messages go through the same ``KeyframeAssembler`` as in the live node, so offline results
 equal those of a replay into the node. A map message that does not convert is yielded as a
-``Rejection`` with reason ``bad_map`` (role ``gaussians``); the stream goes on.
+``Rejection`` with reason ``bad_gaussians`` (role ``gaussians``); the stream goes on.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.ingest import IngestConfig, KeyframeAssembler, Rejection
 
-BAD_MAP = "bad_map"
+BAD_GAUSSIANS = "bad_gaussians"  # as the live node counts an unreadable map
 BagEvent = GaussianMap | Keyframe | Rejection
 
 
@@ -54,7 +54,7 @@ def bag_events(
             try:
                 yield ma.cloud_to_gaussian_map(decoded)
             except ValueError as exc:
-                yield Rejection(BAD_MAP, MAP_ROLE, _stamp_or_none(decoded), str(exc))
+                yield Rejection(BAD_GAUSSIANS, MAP_ROLE, _stamp_or_none(decoded), str(exc))
             continue
         keyframes, rejections = assembler.push(role, decoded)
         yield from rejections
@@ -71,7 +71,7 @@ def _stamp_or_none(msg) -> int | None:
 def _undecodable(assembler: KeyframeAssembler, role: str, log_time_ns: int, exc: Exception) -> Iterator[Rejection]:
     detail = f"undecodable CDR ({type(exc).__name__}: {exc})"
     if role == MAP_ROLE:
-        yield Rejection(BAD_MAP, MAP_ROLE, log_time_ns, detail)
+        yield Rejection(BAD_GAUSSIANS, MAP_ROLE, log_time_ns, detail)
         return
     # Counted like any other bad message of that role, as the live node would (its rmw drops it).
     reason = {"image": "bad_image", "mask": "bad_mask", "camera_info": "bad_camera_info", "pose": "bad_pose"}[role]

@@ -102,3 +102,32 @@ class GaussianMap:
     def nbytes(self) -> int:
         arrays = [self.means, self.scales, self.quats, self.opacities, self.colors, self.ids, self.semantics]
         return sum(a.nbytes for a in arrays if a is not None) + sum(v.nbytes for v in self.extra.values())
+
+
+def same_geometry(a: GaussianMap, b: GaussianMap) -> bool:
+    """True when two maps are the same Gaussians (SLAM re-publishing an unchanged map, or the map a
+    resumed snapshot was built from): applying it as an update would change nothing."""
+    if a is b:
+        return True
+    if len(a) != len(b) or (a.ids is None) != (b.ids is None):
+        return False
+    if a.ids is not None and not np.array_equal(a.ids, b.ids):
+        return False
+    if not (np.array_equal(a.means, b.means) and np.array_equal(a.scales, b.scales)):
+        return False
+    if not np.array_equal(a.opacities, b.opacities):
+        return False
+    # Quaternions are re-normalized and colors re-encoded (f_dc) on every trip: equal up to rounding.
+    if not np.allclose(a.quats, b.quats, rtol=0, atol=1e-6):
+        return False
+    if (a.colors is None) != (b.colors is None):
+        return False
+    return a.colors is None or np.allclose(a.colors, b.colors, rtol=0, atol=1e-5)
+
+
+def removed_gaussians(old: GaussianMap, new: GaussianMap) -> tuple[int, int]:
+    """(Gaussians of `old` that `new` removes, len(old)): by id when both maps have ids, else by count.
+    Moved Gaussians are not removed, with or without ids (a loop closure keeps its map)."""
+    if old.ids is not None and new.ids is not None:
+        return int((~np.isin(old.ids, new.ids)).sum()), len(old)
+    return max(0, len(old) - len(new)), len(old)

@@ -11,70 +11,33 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 from typing import Any
 
+from monovoc_ros.core.session import SESSION_REASONS, SessionStats
 from monovoc_ros.ingest import REASONS
 
-# Rejections the mapper itself adds to the ingest reasons (monovoc_ros.ingest.REASONS):
-#   duplicate_stamp     a keyframe whose stamp is already in the state (e.g. replayed after a resume);
-#                       counted under the same name as the ingest reason, as `monovoc map` counts it
-#   integration_error   the rasterizer refused a keyframe (state untouched)
+# Rejections the mapper adds to the ingest reasons (monovoc_ros.ingest.REASONS): the session's
+# (monovoc_ros.core.session.SESSION_REASONS) and
 #   bad_gaussians       a Gaussian map cloud that cannot be read (missing fields, NaN, a header that lies, ...)
-#   empty_gaussians     a Gaussian map without a single Gaussian (the map in use is kept)
-#   map_shrink          a map update that would remove more than map_update_max_shrink of the Gaussians
-MAPPER_REASONS = ("integration_error", "bad_gaussians", "empty_gaussians", "map_shrink")
+MAPPER_REASONS = (*SESSION_REASONS, "bad_gaussians")
 ALL_REASONS = REASONS + MAPPER_REASONS
 
 
 @dataclass
-class MapperStats:
+class MapperStats(SessionStats):
+    """The session's counters (monovoc_ros.core.session.SessionStats) and those of the node around it."""
+
     keyframes_received: int = 0  # keyframes completed by the KeyframeAssembler
-    keyframes_processed: int = 0  # integrated into the semantic state
-    keyframes_dropped: int = 0  # pushed out of the full worker queue (oldest first)
     queue_length: int = 0  # keyframes waiting for the worker
-    ms_per_keyframe_last: float = 0.0  # SCD integration time
-    ms_per_keyframe_total: float = 0.0
     publish_ms_last: float = 0.0  # result + outputs
     objects: int = 0
     observed_gaussians: int = 0
-    gaussians: int = 0
-    has_map: bool = False
-    map_version: int = 0
-    map_updates: int = 0  # maps applied with update_gaussians
     maps_coalesced: int = 0  # pending maps replaced by a newer one before being applied
-    maps_unchanged: int = 0  # maps identical to the current one (skipped)
-    snapshots_saved: int = 0
     snapshot_errors: int = 0
     publishes: int = 0
-    last_stamp_ns: int = 0  # newest integrated keyframe
     worker_errors: int = 0
     service_errors: int = 0  # service callbacks that failed unexpectedly (answered success=false)
-    rejected: Counter = field(default_factory=Counter)
-    lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
-
-    def update(self, **values: Any) -> None:
-        with self.lock:
-            for key, value in values.items():
-                setattr(self, key, value)
-
-    def add(self, **increments: float) -> None:
-        with self.lock:
-            for key, value in increments.items():
-                setattr(self, key, getattr(self, key) + value)
-
-    def reject(self, reason: str, count: int = 1) -> None:
-        with self.lock:
-            self.rejected[reason] += count
-
-    def snapshot(self) -> dict[str, Any]:
-        """A consistent copy of every counter (plus the derived mean time per keyframe)."""
-        with self.lock:
-            out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("lock", "rejected")}
-            out["rejected"] = dict(self.rejected)
-        processed = out["keyframes_processed"]
-        out["ms_per_keyframe_mean"] = out.pop("ms_per_keyframe_total") / processed if processed else 0.0
-        return out
 
 
 def diagnostic_status(stats: dict[str, Any], *, name: str, hardware_id: str, extra: dict[str, Any] | None = None):

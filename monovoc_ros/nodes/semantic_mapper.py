@@ -2,8 +2,9 @@
 
 A thin adapter. Subscription callbacks validate and synchronize messages with the same KeyframeAssembler
 that offline bag processing uses (so both give identical keyframes) and queue completed keyframes and
-Gaussian maps for the `MapWorker` thread, which owns the SemanticMapper, integrates, publishes the
-semantic cloud / objects / markers and saves snapshots (monovoc_ros.nodes.worker). Services queue their
+Gaussian maps for the `MapWorker` thread, which runs the same MappingSession as offline mapping
+(monovoc_ros.core.session: the SemanticMapper and its life), publishes the semantic cloud / objects /
+markers and saves snapshots (monovoc_ros.nodes.worker). Services queue their
 operations on the same worker, so they apply in order with keyframes, while separate callback groups on a
 MultiThreadedExecutor keep callbacks and services responsive during a long integration.
 
@@ -45,6 +46,7 @@ import msg_adapters as ma
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.ply import load_ply
+from monovoc_ros.core.session import KeyframeListener
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
 from monovoc_ros.nodes.outputs import SemanticOutputs
@@ -52,7 +54,7 @@ from monovoc_ros.nodes.params import PARAMETERS, NodeParams, ParameterError
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
-from monovoc_ros.nodes.worker import KeyframeListener, MapWorker, ResultListener, WorkerSettings, WorkerStopped
+from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
 DEFAULT_NAMESPACE = "/monovoc"
@@ -366,7 +368,7 @@ class SemanticMapperNode(Node):
         from diagnostic_msgs.msg import DiagnosticArray
 
         snapshot = self.stats.snapshot()
-        snapshot["queue_length"] = self.worker.queue.keyframes
+        snapshot["queue_length"] = self.worker.keyframes_waiting
         snapshot["inputs_waiting"] = len(self._reorder)
         snapshot["inputs_released_early"] = self._reorder.released_early
         with self._ingest_lock:

@@ -1,13 +1,15 @@
-"""The mapping worker: one thread that owns the SemanticMapper and applies every state change in order.
+"""The mapping worker: one thread and one task queue around the MappingSession (monovoc_ros.core.session),
+which owns the SemanticMapper and the rules of its life; the worker applies every state change in order.
 
 Subscription and service callbacks never touch the mapper; they put tasks into one queue:
 
 * keyframes: bounded (`queue_size`); when full, the OLDEST waiting keyframe is dropped and counted.
-  Keyframes that arrive before any Gaussian map wait in the queue (tasks behind them still run).
+  The session keeps keyframes that come before any Gaussian map (the newest `queue_size` of them) until
+  one arrives; tasks behind them still run.
 * Gaussian maps from the SLAM front-end: never dropped; a map that directly follows another pending map
-  replaces it (only the newest of consecutive updates matters: no keyframe lies between them). A map
-  without Gaussians, or one removing more than `map_update_max_shrink` of them, is refused and counted
-  (monovoc_ros.ingest.map_update_refusal): one empty cloud must not wipe the map.
+  replaces it (only the newest of consecutive updates matters: no keyframe lies between them). The session
+  skips unchanged maps and refuses (and counts) a map without Gaussians or one removing more than
+  `map_update_max_shrink` of them: one empty cloud must not wipe the map.
 * calls (services, plugins): never dropped; run in arrival order with the rest, results via a Future.
   `load` reads and checks everything (the snapshot, then each load check such as objects.db) before it
   swaps anything in, so a failed load changes nothing.
@@ -35,26 +37,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-import numpy as np
-
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.map_store import SnapshotInfo, load_snapshot, save_snapshot
+from monovoc_ros.core.map_store import SnapshotInfo
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
 from monovoc_ros.core.objects import summarize_objects
-from monovoc_ros.core.ply import load_ply
-from monovoc_ros.ingest import map_update_refusal
+from monovoc_ros.core.session import (
+    DEFAULT_MAX_SHRINK,
+    KeyframeListener,
+    LoadCheck,
+    Logger,
+    MappingSession,
+    SaveListener,
+)
 from monovoc_ros.nodes.diagnostics import MapperStats
 
-KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
-LoadCheck = Callable[[str, SemanticMapper], "Callable[[], None] | None"]
-
-
-class Logger(Protocol):
-    def info(self, msg: str) -> Any: ...
-    def warning(self, msg: str) -> Any: ...
-    def error(self, msg: str) -> Any: ...
 
 
 class OutputSink(Protocol):
@@ -77,7 +75,7 @@ class WorkerSettings:
     save_period_s: float = 30.0  # 0 = no periodic snapshots
     # A map update removing a larger share of the Gaussians (by id when both maps have ids, else by count) is
     # refused and counted (map_shrink): one empty or truncated cloud must not wipe the map. 1.0 = allow all.
-    map_update_max_shrink: float = 0.5
+    map_update_max_shrink: float = DEFAULT_MAX_SHRINK
 
 
 @dataclass
@@ -144,25 +142,13 @@ class TaskQueue:
             self._cond.notify()
         return future
 
-    def runnable(self, has_map: bool) -> bool:
-        with self._cond:
-            return self._index(has_map) is not None
-
-    def _index(self, has_map: bool) -> int | None:
-        if has_map:
-            return 0 if self._tasks else None
-        # Without a map keyframes wait; maps and calls behind them go first.
-        return next((i for i, t in enumerate(self._tasks) if t.kind != "keyframe"), None)
-
-    def take(self, has_map: bool, timeout: float | None) -> _Task | None:
-        """The next runnable task, waiting up to `timeout` s (None: until one comes or the queue closes)."""
+    def take(self, timeout: float | None) -> _Task | None:
+        """The oldest task, waiting up to `timeout` s (None: until one comes or the queue closes)."""
         deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
         with self._cond:
             while not self._closed:
-                i = self._index(has_map)
-                if i is not None:
-                    task = self._tasks[i]
-                    del self._tasks[i]
+                if self._tasks:
+                    task = self._tasks.popleft()
                     if task.kind == "keyframe":
                         self._keyframes -= 1
                     return task
@@ -181,10 +167,6 @@ class TaskQueue:
             self._closed = True
             self._cond.notify_all()
 
-    def wake(self) -> None:
-        with self._cond:
-            self._cond.notify_all()
-
     def drain(self) -> list[_Task]:
         with self._cond:
             tasks = list(self._tasks)
@@ -193,29 +175,9 @@ class TaskQueue:
             return tasks
 
 
-def same_geometry(a: GaussianMap, b: GaussianMap) -> bool:
-    """True when two maps are the same Gaussians (SLAM re-publishing an unchanged map, or the map a
-    resumed snapshot was built from): applying it as an update would change nothing."""
-    if a is b:
-        return True
-    if len(a) != len(b) or (a.ids is None) != (b.ids is None):
-        return False
-    if a.ids is not None and not np.array_equal(a.ids, b.ids):
-        return False
-    if not (np.array_equal(a.means, b.means) and np.array_equal(a.scales, b.scales)):
-        return False
-    if not np.array_equal(a.opacities, b.opacities):
-        return False
-    # Quaternions are re-normalized and colors re-encoded (f_dc) on every trip: equal up to rounding.
-    if not np.allclose(a.quats, b.quats, rtol=0, atol=1e-6):
-        return False
-    if (a.colors is None) != (b.colors is None):
-        return False
-    return a.colors is None or np.allclose(a.colors, b.colors, rtol=0, atol=1e-5)
-
-
 class MapWorker:
-    """Owns the SemanticMapper; see the module docstring. Start with `start()`, end with `stop()`."""
+    """A thread and a task queue around a MappingSession; see the module docstring. Start with `start()`,
+    end with `stop()`."""
 
     def __init__(
         self,
@@ -227,58 +189,64 @@ class MapWorker:
         log: Logger | None = None,
         mapper: SemanticMapper | None = None,
     ) -> None:
-        self.config = config
         self.settings = settings
         self.stats = stats or MapperStats()
         self.sink = sink
         self.log: Logger = log or _PrintLogger()
         self.queue = TaskQueue(settings.queue_size)
-        self._mapper = mapper
-        self._keyframe_listeners: list[KeyframeListener] = []
+        self.session = MappingSession(
+            config,
+            max_shrink=settings.map_update_max_shrink,
+            max_waiting=settings.queue_size,
+            stats=self.stats,
+            log=self.log,
+            mapper=mapper,
+            on_listener_error=self._listener_failed,
+        )
         self._result_listeners: list[ResultListener] = []
         self._thread: threading.Thread | None = None
         self._output_dirty = True  # publish once at start (the map, or an empty one)
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
         self._last_save = time.monotonic()
-        self._on_reset: list[Callable[[], None]] = []
-        self._on_save: list[Callable[[str, SnapshotInfo, SemanticMapper], None]] = []
-        self._load_checks: list[LoadCheck] = []
-        self._refresh_map_stats()
 
     # ------------------------------------------------------------------ public API (any thread)
 
     @property
     def mapper(self) -> SemanticMapper | None:
         """The current mapper. Read or change it only on the worker thread (listeners, `submit`)."""
-        return self._mapper
+        return self.session.mapper
+
+    @property
+    def keyframes_waiting(self) -> int:
+        """Keyframes not integrated yet: queued, or held by the session until there is a map (any thread:
+        both are lengths of containers only the worker thread and the queue lock change)."""
+        return self.queue.keyframes + self.session.waiting
 
     def add_keyframe_listener(self, fn: KeyframeListener) -> None:
-        self._keyframe_listeners.append(fn)
+        self.session.add_keyframe_listener(fn)
 
     def add_result_listener(self, fn: ResultListener) -> None:
         self._result_listeners.append(fn)
 
     def add_reset_listener(self, fn: Callable[[], None]) -> None:
         """fn() runs on the worker thread after a reset (the node clears its keyframe assembler)."""
-        self._on_reset.append(fn)
+        self.session.add_reset_listener(fn)
 
-    def add_save_listener(self, fn: Callable[[str, SnapshotInfo, SemanticMapper], None]) -> None:
+    def add_save_listener(self, fn: SaveListener) -> None:
         """fn(directory, info, mapper) runs on the worker thread after every snapshot (service, periodic, final)."""
-        self._on_save.append(fn)
+        self.session.add_save_listener(fn)
 
     def add_load_check(self, fn: LoadCheck) -> None:
-        """fn(path, mapper) runs on the worker thread after a map was read and before it replaces the current
-        one: it reads and checks what it needs (the object database) and raises to fail the load, with nothing
-        changed; it returns a function that swaps its part in (run right after the mapper is swapped), or None."""
-        self._load_checks.append(fn)
+        """See MappingSession.add_load_check; runs on the worker thread."""
+        self.session.add_load_check(fn)
 
     def submit_keyframe(self, keyframe: Keyframe) -> Keyframe | None:
         """Queues a keyframe; returns the one dropped to make room (already counted), if any."""
         dropped = self.queue.put_keyframe(keyframe)
         if dropped is not None:
             self.stats.add(keyframes_dropped=1)
-        self.stats.update(queue_length=self.queue.keyframes)
+        self.stats.update(queue_length=self.keyframes_waiting)
         return dropped
 
     def submit_map(self, gaussians: GaussianMap, name: str = "") -> None:
@@ -287,7 +255,7 @@ class MapWorker:
 
     def submit(self, fn: Callable[[SemanticMapper | None], Any], name: str = "") -> Future:
         """Runs fn(mapper) on the worker thread, in order with keyframes and maps; its result in a Future."""
-        return self.queue.put_call(lambda: fn(self._mapper), name)
+        return self.queue.put_call(lambda: fn(self.session.mapper), name)
 
     def call(self, fn: Callable[[], Any], name: str = "") -> Future:
         """Like `submit` for the worker's own operations (save, load, reset, publish_now)."""
@@ -311,13 +279,13 @@ class MapWorker:
                 self.log.error("worker did not stop in time; skipping the final snapshot")
                 return None
         pending = self.queue.drain()
-        keyframes = sum(t.kind == "keyframe" for t in pending)
+        keyframes = sum(t.kind == "keyframe" for t in pending) + self.session.waiting
         for task in pending:
             if task.future is not None:
                 task.future.set_exception(WorkerStopped(f"{task.name or 'call'}: the node is shutting down"))
         if keyframes:
             self.log.warning(f"shutting down with {keyframes} queued keyframes not integrated")
-        if final_snapshot and self.settings.map_directory and self._unsaved and self._mapper is not None:
+        if final_snapshot and self.settings.map_directory and self._unsaved and self.session.mapper is not None:
             try:
                 info = self.save(self.settings.map_directory)
                 self.log.info(f"final snapshot: {info.path} ({info.keyframes} keyframes)")
@@ -329,73 +297,48 @@ class MapWorker:
     # ------------------------------------------------------------------ operations (worker thread)
 
     def save(self, directory: str) -> SnapshotInfo:
-        if self._mapper is None:
-            raise ValueError("no map to save yet")
-        info = save_snapshot(self._mapper, directory)
-        self.stats.add(snapshots_saved=1)
+        info = self.session.save(directory)
         if Path(directory).resolve() == _resolved(self.settings.map_directory):
             self._unsaved = False
             self._last_save = time.monotonic()
-        for fn in self._on_save:
-            fn(directory, info, self._mapper)
         return info
 
     def load(self, path: str) -> SemanticMapper:
-        """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state).
-
-        Everything (the snapshot's files, then each load check: objects.db) is read and validated first;
-        any failure raises and leaves the current map, its objects and the files untouched.
-        """
-        p = Path(path)
-        if not p.exists():
-            raise ValueError(f"{path} does not exist")
-        if p.is_dir():
-            mapper = load_snapshot(p, self.config)
-            source = f"snapshot {p} ({mapper.n_keyframes} keyframes)"
-        elif p.is_file() and p.suffix.lower() == ".ply":
-            mapper = SemanticMapper(load_ply(p), self.config)
-            source = f"PLY {p} (fresh semantic state)"
-        else:
-            raise ValueError(f"{path}: neither a map directory nor a .ply file")
-        commits = [fn(path, mapper) for fn in self._load_checks]  # may raise: nothing swapped yet
-        self._mapper = mapper
-        for commit in commits:
-            if commit is not None:
-                commit()
-        self._changed(unsaved=p.resolve() != _resolved(self.settings.map_directory))
-        self.log.info(f"loaded {source}: {len(mapper.gaussians)} Gaussians")
+        """MappingSession.load; a failed load changes nothing."""
+        mapper = self.session.load(path)
+        self._changed(unsaved=Path(path).resolve() != _resolved(self.settings.map_directory))
         return mapper
 
     def reset(self, keep_gaussians: bool) -> None:
-        if keep_gaussians and self._mapper is not None:
-            self._mapper = SemanticMapper(self._mapper.gaussians, self.config)
-        else:
-            self._mapper = None
-        for fn in self._on_reset:
-            fn()
-        self._changed(unsaved=self._mapper is not None)
-        self.log.info("reset: " + ("semantic state cleared" if keep_gaussians else "waiting for a new Gaussian map"))
+        self.session.reset(keep_gaussians)
+        self._changed(unsaved=self.session.mapper is not None)
 
     def publish_now(self) -> tuple[SemanticResult | None, int]:
         """Recomputes and publishes the result now; returns it and the number of objects."""
         return self._publish()
 
     def objects_now(self) -> int:
-        if self._mapper is None:
+        mapper = self.session.mapper
+        if mapper is None:
             return 0
-        return len(summarize_objects(self._mapper.gaussians, self._mapper.result().object_ids))
+        return len(summarize_objects(mapper.gaussians, mapper.result().object_ids))
 
     # ------------------------------------------------------------------ the loop
 
     def _run(self) -> None:
-        while True:
-            task = self.queue.take(self._mapper is not None, self._wait_time())
+        while not self.queue.closed:
+            # Keyframes the session holds are older than anything queued: they go first.
+            ready = self.session.keyframes_ready
+            task = None if ready else self.queue.take(self._wait_time())
             if task is None and self.queue.closed:
                 return
             try:
-                if task is not None:
+                if ready:
+                    if self.session.integrate_next() is not None:
+                        self._changed()
+                elif task is not None:
                     self._execute(task)
-                self.stats.update(queue_length=self.queue.keyframes)
+                self.stats.update(queue_length=self.keyframes_waiting)
                 self._maybe_publish()
                 self._maybe_save()
             except Exception as exc:  # the worker must outlive any single bad task or listener
@@ -404,9 +347,10 @@ class MapWorker:
 
     def _execute(self, task: _Task) -> None:
         if task.kind == "keyframe":
-            self._integrate(task.payload)
+            self.session.add_keyframe(task.payload)
         elif task.kind == "map":
-            self._apply_map(task.payload, task.name)
+            if self.session.add_map(task.payload, task.name):
+                self._changed()
         else:
             assert task.future is not None
             if not task.future.set_running_or_notify_cancel():
@@ -416,69 +360,9 @@ class MapWorker:
             except Exception as exc:
                 task.future.set_exception(exc)
 
-    def _integrate(self, keyframe: Keyframe) -> None:
-        mapper = self._mapper
-        assert mapper is not None
-        if mapper.state.has_stamp(keyframe.stamp_ns):
-            self.stats.reject("duplicate_stamp")
-            self.log.warning(f"keyframe {keyframe.stamp_ns} is already in the map (replayed after a resume?): skipped")
-            return
-        try:
-            report = mapper.integrate(keyframe)
-        except ValueError as exc:
-            self.stats.reject("integration_error")
-            self.log.warning(f"keyframe {keyframe.stamp_ns} not integrated: {exc}")
-            return
-        ms = 1e3 * report.seconds
-        with self.stats.lock:
-            self.stats.keyframes_processed += 1
-            self.stats.ms_per_keyframe_last = ms
-            self.stats.ms_per_keyframe_total += ms
-            self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, keyframe.stamp_ns)
-        self._changed()
-        integrated = report.keyframe or keyframe  # per-frame mask ids: the mask in object colors
-        for fn in self._keyframe_listeners:
-            self._guarded(fn, integrated, mapper)
-
-    def _apply_map(self, gaussians: GaussianMap, name: str) -> None:
-        refusal = map_update_refusal(
-            self._mapper.gaussians if self._mapper else None, gaussians, self.settings.map_update_max_shrink
-        )
-        if refusal is not None:
-            reason, detail = refusal
-            self.stats.reject(reason)
-            self.log.warning(f"Gaussian map {name} refused: {detail}")
-            return
-        if self._mapper is None:
-            self._mapper = SemanticMapper(gaussians, self.config)
-            self.log.info(
-                f"Gaussian map {name}: {len(gaussians)} Gaussians" + (" with ids" if gaussians.ids is not None else "")
-            )
-        elif same_geometry(self._mapper.gaussians, gaussians):
-            self.stats.add(maps_unchanged=1)
-            return
-        else:
-            report = self._mapper.update_gaussians(gaussians)
-            self.stats.add(map_updates=1)
-            self.log.info(
-                f"map update {name}: {report.gaussians} Gaussians; evidence by {report.by}: "
-                f"{report.carried} carried, {report.dropped} dropped"
-            )
-        self._changed()
-
     def _changed(self, unsaved: bool = True) -> None:
         self._output_dirty = True
         self._unsaved = self._unsaved or unsaved
-        self._refresh_map_stats()
-
-    def _refresh_map_stats(self) -> None:
-        m = self._mapper
-        self.stats.update(
-            has_map=m is not None,
-            gaussians=len(m.gaussians) if m else 0,
-            map_version=m.map_version if m else 0,
-            last_stamp_ns=int(m.state.stamps_ns.max()) if m is not None and m.n_keyframes else 0,
-        )
 
     # ------------------------------------------------------------------ publishing and saving
 
@@ -497,7 +381,7 @@ class MapWorker:
             return
         period = self.settings.publish_period_s
         if period == 0:
-            if self.queue.runnable(self._mapper is not None):
+            if self.session.keyframes_ready or len(self.queue):
                 return
         elif time.monotonic() < self._last_publish + period:
             return
@@ -507,11 +391,14 @@ class MapWorker:
         start = time.perf_counter()
         self._output_dirty = False
         self._last_publish = time.monotonic()
-        mapper = self._mapper
+        mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
         if mapper is not None and result is not None:
             for fn in self._result_listeners:
-                self._guarded(fn, mapper, result)
+                try:
+                    fn(mapper, result)
+                except Exception as exc:
+                    self._listener_failed(fn, exc)
         objects = self.sink.publish(mapper, result) if self.sink is not None else 0
         observed = int(result.observed.sum()) if result is not None else 0
         self.stats.update(
@@ -524,7 +411,7 @@ class MapWorker:
         return bool(self.settings.map_directory) and self.settings.save_period_s > 0
 
     def _maybe_save(self) -> None:
-        if not (self._save_enabled() and self._unsaved and self._mapper is not None):
+        if not (self._save_enabled() and self._unsaved and self.session.mapper is not None):
             return
         if time.monotonic() < self._last_save + self.settings.save_period_s:
             return
@@ -536,12 +423,9 @@ class MapWorker:
             self.stats.add(snapshot_errors=1)
             self.log.error(f"periodic snapshot to {self.settings.map_directory} failed: {exc}")
 
-    def _guarded(self, fn: Callable[..., Any], *args: Any) -> None:
-        try:
-            fn(*args)
-        except Exception as exc:
-            self.stats.add(worker_errors=1)
-            self.log.error(f"listener {getattr(fn, '__qualname__', fn)} failed: {type(exc).__name__}: {exc}")
+    def _listener_failed(self, fn: Callable[..., Any], exc: Exception) -> None:
+        self.stats.add(worker_errors=1)
+        self.log.error(f"listener {getattr(fn, '__qualname__', fn)} failed: {type(exc).__name__}: {exc}")
 
 
 def _resolved(directory: str) -> Path | None:

@@ -1,0 +1,338 @@
+"""The mapper's life, one path for the live node and offline mapping (no ROS, no threads).
+
+A `MappingSession` owns the SemanticMapper and applies, in the order they are given, everything that
+changes it:
+
+* keyframes: queued in the session; they wait while there is no Gaussian map (the newest `max_waiting`
+  kept, older ones dropped and counted) and are integrated one at a time with `integrate_next` once
+  there is one. A stamp already in the map is refused (duplicate_stamp), as is a keyframe the
+  rasterizer refuses (integration_error); both leave the state untouched.
+* Gaussian maps from the SLAM front-end: the first creates the mapper; a later one is a map update,
+  skipped when it is the same map again (core.gaussians.same_geometry) and refused when it is empty
+  (empty_gaussians) or removes more than `max_shrink` of the Gaussians (map_shrink): one empty cloud
+  must not wipe the map.
+* reset, save and load, with their listeners and load checks.
+
+The live worker (monovoc_ros.nodes.worker) is a thread and a task queue around a session, offline
+mapping (monovoc_ros.offline) a loop around one: the same events give the same evidence and the same
+`SessionStats`, which both extend with counters of their own (transport, timing).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Protocol
+
+from monovoc_ros.core.gaussians import GaussianMap, removed_gaussians, same_geometry
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map_store import SnapshotInfo, load_snapshot, save_snapshot
+from monovoc_ros.core.mapping import DuplicateKeyframeError, IntegrationReport, MapperConfig, SemanticMapper
+from monovoc_ros.core.ply import load_ply
+
+# A map update removing a larger share of the Gaussians is refused; 1.0 allows every update.
+DEFAULT_MAX_SHRINK = 0.5
+# Rejections the session counts (SessionStats.rejected), beside those of message ingest:
+#   duplicate_stamp     a keyframe whose stamp is already in the state (e.g. replayed after a resume)
+#   integration_error   the rasterizer refused a keyframe (state untouched)
+#   empty_gaussians     a Gaussian map without a single Gaussian (the map in use is kept)
+#   map_shrink          a map update that would remove more than max_shrink of the Gaussians
+SESSION_REASONS = ("duplicate_stamp", "integration_error", "empty_gaussians", "map_shrink")
+
+KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
+LoadCheck = Callable[[str, SemanticMapper], "Callable[[], None] | None"]
+SaveListener = Callable[[str, SnapshotInfo, SemanticMapper], None]
+ListenerErrorHandler = Callable[[Callable[..., Any], Exception], None]
+
+
+class Logger(Protocol):
+    def info(self, msg: str) -> Any: ...
+    def warning(self, msg: str) -> Any: ...
+    def error(self, msg: str) -> Any: ...
+
+
+@dataclass
+class SessionStats:
+    """Counters of the mapper's life. Thread-safe: a live node reads them from its diagnostics timer."""
+
+    keyframes_processed: int = 0  # integrated into the semantic state
+    keyframes_dropped: int = 0  # dropped for room (oldest first): waiting without a map, or a full queue
+    ms_per_keyframe_last: float = 0.0  # integration time
+    ms_per_keyframe_total: float = 0.0
+    gaussians: int = 0
+    has_map: bool = False
+    map_version: int = 0
+    map_updates: int = 0  # maps applied with update_gaussians
+    maps_unchanged: int = 0  # maps identical to the current one (skipped)
+    snapshots_saved: int = 0
+    last_stamp_ns: int = 0  # newest integrated keyframe
+    rejected: Counter = field(default_factory=Counter)  # reason -> count
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def update(self, **values: Any) -> None:
+        with self.lock:
+            for key, value in values.items():
+                setattr(self, key, value)
+
+    def add(self, **increments: float) -> None:
+        with self.lock:
+            for key, value in increments.items():
+                setattr(self, key, getattr(self, key) + value)
+
+    def reject(self, reason: str, count: int = 1) -> None:
+        with self.lock:
+            self.rejected[reason] += count
+
+    def snapshot(self) -> dict[str, Any]:
+        """A consistent copy of every counter (plus the derived mean time per keyframe)."""
+        with self.lock:
+            out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("lock", "rejected")}
+            out["rejected"] = dict(self.rejected)
+        processed = out["keyframes_processed"]
+        out["ms_per_keyframe_mean"] = out.pop("ms_per_keyframe_total") / processed if processed else 0.0
+        return out
+
+
+def map_update_refusal(old: GaussianMap | None, new: GaussianMap, max_shrink: float) -> tuple[str, str] | None:
+    """(reason, detail) when a Gaussian map must not replace `old`: empty_gaussians for a map without
+    Gaussians, map_shrink when it removes more than `max_shrink` of old's Gaussians (1.0 allows
+    everything); None when it may."""
+    if len(new) == 0:
+        return "empty_gaussians", "it has no Gaussians (the map in use is kept)"
+    if old is None or max_shrink >= 1.0:
+        return None
+    removed, total = removed_gaussians(old, new)
+    if removed > max_shrink * total:
+        return "map_shrink", (
+            f"it removes {removed} of {total} Gaussians ({removed / total:.0%} > map_update_max_shrink "
+            f"{max_shrink:g}); set map_update_max_shrink to 1 to allow it, or reset the map"
+        )
+    return None
+
+
+class MappingSession:
+    """Owns the SemanticMapper; see the module docstring. Not thread-safe: one caller applies everything.
+
+    `on_listener_error(fn, exc)`: a failing listener is reported there and the session goes on (the live
+    worker must outlive a bad listener); None lets the exception propagate (offline mapping fails loudly).
+    """
+
+    def __init__(
+        self,
+        config: MapperConfig | None = None,
+        *,
+        max_shrink: float = DEFAULT_MAX_SHRINK,
+        max_waiting: int | None = None,
+        stats: SessionStats | None = None,
+        log: Logger | None = None,
+        mapper: SemanticMapper | None = None,
+        on_listener_error: ListenerErrorHandler | None = None,
+    ) -> None:
+        if max_waiting is not None and max_waiting < 1:
+            raise ValueError(f"max_waiting must be >= 1, got {max_waiting}")
+        self.config = config or MapperConfig()
+        self.max_shrink = max_shrink
+        self.max_waiting = max_waiting
+        self.stats = stats if stats is not None else SessionStats()
+        self.log: Logger = log or _SilentLogger()
+        self._mapper = mapper
+        self._waiting: deque[Keyframe] = deque()
+        self._warned_dropping = False  # one warning per stretch without a map, not one per keyframe
+        self._on_listener_error = on_listener_error
+        self._keyframe_listeners: list[KeyframeListener] = []
+        self._reset_listeners: list[Callable[[], None]] = []
+        self._save_listeners: list[SaveListener] = []
+        self._load_checks: list[LoadCheck] = []
+        self._refresh_map_stats()
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def mapper(self) -> SemanticMapper | None:
+        return self._mapper
+
+    @property
+    def waiting(self) -> int:
+        """Keyframes given and not yet integrated (they wait here while there is no map)."""
+        return len(self._waiting)
+
+    @property
+    def keyframes_ready(self) -> bool:
+        """True when `integrate_next` has a keyframe to integrate."""
+        return self._mapper is not None and bool(self._waiting)
+
+    # ------------------------------------------------------------------ listeners
+
+    def add_keyframe_listener(self, fn: KeyframeListener) -> None:
+        """fn(keyframe, mapper) after each integrated keyframe (per-frame mask ids: the mask in object colors)."""
+        self._keyframe_listeners.append(fn)
+
+    def add_reset_listener(self, fn: Callable[[], None]) -> None:
+        """fn() after a reset."""
+        self._reset_listeners.append(fn)
+
+    def add_save_listener(self, fn: SaveListener) -> None:
+        """fn(directory, info, mapper) after every snapshot."""
+        self._save_listeners.append(fn)
+
+    def add_load_check(self, fn: LoadCheck) -> None:
+        """fn(path, mapper) runs after a map was read and before it replaces the current one: it reads and
+        checks what it needs (the object database) and raises to fail the load, with nothing changed; it
+        returns a function that swaps its part in (run right after the mapper is swapped), or None."""
+        self._load_checks.append(fn)
+
+    # ------------------------------------------------------------------ keyframes
+
+    def add_keyframe(self, keyframe: Keyframe) -> Keyframe | None:
+        """Queues a keyframe for `integrate_next`; returns the oldest one dropped for room (counted), if any."""
+        self._waiting.append(keyframe)
+        if self.max_waiting is None or len(self._waiting) <= self.max_waiting:
+            return None
+        dropped = self._waiting.popleft()
+        self.stats.add(keyframes_dropped=1)
+        if not self._warned_dropping:
+            self._warned_dropping = True
+            self.log.warning(
+                f"no Gaussian map yet: keeping the newest {self.max_waiting} keyframes, dropping older ones "
+                "(counted in keyframes_dropped)"
+            )
+        return dropped
+
+    def integrate_next(self) -> IntegrationReport | None:
+        """Integrates the oldest queued keyframe when there is a map; None when there is nothing to integrate
+        or the keyframe was refused (counted)."""
+        if not self.keyframes_ready:
+            return None
+        mapper, keyframe = self._mapper, self._waiting.popleft()
+        assert mapper is not None
+        try:
+            report = mapper.integrate(keyframe)
+        except DuplicateKeyframeError:
+            self.stats.reject("duplicate_stamp")
+            self.log.warning(f"keyframe {keyframe.stamp_ns} is already in the map (replayed after a resume?): skipped")
+            return None
+        except ValueError as exc:
+            self.stats.reject("integration_error")
+            self.log.warning(f"keyframe {keyframe.stamp_ns} not integrated: {exc}")
+            return None
+        ms = 1e3 * report.seconds
+        with self.stats.lock:
+            self.stats.keyframes_processed += 1
+            self.stats.ms_per_keyframe_last = ms
+            self.stats.ms_per_keyframe_total += ms
+            self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, keyframe.stamp_ns)
+        integrated = report.keyframe or keyframe
+        for fn in self._keyframe_listeners:
+            self._notify(fn, integrated, mapper)
+        return report
+
+    # ------------------------------------------------------------------ maps
+
+    def add_map(self, gaussians: GaussianMap, name: str = "") -> bool:
+        """The first map or a map update; returns whether the map changed (False: refused or unchanged)."""
+        refusal = map_update_refusal(self._mapper.gaussians if self._mapper else None, gaussians, self.max_shrink)
+        if refusal is not None:
+            reason, detail = refusal
+            self.stats.reject(reason)
+            self.log.warning(f"Gaussian map {name} refused: {detail}")
+            return False
+        if self._mapper is None:
+            self._mapper = SemanticMapper(gaussians, self.config)
+            self._warned_dropping = False
+            self.log.info(
+                f"Gaussian map {name}: {len(gaussians)} Gaussians" + (" with ids" if gaussians.ids is not None else "")
+            )
+        elif same_geometry(self._mapper.gaussians, gaussians):
+            self.stats.add(maps_unchanged=1)
+            return False
+        else:
+            report = self._mapper.update_gaussians(gaussians)
+            self.stats.add(map_updates=1)
+            self.log.info(
+                f"map update {name}: {report.gaussians} Gaussians; evidence by {report.by}: "
+                f"{report.carried} carried, {report.dropped} dropped"
+            )
+        self._refresh_map_stats()
+        return True
+
+    # ------------------------------------------------------------------ reset, save, load
+
+    def reset(self, keep_gaussians: bool) -> None:
+        """Clears the semantic state (keep_gaussians) or the whole map; queued keyframes stay queued."""
+        if keep_gaussians and self._mapper is not None:
+            self._mapper = SemanticMapper(self._mapper.gaussians, self.config)
+        else:
+            self._mapper = None
+        for fn in self._reset_listeners:
+            fn()
+        self._refresh_map_stats()
+        self.log.info("reset: " + ("semantic state cleared" if keep_gaussians else "waiting for a new Gaussian map"))
+
+    def save(self, directory: str) -> SnapshotInfo:
+        if self._mapper is None:
+            raise ValueError("no map to save yet")
+        info = save_snapshot(self._mapper, directory)
+        self.stats.add(snapshots_saved=1)
+        for fn in self._save_listeners:
+            fn(directory, info, self._mapper)
+        return info
+
+    def load(self, path: str) -> SemanticMapper:
+        """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state).
+
+        Everything (the snapshot's files, then each load check: objects.db) is read and validated first;
+        any failure raises and leaves the current map, its objects and the files untouched.
+        """
+        p = Path(path)
+        if not p.exists():
+            raise ValueError(f"{path} does not exist")
+        if p.is_dir():
+            mapper = load_snapshot(p, self.config)
+            source = f"snapshot {p} ({mapper.n_keyframes} keyframes)"
+        elif p.is_file() and p.suffix.lower() == ".ply":
+            mapper = SemanticMapper(load_ply(p), self.config)
+            source = f"PLY {p} (fresh semantic state)"
+        else:
+            raise ValueError(f"{path}: neither a map directory nor a .ply file")
+        commits = [fn(path, mapper) for fn in self._load_checks]  # may raise: nothing swapped yet
+        self._mapper = mapper
+        for commit in commits:
+            if commit is not None:
+                commit()
+        self._refresh_map_stats()
+        self.log.info(f"loaded {source}: {len(mapper.gaussians)} Gaussians")
+        return mapper
+
+    # ------------------------------------------------------------------ internals
+
+    def _refresh_map_stats(self) -> None:
+        m = self._mapper
+        self.stats.update(
+            has_map=m is not None,
+            gaussians=len(m.gaussians) if m else 0,
+            map_version=m.map_version if m else 0,
+            last_stamp_ns=int(m.state.stamps_ns.max()) if m is not None and m.n_keyframes else 0,
+        )
+
+    def _notify(self, fn: Callable[..., Any], *args: Any) -> None:
+        if self._on_listener_error is None:
+            fn(*args)
+            return
+        try:
+            fn(*args)
+        except Exception as exc:
+            self._on_listener_error(fn, exc)
+
+
+class _SilentLogger:
+    def info(self, msg: str) -> None:
+        pass
+
+    def warning(self, msg: str) -> None:
+        pass
+
+    def error(self, msg: str) -> None:
+        pass
