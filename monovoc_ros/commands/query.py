@@ -21,7 +21,7 @@ def register(subparsers) -> None:
         help="text query for objects: the live node's service, or a saved map (--map)",
         description="Ranks the map's objects by similarity to TEXT and prints rank, id (palette color), label, "
         "score, centroid and extent (metres, map frame). Without --map it calls the TextQuery service "
-        "<namespace>/query of a running semantic_mapper node (python -m monovoc_ros.nodes.object_query).",
+        "<namespace>/query of a running semantic_mapper node (python -m monovoc_ros.nodes.semantic_mapper).",
     )
     p.add_argument("text", help="what to look for, e.g. 'the sofa'")
     p.add_argument("--top-k", type=int, default=0, help="objects to return (default 0: the node's / index's default)")
@@ -103,7 +103,7 @@ def _online(args: argparse.Namespace) -> int:
         if not client.wait_for_service(timeout_sec=args.timeout):
             print(
                 f"monovoc query: service {service} is not available after {args.timeout:g} s (is the node running, "
-                f"e.g. python -m monovoc_ros.nodes.object_query, in this ROS_DOMAIN_ID?)",
+                f"e.g. python -m monovoc_ros.nodes.semantic_mapper, in this ROS_DOMAIN_ID?)",
                 file=sys.stderr,
             )
             return 2

@@ -22,8 +22,8 @@ from typing import Any
 from monovoc_ros.nodes import service_call
 
 NAMESPACE = "/monovoc"
-WITH_OBJECTS = "monovoc_ros.nodes.object_query"  # semantic_mapper + object database + query service
-MAPPING_ONLY = "monovoc_ros.nodes.semantic_mapper"
+WITH_OBJECTS = "monovoc_ros.nodes.semantic_mapper"  # mapping + object database + query service
+MAPPING_ONLY = "monovoc_ros.nodes.mapping_node"
 
 
 class MapperError(RuntimeError):
