@@ -24,8 +24,10 @@ from monovoc_ros.nodes.object_query import ObjectQueryComponent, read_settings
 
 
 def compose(node: MappingNode) -> list[Component]:
-    """The components of the full node beside ``node``: the object database and query service."""
-    return [ObjectQueryComponent(node.host(), read_settings(node, node.params.labels))]
+    """The components of the full node beside ``node``: the object database and query service, whose
+    parameters are declared on the mapping node (one parameter set per process, as the YAML files have it)."""
+    host = node.host()
+    return [ObjectQueryComponent(host, read_settings(node, host.labels))]
 
 
 def main(args: list[str] | None = None) -> int:
