@@ -42,9 +42,9 @@ setup(
         "console_scripts": [
             "monovoc = monovoc_ros.cli:main",
             # ros2 run monovoc_ros semantic_mapper: mapping + object database + /monovoc/query
-            "semantic_mapper = monovoc_ros.nodes.object_query:main",
-            # the same node without objects and embeddings (no models needed)
-            "scd_mapper = monovoc_ros.nodes.semantic_mapper:main",
+            "semantic_mapper = monovoc_ros.nodes.semantic_mapper:main",
+            # the mapping node alone, without objects and embeddings (no models needed)
+            "mapping_node = monovoc_ros.nodes.mapping_node:main",
         ],
     },
 )

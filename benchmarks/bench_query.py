@@ -222,7 +222,7 @@ def service(scene, directory: Path, seconds: float) -> dict:
         params += ["-p", f"labels_file:={directory / 'labels.json'}"]
         log = open(tmp / f"{phase}.out", "w")
         proc = subprocess.Popen(
-            [sys.executable, "-m", "monovoc_ros.nodes.object_query", "--ros-args", *params],
+            [sys.executable, "-m", "monovoc_ros.nodes.semantic_mapper", "--ros-args", *params],
             env=env,
             cwd=REPO,
             stdout=log,

@@ -1,6 +1,6 @@
 """ros2 launch monovoc_ros monovoc.launch.py [ARG:=VALUE ...]
 
-Starts the semantic_mapper node (or scd_mapper: no objects, no models) with both parameter files,
+Starts the semantic_mapper node (or mapping_node: mapping only, no objects, no models) with both parameter files,
 in a namespace, with the five inputs remapped by launch arguments; optionally replays a bag into it
 (`monovoc replay`, publishing /clock) and opens RViz with rviz/monovoc.rviz.
 
@@ -31,8 +31,8 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument(
             "executable",
             default_value="semantic_mapper",
-            choices=["semantic_mapper", "scd_mapper"],
-            description="semantic_mapper (mapping + object database + query service) or scd_mapper (mapping only)",
+            choices=["semantic_mapper", "mapping_node"],
+            description="semantic_mapper (mapping + object database + query service) or mapping_node (mapping only)",
         ),
         DeclareLaunchArgument("namespace", default_value="monovoc", description="namespace of topics and services"),
         DeclareLaunchArgument(
@@ -43,7 +43,7 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument(
             "query_params_file",
             default_value=PathJoinSubstitution([share, "config", "object_query.yaml"]),
-            description="parameters of the object database and query service (ignored by scd_mapper)",
+            description="parameters of the object database and query service (ignored by mapping_node)",
         ),
         DeclareLaunchArgument("image", default_value="image", description="input topic: RGB keyframes"),
         DeclareLaunchArgument("mask", default_value="mask", description="input topic: palette masks"),

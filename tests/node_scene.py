@@ -11,7 +11,7 @@ from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.keyframe_publisher import ROLE_ORDER, keyframe_messages
 from monovoc_ros.synthetic import SceneConfig, SyntheticScene, generate_scene
 
-NODE = ["-m", "monovoc_ros.nodes.semantic_mapper"]
+NODE = ["-m", "monovoc_ros.nodes.mapping_node"]
 N_KEYFRAMES = 16
 
 

@@ -21,7 +21,7 @@ def test_fast_replay_of_the_bundled_bag_with_the_shipped_yaml_loses_nothing(tmp_
     env = ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
     config = ["--params-file", str(REPO / "config" / "semantic_mapper.yaml")]
     config += ["--params-file", str(REPO / "config" / "object_query.yaml")]
-    node_args = ["-m", "monovoc_ros.nodes.object_query", "--ros-args", *config, "-p", "diagnostics_period_s:=0.5"]
+    node_args = ["-m", "monovoc_ros.nodes.semantic_mapper", "--ros-args", *config, "-p", "diagnostics_period_s:=0.5"]
     with NodeProcess.python(node_args, env, name="semantic_mapper") as node, ClientNode(env) as client:
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         diagnostics.wait_for(lambda v: v["keyframes_processed"] == "0", 60.0, process=node)  # up and idle

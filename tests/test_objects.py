@@ -1,4 +1,4 @@
-"""Object geometry summaries."""
+"""Object geometry (core.objects): percentile boxes, the main-cluster filter, one geometry per result."""
 
 from __future__ import annotations
 
@@ -6,31 +6,98 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.objects import summarize_objects
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID
+from monovoc_ros.core.mapping import SemanticResult
+from monovoc_ros.core.objects import main_cluster_ids, object_geometry, percentile_boxes
+from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, Palette
+
+A, B = 0x112233, 0x445566
 
 
-def test_summaries_are_robust_boxes_per_object():
+def _map(means: np.ndarray) -> GaussianMap:
+    n = len(means)
+    return GaussianMap(means, np.full((n, 3), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.9))
+
+
+def _scene(rng: np.random.Generator) -> tuple[GaussianMap, np.ndarray, np.ndarray]:
+    """Object A: a 1 x 2 x 0.5 m block plus 60 of its Gaussians mislabeled across the room (10%, too many for
+    the percentile box alone); object B: a small block; one void and one unobserved Gaussian."""
+    block = rng.uniform([0, 0, 0], [1, 2, 0.5], (500, 3))
+    strays = rng.uniform([3, 5, 0], [6, 8, 3], (60, 3))
+    small = rng.uniform([3, 0, 1], [3.5, 0.2, 1.4], (300, 3))
+    means = np.vstack([block, strays, small, [[9, 9, 9]], [[8, 8, 8]]])
+    ids = np.array([A] * 560 + [B] * 300 + [VOID_ID, UNOBSERVED_ID], np.uint32)
+    confidence = np.full(len(ids), 0.9, np.float32)
+    return _map(means), ids, confidence
+
+
+def test_percentile_boxes_ignore_a_few_stray_gaussians():
     rng = np.random.default_rng(0)
     a = rng.uniform([0, 0, 0], [1, 2, 0.5], (500, 3))
     b = rng.uniform([3, 3, 1], [3.5, 3.2, 1.4], (300, 3))
-    stray = np.array([[40.0, 40.0, 40.0]])  # one mislabeled Gaussian far away
-    means = np.vstack([a, b, stray, [[9, 9, 9]], [[8, 8, 8]]])
-    ids = np.array([0x112233] * 500 + [0x445566] * 300 + [0x112233, VOID_ID, UNOBSERVED_ID], np.uint32)
-    n = len(means)
-    gmap = GaussianMap(means, np.full((n, 3), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.9))
-    objs = summarize_objects(gmap, ids)
-    assert [o.id for o in objs] == [0x112233, 0x445566]
+    means = np.vstack([a, b, [[40.0, 40.0, 40.0]], [[9, 9, 9]], [[8, 8, 8]]])  # one mislabeled Gaussian far away
+    ids = np.array([A] * 500 + [B] * 300 + [A, VOID_ID, UNOBSERVED_ID], np.uint32)
+    objs = percentile_boxes(_map(means), ids)
+    assert [o.id for o in objs] == [A, B]
     first = objs[0]
     assert first.rgb == (0x11, 0x22, 0x33) and first.num_gaussians == 501
     np.testing.assert_allclose(first.bbox_min, [0, 0, 0], atol=0.05)
-    np.testing.assert_allclose(first.bbox_max, [1, 2, 0.5], atol=0.05)  # the stray point is ignored
+    np.testing.assert_allclose(first.bbox_max, [1, 2, 0.5], atol=0.05)
     np.testing.assert_allclose(first.centroid, [0.5, 1.0, 0.25], atol=0.05)
     np.testing.assert_allclose(objs[1].extent, [0.5, 0.2, 0.4], atol=0.03)
 
 
+def test_geometry_keeps_the_main_cluster_and_counts_every_gaussian():
+    gaussians, ids, confidence = _scene(np.random.default_rng(1))
+    boxes_only = {s.id: s for s in percentile_boxes(gaussians, ids)}
+    assert boxes_only[A].extent.max() > 4.0  # what the objects topic used to say: the block spans the room
+
+    geometry = object_geometry(gaussians, ids, confidence)
+    assert geometry.ids.tolist() == [A, B]
+    block, small = geometry.objects
+    np.testing.assert_allclose(block.bbox_min, [0, 0, 0], atol=0.05)
+    np.testing.assert_allclose(block.bbox_max, [1, 2, 0.5], atol=0.05)
+    np.testing.assert_allclose(block.centroid, [0.5, 1.0, 0.25], atol=0.05)
+    np.testing.assert_allclose(small.extent, [0.5, 0.2, 0.4], atol=0.03)
+    assert (block.num_gaussians, small.num_gaussians) == (560, 300)  # strays are still the object's Gaussians
+    assert np.all(geometry.shape_ids[500:560] == UNOBSERVED_ID) and np.all(geometry.shape_ids[:500] == A)
+    assert geometry.shape_ids[-2] == UNOBSERVED_ID  # void shapes no object
+
+    # voxel 0: no cluster filter, the percentile boxes of all the object's Gaussians.
+    unfiltered = object_geometry(gaussians, ids, confidence, voxel=0)
+    np.testing.assert_array_equal(unfiltered.objects[0].bbox_max, boxes_only[A].bbox_max)
+
+
+def test_unconfident_gaussians_do_not_shape_an_object_unless_nothing_else_does():
+    gaussians, ids, confidence = _scene(np.random.default_rng(2))
+    confidence[:500] = 0.1  # the block itself is unsure: the strays become its main cluster
+    unsure = object_geometry(gaussians, ids, confidence)
+    assert unsure.objects[0].bbox_min[1] > 4.0
+    confidence[:] = 0.1  # nothing confident: every Gaussian keeps its id rather than the object vanishing
+    np.testing.assert_array_equal(
+        main_cluster_ids(gaussians.means, ids, confidence), np.where(ids == VOID_ID, UNOBSERVED_ID, ids)
+    )
+    assert object_geometry(gaussians, ids, confidence).ids.tolist() == [A, B]
+    assert object_geometry(gaussians, ids, None).objects[0].bbox_max[1] < 2.1  # None: no confidence filter
+
+
+def test_a_result_computes_its_geometry_once_per_map():
+    gaussians, ids, confidence = _scene(np.random.default_rng(3))
+    palette = Palette.from_colors(np.array([[0x11, 0x22, 0x33], [0x44, 0x55, 0x66]], np.uint8))
+    result = SemanticResult(palette, ids, confidence, ids != UNOBSERVED_ID)
+    first = result.objects(gaussians)
+    assert result.objects(gaussians) is first  # shared by the objects topic, markers, index and objects.db
+    np.testing.assert_array_equal(first.shape_ids, object_geometry(gaussians, ids, confidence).shape_ids)
+    moved = _map(gaussians.means + 1.0)
+    again = result.objects(moved)
+    assert again is not first
+    np.testing.assert_allclose(again.objects[0].centroid, first.objects[0].centroid + 1.0, atol=1e-9)
+
+
 def test_empty_and_bad_input():
-    gmap = GaussianMap(np.zeros((2, 3)), np.full((2, 3), 0.01), np.tile([1.0, 0, 0, 0], (2, 1)), np.full(2, 0.5))
-    assert summarize_objects(gmap, np.array([UNOBSERVED_ID, VOID_ID], np.uint32)) == []
-    with pytest.raises(ValueError, match="object_ids"):
-        summarize_objects(gmap, np.zeros(3, np.uint32))
+    gmap = _map(np.zeros((2, 3)))
+    nothing = np.array([UNOBSERVED_ID, VOID_ID], np.uint32)
+    assert percentile_boxes(gmap, nothing) == []
+    assert object_geometry(gmap, nothing).objects == ()
+    for fn in (percentile_boxes, object_geometry):
+        with pytest.raises(ValueError, match="object_ids"):
+            fn(gmap, np.zeros(3, np.uint32))

@@ -154,7 +154,7 @@ def test_launch_file_remaps_the_five_inputs_and_uses_the_installed_configs():
     assert launch.remappings == {role: role for role in ROLES}
     for role in ROLES:
         assert launch.arguments[role]["default"].value == role  # relative: inside the namespace
-    assert launch.executables >= {(PACKAGE, "semantic_mapper"), (PACKAGE, "scd_mapper"), ("rviz2", "rviz2")}
+    assert launch.executables >= {(PACKAGE, "semantic_mapper"), (PACKAGE, "mapping_node"), ("rviz2", "rviz2")}
     assert launch.share_files == {
         (PACKAGE, "config/semantic_mapper.yaml"),
         (PACKAGE, "config/object_query.yaml"),
@@ -163,7 +163,7 @@ def test_launch_file_remaps_the_five_inputs_and_uses_the_installed_configs():
     assert launch.prefix_files == {(PACKAGE, "lib/monovoc_ros/monovoc")}  # the bag replay
     for _, relative in launch.share_files:
         assert (REPO / relative).is_file(), relative
-    assert launch.arguments["executable"]["choices"] == ["semantic_mapper", "scd_mapper"]
+    assert launch.arguments["executable"]["choices"] == ["semantic_mapper", "mapping_node"]
     assert launch.arguments["namespace"]["default"].value == "monovoc"
 
 

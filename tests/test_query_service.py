@@ -1,9 +1,10 @@
-"""The text-query service of the live node (monovoc_ros.nodes.object_query), in real processes.
+"""The text-query service of the full node (monovoc_ros.nodes.semantic_mapper), in real processes.
 
 * a node resumed from a saved map answers at once, edge cases included, publishes the highlight, and
   the `monovoc query` client prints its answer (or exits 2 when no node is there);
 * a node fed keyframes live: no objects before, objects after, queries stay fast while it integrates,
-  objects.db is written with save_map, cleared by reset and restored by load_map.
+  objects.db is written with save_map, cleared by reset and restored by load_map;
+* both: the objects topic, its markers and the answers agree on every object's centroid and extent.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from tests.rosutil import VENV_PYTHON, ros_environment
 
 pytestmark = pytest.mark.ros
 
-NODE = ["-m", "monovoc_ros.nodes.object_query"]
+NODE = ["-m", "monovoc_ros.nodes.semantic_mapper"]
 CLI = [str(VENV_PYTHON), "-m", "monovoc_ros.cli", "query"]
 
 
@@ -122,6 +123,65 @@ def test_query_service_on_a_resumed_map(tmp_path):
         node.check_running()
 
 
+def _xyz(v) -> np.ndarray:
+    return np.array([v.x, v.y, v.z])
+
+
+def _disagreements(objects, markers, answer) -> list[str]:
+    """Where an answered object's centroid or extent differs between the query answer, the latest
+    `objects` message and its `objects/markers` boxes (empty: they agree)."""
+    published = {o.id: o for o in objects.objects}
+    boxes = {m.id: m for m in markers.markers if m.ns == "monovoc/boxes"}
+    problems = []
+    for a in answer.objects:
+        o, box = published.get(a.id), boxes.get(a.id)
+        if o is None or box is None:
+            problems.append(f"#{a.id:06x}: on the objects topic {o is not None}, a marker box {box is not None}")
+            continue
+        size = np.maximum(_xyz(a.extent), 0.01)  # markers clamp sizes to 1 cm
+        pairs = [
+            ("centroid (topic)", _xyz(o.centroid), _xyz(a.centroid)),
+            ("extent (topic)", _xyz(o.extent), _xyz(a.extent)),
+            ("box min (topic)", _xyz(o.bbox_min), _xyz(a.bbox_min)),
+            ("centroid (marker)", _xyz(box.pose.position), _xyz(a.centroid)),
+            ("extent (marker)", _xyz(box.scale), size),
+        ]
+        for what, got, want in pairs:
+            if not np.allclose(got, want, atol=1e-6):
+                problems.append(f"#{a.id:06x} {what}: {got.round(3).tolist()} != answer {want.round(3).tolist()}")
+        if o.num_gaussians != a.num_gaussians:
+            problems.append(f"#{a.id:06x} num_gaussians: topic {o.num_gaussians}, answer {a.num_gaussians}")
+    return problems
+
+
+def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path):
+    """One object geometry (core.objects): a resumed map's objects topic and its markers (computed by the
+    mapping worker from the resumed result) and the answers (restored from objects.db) agree everywhere."""
+    from visualization_msgs.msg import MarkerArray
+
+    from monovoc_interfaces.msg import SemanticObjectArray
+    from monovoc_interfaces.srv import TextQuery
+
+    directory = copy_directory(room_directory(), tmp_path / "map")
+    _, index = room_map()
+    env = _environment(tmp_path)
+    params = {"map_directory": str(directory), "resume": True, "diagnostics_period_s": 5.0}
+    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
+        objects, markers = MessageCollector(), MessageCollector()
+        client.node.create_subscription(SemanticObjectArray, "/monovoc/objects", objects, latched_qos())
+        client.node.create_subscription(MarkerArray, "/monovoc/objects/markers", markers, latched_qos())
+        service = client.node.create_client(TextQuery, "/monovoc/query")
+        wait_for_service(service, 30.0, process=node)
+        answer = _query(service, "anything", top_k=1000, process=node)
+        assert answer.success and len(answer.objects) == len(index) >= 20, answer.message
+        objects.wait_for(1, 20.0, process=node)
+        markers.wait_for(1, 20.0, process=node)
+        assert _disagreements(objects.messages[-1], markers.messages[-1], answer) == []
+        # The geometry is the main cluster's: the vase (0.12 m across, 0.25 m tall) is no longer metres wide.
+        vase = next(o for o in objects.messages[-1].objects if o.id == room_id("vase"))
+        assert _xyz(vase.extent).max() < 0.5
+
+
 def test_client_without_a_node_exits_2(tmp_path):
     env = _environment(tmp_path)
     run = subprocess.run([*CLI, "a chair", "--timeout", "1"], env=env, capture_output=True, text=True, timeout=60)
@@ -129,6 +189,9 @@ def test_client_without_a_node_exits_2(tmp_path):
 
 
 def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
+    from visualization_msgs.msg import MarkerArray
+
+    from monovoc_interfaces.msg import SemanticObjectArray
     from monovoc_interfaces.srv import LoadMap, Reset, SaveMap, TextQuery
 
     scene = room()
@@ -144,6 +207,9 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
         "diagnostics_period_s": 5.0,
     }
     with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
+        objects, markers = MessageCollector(), MessageCollector()
+        client.node.create_subscription(SemanticObjectArray, "/monovoc/objects", objects, latched_qos())
+        client.node.create_subscription(MarkerArray, "/monovoc/objects/markers", markers, latched_qos())
         service = client.node.create_client(TextQuery, "/monovoc/query")
         wait_for_service(service, 30.0, process=node)
         before = _query(service, "a sofa", process=node)
@@ -170,6 +236,14 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
             return len(_query(service, "anything", top_k=1000, process=node).objects) >= 20
 
         wait_until(all_embedded, 60.0, "most objects to be embedded", process=node, interval=0.2)
+
+        # The objects topic, its markers and the answers report one geometry, once the index has the last result.
+        def agree() -> bool:
+            answer = _query(service, "anything", top_k=1000, process=node)
+            latest = objects.messages[-1], markers.messages[-1]
+            return answer.success and not _disagreements(*latest, answer)
+
+        wait_until(agree, 30.0, "the objects topic, markers and answers to agree", process=node, interval=0.2)
         median, worst = 1e3 * np.median(latencies), 1e3 * max(latencies)
         print(f"query latency while mapping: median {median:.1f} ms, max {worst:.1f} ms")
         assert np.median(latencies) < 0.5 and max(latencies) < 5.0

@@ -4,7 +4,7 @@
     monovoc demo --bag bags/replica_office0.mcap --rate 1 --query "a chair" --query "a plant"
 
 Starts the `semantic_mapper` node with its object database and query service (python -m
-monovoc_ros.ros_harness.SEMANTIC_MAPPER) as a separate process, replays the bag into it with `monovoc replay`'s
+monovoc_ros.nodes.semantic_mapper) as a separate process, replays the bag into it with `monovoc replay`'s
 player, waits on /diagnostics until every keyframe is integrated and every object embedded, saves the map
 with the save_map service, asks the query service, and scores the semantic map against the bag's masks as
 `monovoc eval` does (the live cloud as discs; the saved map rendered through its Gaussians, with a figure).

@@ -9,7 +9,6 @@ from pathlib import Path
 
 from monovoc_ros.core.map_store import save_snapshot
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
-from monovoc_ros.core.objects import summarize_objects
 from monovoc_ros.core.quantize import METRICS
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
 
@@ -235,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
         )
         objects_db = str(report.path)
     result = mapper.result()
-    objects = summarize_objects(mapper.gaussians, result.object_ids)
+    objects = result.objects(mapper.gaussians).objects
     summary = {
         "source": name,
         **stats.summary(),

@@ -21,7 +21,7 @@ def register(subparsers) -> None:
         help="text query for objects: the live node's service, or a saved map (--map)",
         description="Ranks the map's objects by similarity to TEXT and prints rank, id (palette color), label, "
         "score, centroid and extent (metres, map frame). Without --map it calls the TextQuery service "
-        "<namespace>/query of a running semantic_mapper node (python -m monovoc_ros.nodes.object_query).",
+        "<namespace>/query of a running semantic_mapper node (python -m monovoc_ros.nodes.semantic_mapper).",
     )
     p.add_argument("text", help="what to look for, e.g. 'the sofa'")
     p.add_argument("--top-k", type=int, default=0, help="objects to return (default 0: the node's / index's default)")

@@ -10,8 +10,9 @@ through the node give the same semantic map.
 
 from __future__ import annotations
 
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from monovoc_ros.core.association import (
 )
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.objects import ObjectGeometry, object_geometry
 from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
 from monovoc_ros.core.pixel_labels import mask_labels
 from monovoc_ros.core.quantize import METRICS, Quantization, confidence, quantize
@@ -138,6 +140,18 @@ class SemanticResult:
     confidence: np.ndarray  # (N,) float32 in [0, 1] (vote margin, or quantization margin), 0 where unobserved
     observed: np.ndarray  # (N,) bool
     quantization: Quantization | None = None  # SCD mode only
+    _objects: tuple[GaussianMap, ObjectGeometry] | None = field(default=None, init=False, repr=False, compare=False)
+    _objects_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
+
+    def objects(self, gaussians: GaussianMap) -> ObjectGeometry:
+        """The objects' geometry in ``gaussians``, the map this result labels (core.objects.object_geometry).
+
+        Computed once per result (~20-80 ms) and shared by everything that reports objects (the objects
+        topic and its markers on the worker thread, the object index and objects.db on theirs), so they agree."""
+        with self._objects_lock:
+            if self._objects is None or self._objects[0] is not gaussians:
+                self._objects = (gaussians, object_geometry(gaussians, self.object_ids, self.confidence))
+            return self._objects[1]
 
     def object_rgb(self) -> np.ndarray:
         """(N, 3) uint8 object color per Gaussian; unobserved Gaussians are grey."""

@@ -1,35 +1,32 @@
-"""Objects, language embeddings and the text-query service, attached to the `semantic_mapper` node.
+"""Objects, language embeddings and the text-query service: a component beside the mapping node.
 
-    python -m monovoc_ros.nodes.object_query --ros-args -p map_directory:=/maps/office ...
-
-runs the semantic_mapper with this component (``attach(node)`` is its ``setup`` hook). It adds:
+The full node `semantic_mapper` (monovoc_ros.nodes.semantic_mapper) composes it with the mapping node
+(monovoc_ros.nodes.mapping_node) through the interface of monovoc_ros.nodes.component. It adds:
 
 * service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) on its own node
-  (``<name>_query``) and executor thread, with a keep-last-1000 request queue (SERVICE_QOS), answered from
-  an immutable snapshot of the object index, so it stays responsive while the worker integrates keyframes
-  and while objects are being embedded (recent query texts are cached);
+  (``<name>_query``, in the mapping node's namespace) and executor thread, with a keep-last-1000 request
+  queue (SERVICE_QOS), answered from an immutable snapshot of the object index, so it stays responsive
+  while the worker integrates keyframes and while objects are being embedded (recent query texts are cached);
 * topics ``query/highlight`` (PointCloud2 in the semantic-cloud schema: the Gaussians of the objects of
   the last successful query) and ``query/markers`` (MarkerArray: their boxes and labels), both latched;
 * ``objects.db`` (monovoc_ros.objects.database) beside the map snapshots, written whenever the node
   writes a snapshot (save_map, periodic and final saves), and read back on resume and load_map.
 
+Its parameters (PARAMETERS) are declared on the mapping node, beside the node's own.
+
 Threads: the keyframe hook (worker thread) only offers views (~5-10 ms); the result hook (worker thread)
 only hands the newest result over; this component's own thread refreshes summaries and re-embeds dirty
 objects in bounded chunks (``objects.max_objects_per_refresh``), so the worker never waits for the image
-encoder. A reset clears the objects; a load_map restores those saved with that map (if any).
-
-Robot usage::
-
-    ros2 service call /monovoc/query monovoc_interfaces/srv/TextQuery "{text: 'chair', top_k: 3}"
-    monovoc query "chair" --top-k 3          # the same without the ros2 CLI
+encoder. A reset clears the objects; a load_map restores those saved with that map (if any). Geometry
+(centroids, boxes) is the mapping result's own (``SemanticResult.objects``): the objects topic, its markers
+and the answers agree.
 """
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,6 +39,7 @@ from rclpy.executors import ExternalShutdownException, ShutdownException, Single
 
 import msg_adapters as ma
 from monovoc_ros.embed.model_store import ModelMissingError
+from monovoc_ros.nodes.component import MappingHost
 from monovoc_ros.nodes.qos import SERVICE_QOS
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase, ObjectDatabaseError, load_object_index
@@ -79,7 +77,8 @@ class QuerySettings:
     index: IndexConfig
 
 
-def read_settings(node: Any) -> QuerySettings:
+def read_settings(node: Any, labels: Mapping[int, str] | None = None) -> QuerySettings:
+    """Declares PARAMETERS on ``node`` (the mapping node) and reads them; ``labels``: its labels_file."""
     values = {}
     for name, default, description in PARAMETERS:
         descriptor = ParameterDescriptor(description=description, read_only=True, dynamic_typing=True)
@@ -95,12 +94,11 @@ def read_settings(node: Any) -> QuerySettings:
     need(values["objects.backend"] in ("conse", "clip_onnx"), "objects.backend", "must be 'conse' or 'clip_onnx'")
     need(values["objects.up_axis"] in UP_AXES, "objects.up_axis", f"must be one of {list(UP_AXES)}")
     need(int(values["objects.max_objects_per_refresh"]) >= 1, "objects.max_objects_per_refresh", "must be >= 1")
-    labels = dict(getattr(getattr(node, "params", None), "labels", {}) or {})
     index = IndexConfig(
         crop_mode=str(values["objects.crop_mode"]),
         views_per_object=int(values["objects.views_per_object"]),
         description_weight=float(values["objects.description_weight"]),
-        labels=labels or None,
+        labels=dict(labels) if labels else None,
         min_gaussians=int(values["objects.min_gaussians"]),
         up_axis=str(values["objects.up_axis"]),
         default_top_k=int(values["query.top_k"]),
@@ -119,18 +117,19 @@ def read_settings(node: Any) -> QuerySettings:
 
 
 class ObjectQueryComponent:
-    """See the module docstring. Create with ``attach(node)``; ``stop()`` ends its thread."""
+    """See the module docstring: ``start()`` before the mapping worker starts, ``stop()`` after it stopped
+    (monovoc_ros.nodes.component)."""
 
-    def __init__(self, node: Any, settings: QuerySettings, backend: object | None = None) -> None:
+    def __init__(self, host: MappingHost, settings: QuerySettings, backend: object | None = None) -> None:
         from sensor_msgs.msg import PointCloud2
         from visualization_msgs.msg import MarkerArray
 
         from monovoc_interfaces.srv import TextQuery
         from monovoc_ros.nodes.qos import latched_qos
 
-        self.node = node
+        self.host = host
         self.settings = settings
-        self.log = node.get_logger()
+        self.log = host.logger
         options = {"model_dir": settings.model_dir} if settings.model_dir else {}
         self._backend_source = backend if backend is not None else lazy_backend(settings.backend, **options)
         self._index_lock = threading.Lock()
@@ -147,25 +146,21 @@ class ObjectQueryComponent:
         # MultiThreadedExecutor each request waited for a wait set rebuilt over every subscription, timer and
         # service of the node while keyframes arrived (p99 several seconds at 100 queries/s on 2 cores).
         self.group = MutuallyExclusiveCallbackGroup()
-        self._service_node = rclpy.create_node(
-            f"{node.get_name()}_query", namespace=node.get_namespace(), context=node.context
-        )
+        self._node = rclpy.create_node(f"{host.name}_query", namespace=host.namespace, context=host.context)
 
         def count_error() -> None:
             self.queries_failed += 1
 
         handler = guarded(TextQuery, "query", self._on_query, log=self.log.error, on_error=count_error)
-        self.service = self._service_node.create_service(
+        self.service = self._node.create_service(
             TextQuery, "query", handler, qos_profile=SERVICE_QOS, callback_group=self.group
         )
-        self._service_executor = SingleThreadedExecutor(context=node.context)
-        self._service_executor.add_node(self._service_node)
+        self._service_executor = SingleThreadedExecutor(context=host.context)
+        self._service_executor.add_node(self._node)
         self._service_thread = threading.Thread(target=self._spin_service, name="monovoc-query-service", daemon=True)
         self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
-        self.highlight = node.create_publisher(PointCloud2, "query/highlight", latched_qos())
-        self.markers = node.create_publisher(MarkerArray, "query/markers", latched_qos())
-        self.frame_id = getattr(getattr(node, "params", None), "frame_id", "map")
-        self.marker_up = tuple(getattr(getattr(node, "params", None), "marker_up", (0.0, 0.0, 1.0)))
+        self.highlight = host.create_publisher(PointCloud2, "query/highlight", latched_qos())
+        self.markers = host.create_publisher(MarkerArray, "query/markers", latched_qos())
         self._thread = threading.Thread(target=self._run, name="monovoc-object-index", daemon=True)
         # Highlights are published off the service callback, so the answer goes out first (a big
         # object's cloud takes a few ms to build and send), and at a bounded rate: the newest wins.
@@ -173,25 +168,21 @@ class ObjectQueryComponent:
         self._highlight_wake = threading.Event()
         self._highlighter = threading.Thread(target=self._run_highlights, name="monovoc-query-highlight", daemon=True)
 
-    # ------------------------------------------------------------------ wiring
+    # ------------------------------------------------------------------ life cycle
 
-    def connect(self) -> None:
-        """Registers the hooks on the node (and its worker) and starts the indexing thread."""
-        node = self.node
-        node.add_keyframe_listener(self._on_keyframe)
-        node.add_result_listener(self._on_result)
-        if hasattr(node, "add_diagnostics_source"):
-            node.add_diagnostics_source(self.diagnostics)
-        worker = getattr(node, "worker", None)
-        if worker is not None:
-            worker.add_reset_listener(self._on_reset)
-            # objects.db is written with every snapshot and read back with load_map.
-            worker.add_save_listener(self._on_saved)
-            worker.add_load_check(self._check_load)
-        params = getattr(node, "params", None)
-        if params is not None and params.resume and params.map_directory:
-            self._restore(params.map_directory)
-            mapper = getattr(worker, "mapper", None)
+    def start(self) -> None:
+        """Registers the listeners, restores objects.db on resume and starts the threads."""
+        host = self.host
+        host.add_keyframe_listener(self._on_keyframe)
+        host.add_result_listener(self._on_result)
+        host.add_diagnostics_source(self.diagnostics)
+        host.add_reset_listener(self._on_reset)
+        # objects.db is written with every snapshot and read back with load_map.
+        host.add_save_listener(self._on_saved)
+        host.add_load_check(self._check_load)
+        if host.resume and host.map_directory:
+            self._restore(host.map_directory)
+            mapper = host.mapper()
             ids = self.index.object_ids
             if mapper is not None and ids is not None and len(ids) == len(mapper.gaussians):
                 self._labelled = (mapper.gaussians, ids)  # highlights work before the first result
@@ -242,7 +233,7 @@ class ObjectQueryComponent:
         for thread in (self._thread, self._highlighter, self._service_thread):
             if thread.is_alive():
                 thread.join(10.0)
-        self._service_node.destroy_node()
+        self._node.destroy_node()
 
     def diagnostics(self) -> dict[str, Any]:
         """The object index's part of the node's /diagnostics status."""
@@ -312,9 +303,7 @@ class ObjectQueryComponent:
         """True while keyframes wait for the worker, for up to REFRESH_DEFER_S since the last refresh: on two
         cores the encoder halved the mapping rate (62 -> 130-150 ms per keyframe) during a burst, so the
         backlog goes first and the objects catch up after it."""
-        worker = getattr(self.node, "worker", None)
-        busy = worker is not None and worker.queue.keyframes > 0
-        return busy and time.monotonic() - self._last_refresh < REFRESH_DEFER_S
+        return self.host.busy() and time.monotonic() - self._last_refresh < REFRESH_DEFER_S
 
     def _backend_failed(self, exc: Exception) -> None:
         message = str(exc)
@@ -383,7 +372,7 @@ class ObjectQueryComponent:
 
     def _answer(self, request: Any, response: Any) -> Any:
         index = self.index
-        response.header = ma.make_header(self.frame_id, self.node.get_clock().now().nanoseconds)
+        response.header = ma.make_header(self.host.frame_id, self.host.clock.now().nanoseconds)
         try:
             result = index.query(request.text, int(request.top_k), float(request.min_score))
         except QueryError as exc:
@@ -436,7 +425,7 @@ class ObjectQueryComponent:
 
     def _publish_highlight(self, index: ObjectIndex, matches: list) -> None:
         ids = np.array([r.id for r, _ in matches], np.uint32)
-        stamp = self.node.get_clock().now().nanoseconds
+        stamp = self.host.clock.now().nanoseconds
         gaussians, object_ids = self._labelled or (index.gaussians, index.object_ids)
         if gaussians is not None and object_ids is not None and len(object_ids) == len(gaussians):
             pick = np.isin(object_ids, ids)
@@ -446,7 +435,12 @@ class ObjectQueryComponent:
             scores = score_of[np.searchsorted(ids[order], picked)] if picked.size else np.zeros(0, np.float32)
             self.highlight.publish(
                 ma.semantic_cloud_from_arrays(
-                    gaussians.means[pick], picked, picked, np.clip(scores, 0, 1), frame_id=self.frame_id, stamp=stamp
+                    gaussians.means[pick],
+                    picked,
+                    picked,
+                    np.clip(scores, 0, 1),
+                    frame_id=self.host.frame_id,
+                    stamp=stamp,
                 )
             )
         records = [r for r, _ in matches]
@@ -457,44 +451,9 @@ class ObjectQueryComponent:
                 np.array([r.centroid for r in records]).reshape(-1, 3),
                 np.array([r.extent for r in records]).reshape(-1, 3),
                 ids,
-                frame_id=self.frame_id,
+                frame_id=self.host.frame_id,
                 stamp=stamp,
                 namespace="monovoc/query",
-                up=self.marker_up,
+                up=self.host.marker_up,
             )
         )
-
-
-def attach(node: Any, backend: object | None = None) -> ObjectQueryComponent:
-    """Adds objects, embeddings, objects.db and the ``query`` service to a SemanticMapperNode."""
-    component = ObjectQueryComponent(node, read_settings(node), backend)
-    component.connect()
-    stop = node.stop
-
-    def stop_both() -> None:
-        stop()  # the worker's final snapshot (and objects.db with it) first
-        component.stop()
-
-    node.stop = stop_both
-    node.object_query = component
-    return component
-
-
-def main(args: list[str] | None = None, *, setup: Callable[[Any], None] | None = None) -> int:
-    """The semantic_mapper node with this component attached."""
-    from monovoc_ros.nodes.semantic_mapper import main as mapper_main
-
-    # A query needs the GIL for a few short steps; with the default 5 ms switch interval each waited up to
-    # 5 ms per step behind the worker's and the indexer's Python code (the tail of the query latency).
-    sys.setswitchinterval(0.001)
-
-    def setup_all(node: Any) -> None:
-        attach(node)
-        if setup is not None:
-            setup(node)
-
-    return mapper_main(args, setup=setup_all)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

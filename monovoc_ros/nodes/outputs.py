@@ -1,6 +1,8 @@
 """The semantic_mapper's outputs: semantic cloud, object markers and SemanticObjectArray (worker thread).
 
-Everything published is derived from one `SemanticResult`, so cloud, markers and objects always agree.
+Everything published is derived from one `SemanticResult`, so cloud, markers and objects always agree; the
+objects and markers report the result's one object geometry (`SemanticResult.objects`), as do the query
+answers and objects.db.
 The cloud holds observed Gaussians only (those with evidence and a palette label): unobserved ones have
 no label to show, and leaving them out keeps the message small early in a run. Its header stamp is the
 stamp of the newest integrated keyframe, so clients can tell which keyframes a cloud includes.
@@ -14,7 +16,7 @@ import numpy as np
 
 import msg_adapters as ma
 from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
-from monovoc_ros.core.objects import ObjectSummary, summarize_objects
+from monovoc_ros.core.objects import ObjectSummary
 from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.qos import latched_qos
 
@@ -49,8 +51,9 @@ class SemanticOutputs:
             known = result.object_ids != UNOBSERVED_ID
             points, rgb = mapper.gaussians.means[known], result.object_rgb()[known]
             ids, conf = result.object_ids[known], result.confidence[known]
-            summaries = summarize_objects(mapper.gaussians, result.object_ids)
-            index = result.palette.index_of(np.array([s.id for s in summaries], np.uint32))
+            geometry = result.objects(mapper.gaussians)
+            summaries = list(geometry.objects)
+            index = result.palette.index_of(geometry.ids)
             observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
             stamp = (
                 int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else self._node.get_clock().now().nanoseconds

@@ -17,7 +17,7 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
 Between tasks the worker publishes the semantic result (at most every `publish_period_s` while something
 changed; period 0 = as soon as nothing runnable is queued) and saves periodic snapshots of new evidence.
 The rasterizer's numba kernels release the GIL, so ROS callbacks keep running while a keyframe is
-integrated. Nothing here imports ROS: the node wires it to topics (monovoc_ros.nodes.semantic_mapper).
+integrated. Nothing here imports ROS: the node wires it to topics (monovoc_ros.nodes.mapping_node).
 
 Hooks for other components (object database, text queries), all run on the worker thread:
 `add_keyframe_listener(fn(keyframe, mapper))` after each integrated keyframe, `add_result_listener(fn(mapper,
@@ -41,7 +41,6 @@ from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map_store import SnapshotInfo
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
-from monovoc_ros.core.objects import summarize_objects
 from monovoc_ros.core.session import (
     DEFAULT_MAX_SHRINK,
     KeyframeListener,
@@ -321,7 +320,7 @@ class MapWorker:
         mapper = self.session.mapper
         if mapper is None:
             return 0
-        return len(summarize_objects(mapper.gaussians, mapper.result().object_ids))
+        return len(mapper.result().objects(mapper.gaussians).objects)
 
     # ------------------------------------------------------------------ the loop
 

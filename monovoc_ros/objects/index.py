@@ -20,7 +20,6 @@ floor's normal on office_0. Centroids and boxes in the records stay in the map f
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import threading
 import time
@@ -32,12 +31,11 @@ import numpy as np
 
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.objects import ObjectSummary, summarize_objects
+from monovoc_ros.core.objects import ObjectSummary
 from monovoc_ros.embed.arrays import l2_normalize
 from monovoc_ros.embed.attributes import best_class_name, combine, describe, dominant_color_name
 from monovoc_ros.embed.crops import crop_object
 from monovoc_ros.embed.model_store import ModelMissingError
-from monovoc_ros.objects.geometry import main_cluster_ids
 from monovoc_ros.objects.labels import format_object_id, noun, parse_object_id
 from monovoc_ros.objects.records import ObjectRecord, QueryError, QueryResult
 from monovoc_ros.objects.upright import axis_vector, camera_up, estimate_up, upright_geometry
@@ -69,10 +67,6 @@ class IndexConfig:
     unlabeled_noun: str = "object"
     labels: dict[int, str] | None = None  # object id -> class name (e.g. from labels.json)
     min_gaussians: int = 10  # objects with fewer Gaussians are not listed (specks, mislabeled floaters)
-    # Geometry (centroid, box, size words) from confident Gaussians in the object's main spatial cluster
-    # (objects.geometry); cluster_voxel 0 turns the cluster filter off.
-    min_confidence: float = 0.3
-    cluster_voxel: float = 0.25
     up_axis: str = "auto"  # see the module docstring; "+z" for REP-103 maps known to be level
     floor_percentile: float = 1.0  # the floor height: this percentile of all Gaussians' heights
     default_top_k: int = 5  # what top_k = 0 means
@@ -293,25 +287,15 @@ class ObjectIndex:
         key = (id(gaussians), id(result))
         if key == self._geometry_key:
             return
-        shaped = result.object_ids
-        if self.config.cluster_voxel > 0:
-            shaped = main_cluster_ids(
-                gaussians.means,
-                result.object_ids,
-                result.confidence,
-                min_confidence=self.config.min_confidence,
-                voxel=self.config.cluster_voxel,
-            )
-        ids, counts = np.unique(result.object_ids, return_counts=True)
-        all_counts = dict(zip(ids.tolist(), counts.tolist(), strict=True))
-        summaries = summarize_objects(gaussians, shaped)
-        self._summaries = {s.id: dataclasses.replace(s, num_gaussians=all_counts[s.id]) for s in summaries}
+        # The result's one geometry (core.objects): the objects topic and its markers report the same.
+        geometry = result.objects(gaussians)
+        self._summaries = {s.id: s for s in geometry.objects}
         if self.config.up_axis == "auto" and self._up_key != id(gaussians):
             self._up = None  # re-estimate from the camera hint, which improves with every keyframe
             self._up = estimate_up(gaussians, self.up_vector())
             self._up_key = id(gaussians)
         self._floor, self._upright = upright_geometry(
-            gaussians, shaped, self.up_vector(), self.config.floor_percentile, summaries
+            gaussians, geometry, self.up_vector(), self.config.floor_percentile
         )
         palette = result.palette
         self._observations = dict(zip(palette.ids.tolist(), palette.mask_counts.tolist(), strict=True))

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.objects import ObjectSummary, summarize_objects
+from monovoc_ros.core.objects import ObjectGeometry, percentile_boxes
 
 AXES = {"+x": (0, 1.0), "-x": (0, -1.0), "+y": (1, 1.0), "-y": (1, -1.0), "+z": (2, 1.0), "-z": (2, -1.0)}
 
@@ -79,22 +79,18 @@ def upright_rotation(up: np.ndarray) -> np.ndarray:
 
 
 def upright_geometry(
-    gaussians: GaussianMap,
-    object_ids: np.ndarray,
-    up: np.ndarray,
-    floor_percentile: float,
-    map_summaries: list[ObjectSummary] | None = None,
+    gaussians: GaussianMap, geometry: ObjectGeometry, up: np.ndarray, floor_percentile: float
 ) -> tuple[float, dict[int, tuple[np.ndarray, float]]]:
-    """(floor height, {object id: (extent with height last, lowest point above the floor)}), from robust
-    percentile boxes (core.objects.summarize_objects) in the upright frame. ``map_summaries`` (of the
-    same ids in the map frame) are reused when the map frame already is upright (z up)."""
+    """(floor height, {object id: (extent with height last, lowest point above the floor)}), from the
+    percentile boxes of the Gaussians that shape each object (``geometry.shape_ids``) in the upright frame;
+    the map-frame boxes themselves when the map frame already is upright (z up)."""
     rotation = upright_rotation(up)
     means = gaussians.means.astype(np.float64) @ rotation.T
     floor = float(np.percentile(means[:, 2], floor_percentile)) if len(means) else 0.0
-    if map_summaries is not None and np.allclose(rotation, np.eye(3)):
-        summaries = map_summaries
+    if np.allclose(rotation, np.eye(3)):
+        summaries = list(geometry.objects)
     else:
         upright = GaussianMap(means.astype(np.float32), gaussians.scales, gaussians.quats, gaussians.opacities)
-        summaries = summarize_objects(upright, object_ids)
+        summaries = percentile_boxes(upright, geometry.shape_ids)
     out = {s.id: (np.maximum(s.bbox_max - s.bbox_min, 0.0), float(s.bbox_min[2] - floor)) for s in summaries}
     return floor, out

@@ -1,0 +1,463 @@
+"""The live semantic mapping node: topics -> KeyframeAssembler -> SemanticMapper -> topics.
+
+    mapping_node --ros-args --params-file config/semantic_mapper.yaml     (ros2 run monovoc_ros mapping_node)
+
+runs it alone: mapping only, no objects database, no embeddings, no models needed. The full node
+`semantic_mapper` (monovoc_ros.nodes.semantic_mapper) is this node with the object database and query
+service composed beside it (``run(args, compose)``; the interface between them: monovoc_ros.nodes.component).
+
+A thin adapter. Subscription callbacks validate and synchronize messages with the same KeyframeAssembler
+that offline bag processing uses (so both give identical keyframes) and queue completed keyframes and
+Gaussian maps for the `MapWorker` thread, which runs the same MappingSession as offline mapping
+(monovoc_ros.core.session: the SemanticMapper and its life), publishes the semantic cloud / objects /
+markers and saves snapshots (monovoc_ros.nodes.worker). Services queue their
+operations on the same worker, so they apply in order with keyframes, while separate callback groups on a
+MultiThreadedExecutor keep callbacks and services responsive during a long integration.
+
+Topics (relative, default namespace /monovoc; remap with `-r __ns:=/x` or `-r image:=/camera/image`):
+    in:  image, mask, camera_info, pose, gaussians          out: semantic_cloud, objects, objects/markers,
+    services: save_map, load_map, reset, publish            /diagnostics
+Parameters: monovoc_ros.nodes.params.PARAMETERS (config/semantic_mapper.yaml lists them all). The ROS node
+name is `semantic_mapper` whichever executable runs it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+
+import msg_adapters as ma
+from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
+from monovoc_ros.core.mapping import SemanticMapper
+from monovoc_ros.core.ply import load_ply
+from monovoc_ros.core.session import KeyframeListener
+from monovoc_ros.ingest import KeyframeAssembler
+from monovoc_ros.nodes.component import Component, MappingHost
+from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
+from monovoc_ros.nodes.outputs import SemanticOutputs
+from monovoc_ros.nodes.params import PARAMETERS, NodeParams, ParameterError
+from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
+from monovoc_ros.nodes.reorder import StampReorder
+from monovoc_ros.nodes.services import guarded
+from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, WorkerStopped
+
+NODE_NAME = "semantic_mapper"
+DEFAULT_NAMESPACE = "/monovoc"
+# One per callback group (4 inputs, map, diagnostics) plus services, which may block waiting for the worker.
+EXECUTOR_THREADS = 8
+
+
+def _message_types(params: NodeParams) -> dict[str, type]:
+    from geometry_msgs.msg import PoseStamped, TransformStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+    image = {"raw": Image, "compressed": CompressedImage}
+    pose = {"pose": PoseStamped, "odometry": Odometry, "transform": TransformStamped}
+    return {
+        "image": image[params.image_transport],
+        "mask": image[params.mask_transport],
+        "camera_info": CameraInfo,
+        "pose": pose[params.ingest.pose_type],
+    }
+
+
+class MappingNode(Node):
+    def __init__(self, **node_kwargs: Any) -> None:
+        node_kwargs.setdefault("namespace", DEFAULT_NAMESPACE)
+        super().__init__(NODE_NAME, **node_kwargs)
+        self.params = self._read_parameters()
+        self.stats = MapperStats()
+        self._ingest_lock = threading.Lock()
+        self.assembler = KeyframeAssembler(self.params.ingest)
+        self._reorder = StampReorder(
+            self.assembler.roles, self.params.reorder_wait_s, max_lead_s=self.params.ingest.max_stamp_lead_s
+        )
+        self._reject_log = RejectionLog(self.get_logger().warning)
+        self._warned_frame: set[str] = set()
+        self._diagnostics_sources: list[Callable[[], dict[str, Any]]] = []
+        # Named so that plugins can put their own callbacks beside ours.
+        # One group per input topic: each topic's messages are handled one at a time, in order (what the
+        # assembler needs), while the topics progress side by side. In one shared mutually exclusive group
+        # the executor keeps picking the first ready subscription, so during a burst (a bag replayed with
+        # --fast) one topic ran ahead of the others by more than the synchronizer buffers, losing keyframes.
+        self.callback_groups: dict[str, CallbackGroup] = {
+            **{f"input.{role}": MutuallyExclusiveCallbackGroup() for role in self.assembler.roles},
+            "map": MutuallyExclusiveCallbackGroup(),  # decoding a big map must not hold up keyframes
+            "services": ReentrantCallbackGroup(),  # handlers wait for the worker; several may wait at once
+            "timers": MutuallyExclusiveCallbackGroup(),
+        }
+        self.outputs = SemanticOutputs(
+            self, frame_id=self.params.frame_id, labels=self.params.labels, up=self.params.marker_up
+        )
+        p = self.params
+        settings = WorkerSettings(
+            queue_size=p.queue_size,
+            publish_period_s=1.0 / p.publish_rate_hz if p.publish_rate_hz > 0 else 0.0,
+            map_directory=p.map_directory,
+            save_period_s=p.save_period_s,
+            map_update_max_shrink=p.map_update_max_shrink,
+        )
+        self.worker = MapWorker(
+            p.mapper,
+            settings,
+            stats=self.stats,
+            sink=self.outputs,
+            log=self.get_logger(),
+            mapper=self._initial_mapper(),
+        )
+        self.worker.add_reset_listener(self._reset_ingest)
+        self._create_subscriptions()
+        self._create_services()
+        self._diagnostics = self.create_publisher(_diagnostic_array_type(), "/diagnostics", DIAGNOSTICS_QOS)
+        timers = self.callback_groups["timers"]
+        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics, callback_group=timers)
+        if p.reorder_wait_s > 0:
+            self.create_timer(min(0.1, p.reorder_wait_s), self._flush_stale_inputs, callback_group=timers)
+
+    # ------------------------------------------------------------------ hooks for other components
+
+    def host(self) -> MappingHost:
+        """What this node offers the components composed with it (monovoc_ros.nodes.component)."""
+        p, worker = self.params, self.worker
+        return MappingHost(
+            name=self.get_name(),
+            namespace=self.get_namespace(),
+            context=self.context,
+            logger=self.get_logger(),
+            clock=self.get_clock(),
+            create_publisher=self.create_publisher,
+            frame_id=p.frame_id,
+            marker_up=tuple(p.marker_up),
+            labels=dict(p.labels),
+            map_directory=p.map_directory,
+            resume=p.resume,
+            mapper=lambda: worker.mapper,
+            busy=lambda: worker.keyframes_waiting > 0,
+            add_keyframe_listener=self.add_keyframe_listener,
+            add_result_listener=self.add_result_listener,
+            add_reset_listener=worker.add_reset_listener,
+            add_save_listener=worker.add_save_listener,
+            add_load_check=worker.add_load_check,
+            add_diagnostics_source=self.add_diagnostics_source,
+        )
+
+    def add_keyframe_listener(self, fn: KeyframeListener) -> None:
+        """fn(keyframe, mapper) on the worker thread after each integrated keyframe."""
+        self.worker.add_keyframe_listener(fn)
+
+    def add_result_listener(self, fn: ResultListener) -> None:
+        """fn(mapper, result) on the worker thread each time the semantic result is recomputed (before publishing)."""
+        self.worker.add_result_listener(fn)
+
+    def add_diagnostics_source(self, fn: Callable[[], dict[str, Any]]) -> None:
+        """fn() -> key/value pairs added to every /diagnostics status (timer thread; keep it cheap)."""
+        self._diagnostics_sources.append(fn)
+
+    def submit(self, fn: Callable[[SemanticMapper | None], Any]) -> concurrent.futures.Future:
+        """Runs fn(mapper) on the worker thread, in order with keyframes and map updates."""
+        return self.worker.submit(fn)
+
+    # ------------------------------------------------------------------ life cycle
+
+    def start(self) -> None:
+        self.worker.start()
+        p = self.params
+        self.get_logger().info(
+            f"ready: {self.get_namespace()} inputs {list(self.assembler.roles)} (image {p.image_transport}, mask "
+            f"{p.mask_transport}, pose {p.ingest.pose_type}), impl {p.mapper.impl}, queue {p.queue_size}, "
+            f"map directory {p.map_directory or '-'}"
+        )
+
+    def stop(self) -> None:
+        """Stops the worker (final snapshot when map_directory is set). Call before destroy_node()."""
+        self.worker.stop()
+
+    # ------------------------------------------------------------------ set-up
+
+    def _read_parameters(self) -> NodeParams:
+        values = {}
+        for spec in PARAMETERS:
+            # Float parameters take integers too (-p save_period_s:=10); NodeParams checks the type.
+            dynamic = isinstance(spec.default, float)
+            descriptor = ParameterDescriptor(description=spec.description, read_only=True, dynamic_typing=dynamic)
+            try:
+                values[spec.name] = self.declare_parameter(spec.name, spec.default, descriptor).value
+            except ParameterException as exc:
+                kind = type(spec.default).__name__
+                raise ParameterError(f"{spec.name}: {exc} (expected a {kind} like {spec.default!r})") from None
+        return NodeParams.from_values(values)
+
+    def _initial_mapper(self) -> SemanticMapper | None:
+        p, log = self.params, self.get_logger()
+        snapshot = current_snapshot(p.map_directory) if p.map_directory else None
+        if p.resume and snapshot is not None:
+            mapper = load_snapshot(p.map_directory, p.mapper)
+            log.info(f"resumed {snapshot}: {mapper.n_keyframes} keyframes, {len(mapper.gaussians)} Gaussians")
+            if p.map_ply:
+                log.warning(f"map_ply {p.map_ply} ignored: resumed from a snapshot")
+            return mapper
+        if snapshot is not None:
+            log.warning(f"{p.map_directory} holds a saved map but resume is false: new snapshots will supersede it")
+        if p.map_ply:
+            gaussians = load_ply(p.map_ply)
+            log.info(f"map_ply {p.map_ply}: {len(gaussians)} Gaussians")
+            return SemanticMapper(gaussians, p.mapper)
+        return None
+
+    def _create_subscriptions(self) -> None:
+        from sensor_msgs.msg import PointCloud2
+
+        types = _message_types(self.params)
+        qos = input_qos(self.params.input_depth, self.params.input_reliability)
+        for role in self.assembler.roles:
+            self.create_subscription(
+                types[role],
+                role,
+                lambda msg, role=role: self._on_input(role, msg),
+                qos,
+                callback_group=self.callback_groups[f"input.{role}"],
+            )
+        self.create_subscription(
+            PointCloud2, "gaussians", self._on_gaussians, latched_qos(), callback_group=self.callback_groups["map"]
+        )
+
+    def _create_services(self) -> None:
+        from std_srvs.srv import Trigger
+
+        from monovoc_interfaces.srv import LoadMap, Reset, SaveMap
+
+        group = self.callback_groups["services"]
+        self.create_guarded_service(SaveMap, "save_map", self._on_save, group)
+        self.create_guarded_service(LoadMap, "load_map", self._on_load, group)
+        self.create_guarded_service(Reset, "reset", self._on_reset, group)
+        self.create_guarded_service(Trigger, "publish", self._on_publish, group)
+
+    def create_guarded_service(
+        self, srv_type: type, name: str, handler: Callable[[Any, Any], Any], group: CallbackGroup, qos: Any = None
+    ) -> Any:
+        """A service whose every failure answers success=false (monovoc_ros.nodes.services.guarded), counted
+        as `service_errors` in diagnostics, with a request queue deep enough for bursts (SERVICE_QOS).
+        Components (the query service) use it too."""
+
+        def count() -> None:
+            self.stats.add(service_errors=1)
+
+        callback = guarded(srv_type, name, handler, log=self.get_logger().error, on_error=count)
+        qos = SERVICE_QOS if qos is None else qos
+        return self.create_service(srv_type, name, callback, callback_group=group, qos_profile=qos)
+
+    # ------------------------------------------------------------------ inputs
+
+    def _on_input(self, role: str, msg: Any) -> None:
+        with self._ingest_lock:  # topics arrive on several threads; the assembler takes them one at a time
+            self._push(self._reorder.add(role, msg))
+
+    def _flush_stale_inputs(self) -> None:
+        # Messages held for a topic that went quiet are released after reorder_wait_s even without traffic.
+        with self._ingest_lock:
+            if len(self._reorder):
+                self._push(self._reorder.due())
+
+    def _push(self, messages: list[tuple[str, Any]]) -> None:
+        """Assembler -> worker queue, in stamp order (called with the ingest lock held)."""
+        for role, msg in messages:
+            try:
+                keyframes, rejections = self.assembler.push(role, msg)
+            except Exception as exc:  # a conversion bug must cost one message, not the subscription
+                reason = "bad_camera_info" if role == "camera_info" else f"bad_{role}"
+                keyframes, rejections = [], []
+                self.stats.reject(reason)
+                self._reject_log(reason, f"{role}: unexpected {type(exc).__name__}: {exc}")
+            for r in rejections:
+                self.stats.reject(r.reason)
+                self._reject_log(r.reason, f"{r.role} stamp {r.stamp_ns}: {r.detail}")
+            for keyframe in keyframes:
+                self.stats.add(keyframes_received=1)
+                dropped = self.worker.submit_keyframe(keyframe)
+                if dropped is not None:
+                    self._reject_log("queue_full", f"keyframe {dropped.stamp_ns} dropped: queue_size reached")
+
+    def _on_gaussians(self, msg: Any) -> None:
+        try:
+            gaussians = ma.cloud_to_gaussian_map(msg)
+        except ValueError as exc:
+            self.stats.reject("bad_gaussians")
+            self._reject_log("bad_gaussians", f"Gaussian map ignored: {exc}")
+            return
+        frame = str(msg.header.frame_id)
+        if frame and frame != self.params.frame_id and frame not in self._warned_frame:
+            self._warned_frame.add(frame)
+            self.get_logger().warning(f"Gaussian map frame {frame!r} differs from frame_id {self.params.frame_id!r}")
+        self.worker.submit_map(gaussians, f"stamp {ma.header_stamp_ns(msg)}")
+
+    def _reset_ingest(self) -> None:
+        # A reset forgets the stamps seen so far, so the same sequence can be sent again.
+        with self._ingest_lock:
+            self.assembler = KeyframeAssembler(self.params.ingest)
+            self._reorder.clear()
+
+    # ------------------------------------------------------------------ services
+
+    def _wait(self, future: concurrent.futures.Future, what: str) -> tuple[bool, Any]:
+        """(True, result) or (False, message) for a worker call."""
+        timeout = self.params.service_timeout_s
+        try:
+            return True, future.result(timeout=timeout)
+        except concurrent.futures.TimeoutError:
+            return False, f"{what}: timed out after {timeout:g} s waiting for the worker (still queued; it will run)"
+        except WorkerStopped as exc:
+            return False, str(exc)
+        except (ValueError, OSError) as exc:  # expected failures (MapStoreError, PlyError, ...): their message
+            return False, f"{what}: {exc}"
+        except Exception as exc:  # anything else still answers, with its type
+            return False, f"{what}: {type(exc).__name__}: {exc}"
+
+    def _directory(self, requested: str) -> str:
+        directory = requested or self.params.map_directory
+        if not directory:
+            raise ValueError("no directory given and parameter map_directory is not set")
+        return str(Path(directory).expanduser().resolve())
+
+    def _on_save(self, request: Any, response: Any) -> Any:
+        try:
+            directory = self._directory(request.directory)
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        ok, out = self._wait(self.worker.call(lambda: self.worker.save(directory), "save_map"), "save_map")
+        response.success = ok
+        response.directory = directory if ok else ""
+        response.message = f"saved {out.keyframes} keyframes, {out.gaussians} Gaussians to {out.path}" if ok else out
+        return response
+
+    def _on_load(self, request: Any, response: Any) -> Any:
+        try:
+            path = self._directory(request.directory)
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+
+        def load() -> tuple[int, int, int]:
+            mapper = self.worker.load(path)
+            return len(mapper.gaussians), self.worker.objects_now(), mapper.n_keyframes
+
+        ok, out = self._wait(self.worker.call(load, "load_map"), "load_map")
+        response.success = ok
+        if ok:
+            response.directory = path
+            response.num_gaussians, response.num_objects, keyframes = out
+            response.message = f"loaded {path}: {keyframes} keyframes, {out[0]} Gaussians, {out[1]} objects"
+        else:
+            response.message = out
+        return response
+
+    def _on_reset(self, request: Any, response: Any) -> Any:
+        keep = bool(request.keep_gaussians)
+        ok, out = self._wait(self.worker.call(lambda: self.worker.reset(keep), "reset"), "reset")
+        response.success = ok
+        response.message = (
+            ("semantic state cleared" if keep else "map cleared; waiting for a Gaussian map") if ok else out
+        )
+        return response
+
+    def _on_publish(self, request: Any, response: Any) -> Any:
+        ok, out = self._wait(self.worker.call(self.worker.publish_now, "publish"), "publish")
+        response.success = ok
+        if ok:
+            result, objects = out
+            points = 0 if result is None else int((result.object_ids != 0xFFFFFFFF).sum())
+            response.message = f"published {points} labelled Gaussians, {objects} objects"
+        else:
+            response.message = out
+        return response
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def _publish_diagnostics(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        snapshot = self.stats.snapshot()
+        snapshot["queue_length"] = self.worker.keyframes_waiting
+        snapshot["inputs_waiting"] = len(self._reorder)
+        snapshot["inputs_released_early"] = self._reorder.released_early
+        with self._ingest_lock:
+            sync = self.assembler.sync.stats
+            extra: dict[str, Any] = {f"sync_unmatched.{r}": n for r, n in sync.unmatched.items()}
+            extra.update({f"sync_overflow.{r}": n for r, n in sync.overflow.items()})
+            extra.update({f"messages_received.{r}": n for r, n in self.assembler.received.items()})
+        for source in self._diagnostics_sources:
+            extra.update(source())
+        status = diagnostic_status(
+            snapshot, name=f"{self.get_fully_qualified_name()}: semantic mapping", hardware_id=NODE_NAME, extra=extra
+        )
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._diagnostics.publish(msg)
+
+
+def _diagnostic_array_type() -> type:
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    return DiagnosticArray
+
+
+def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Component]] | None = None) -> int:
+    """Runs the mapping node, and the components ``compose(node)`` creates beside it, until SIGINT/SIGTERM."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = MappingNode()
+        components = compose(node) if compose is not None else []
+    except ParameterError as exc:
+        print(f"{NODE_NAME}: invalid parameter {exc}", file=sys.stderr)
+        _abort(node)
+        return 2
+    except (MapStoreError, OSError, ValueError) as exc:
+        print(f"{NODE_NAME}: cannot start: {exc}", file=sys.stderr)
+        _abort(node)
+        return 1
+    executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
+    executor.add_node(node)
+    for component in components:
+        component.start()
+    node.start()
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        # Order matters (ROS_WHEELS.md): worker (final snapshot), components, executor, then node and context.
+        node.stop()
+        for component in reversed(components):
+            component.stop()
+        executor.shutdown(timeout_sec=5.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def _abort(node: MappingNode | None) -> None:
+    if node is not None:
+        node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def main(args: list[str] | None = None) -> int:
+    """The mapping node alone (console script `mapping_node`)."""
+    return run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
