@@ -16,7 +16,7 @@ from pathlib import Path
 
 import yaml
 
-from monovoc_ros.bags.topics import ROLES
+from monovoc_ros.contract import ROLES
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch" / "monovoc.launch.py"

@@ -14,9 +14,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from monovoc_ros.ingest import REASONS
+from monovoc_ros.contract import REJECTION_REASONS
 
-# Rejections the mapper itself adds to the ingest reasons (monovoc_ros.ingest.REASONS):
+# Rejections the mapper itself adds to the ingest reasons (monovoc_ros.contract.REJECTION_REASONS):
 #   duplicate_stamp     a keyframe whose stamp is already in the state (e.g. replayed after a resume);
 #                       counted under the same name as the ingest reason, as `monovoc map` counts it
 #   integration_error   the rasterizer refused a keyframe (state untouched)
@@ -24,7 +24,7 @@ from monovoc_ros.ingest import REASONS
 #   empty_gaussians     a Gaussian map without a single Gaussian (the map in use is kept)
 #   map_shrink          a map update that would remove more than map_update_max_shrink of the Gaussians
 MAPPER_REASONS = ("integration_error", "bad_gaussians", "empty_gaussians", "map_shrink")
-ALL_REASONS = REASONS + MAPPER_REASONS
+ALL_REASONS = REJECTION_REASONS + MAPPER_REASONS
 
 
 @dataclass

@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 import msg_adapters as ma
+from monovoc_ros.contract import CAMERA_FRAME, DEFAULT_NAMESPACE, MAP_FRAME
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.nodes.qos import input_qos, latched_qos
@@ -23,8 +24,8 @@ def keyframe_messages(
     keyframe: Keyframe,
     *,
     stamp_ns: int | None = None,
-    frame_id: str = "map",
-    camera_frame: str = "camera_optical",
+    frame_id: str = MAP_FRAME,
+    camera_frame: str = CAMERA_FRAME,
     image_format: str = "jpeg",
 ) -> dict[str, Any]:
     """role -> message for one keyframe (mask as PNG; camera_info for the mask's resolution unless the RGB
@@ -46,7 +47,7 @@ def keyframe_messages(
 class KeyframePublisher:
     """Publishers for the node's inputs, created on `node` (any rclpy node, e.g. a test's client node)."""
 
-    def __init__(self, node: Any, namespace: str = "/monovoc", *, depth: int = 1000) -> None:
+    def __init__(self, node: Any, namespace: str = DEFAULT_NAMESPACE, *, depth: int = 1000) -> None:
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import CameraInfo, CompressedImage, PointCloud2
 
@@ -70,7 +71,7 @@ class KeyframePublisher:
         self.publish_messages(msgs)
         return msgs
 
-    def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int = 0, frame_id: str = "map") -> Any:
+    def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int = 0, frame_id: str = MAP_FRAME) -> Any:
         msg = ma.gaussian_map_to_cloud(gaussians, frame_id=frame_id, stamp=stamp_ns)
         self.gaussians.publish(msg)
         return msg

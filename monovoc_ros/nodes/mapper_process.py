@@ -19,9 +19,9 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from monovoc_ros.contract import DEFAULT_NAMESPACE as NAMESPACE
 from monovoc_ros.nodes import service_call
 
-NAMESPACE = "/monovoc"
 WITH_OBJECTS = "monovoc_ros.nodes.object_query"  # semantic_mapper + object database + query service
 MAPPING_ONLY = "monovoc_ros.nodes.semantic_mapper"
 

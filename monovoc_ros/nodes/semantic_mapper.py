@@ -35,27 +35,26 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
 import msg_adapters as ma
+from monovoc_ros.contract import DEFAULT_NAMESPACE
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.ply import load_ply
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
 from monovoc_ros.nodes.outputs import SemanticOutputs
-from monovoc_ros.nodes.params import PARAMETERS, NodeParams, ParameterError
+from monovoc_ros.nodes.param_spec import ParameterError, declare
+from monovoc_ros.nodes.params import PARAMETERS, NodeParams
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.worker import KeyframeListener, MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
-DEFAULT_NAMESPACE = "/monovoc"
 # One per callback group (4 inputs, map, diagnostics) plus services, which may block waiting for the worker.
 EXECUTOR_THREADS = 8
 
@@ -164,17 +163,7 @@ class SemanticMapperNode(Node):
     # ------------------------------------------------------------------ set-up
 
     def _read_parameters(self) -> NodeParams:
-        values = {}
-        for spec in PARAMETERS:
-            # Float parameters take integers too (-p save_period_s:=10); NodeParams checks the type.
-            dynamic = isinstance(spec.default, float)
-            descriptor = ParameterDescriptor(description=spec.description, read_only=True, dynamic_typing=dynamic)
-            try:
-                values[spec.name] = self.declare_parameter(spec.name, spec.default, descriptor).value
-            except ParameterException as exc:
-                kind = type(spec.default).__name__
-                raise ParameterError(f"{spec.name}: {exc} (expected a {kind} like {spec.default!r})") from None
-        return NodeParams.from_values(values)
+        return NodeParams.from_values(declare(self, PARAMETERS))
 
     def _initial_mapper(self) -> SemanticMapper | None:
         p, log = self.params, self.get_logger()
@@ -395,6 +384,8 @@ def main(args: list[str] | None = None, *, setup: Callable[[SemanticMapperNode],
     rclpy.init(args=args)
     try:
         node = SemanticMapperNode()
+        if setup is not None:
+            setup(node)  # a component's parameters are checked here
     except ParameterError as exc:
         print(f"{NODE_NAME}: invalid parameter {exc}", file=sys.stderr)
         rclpy.try_shutdown()
@@ -403,8 +394,6 @@ def main(args: list[str] | None = None, *, setup: Callable[[SemanticMapperNode],
         print(f"{NODE_NAME}: cannot start: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
-    if setup is not None:
-        setup(node)
     executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
     executor.add_node(node)
     node.start()

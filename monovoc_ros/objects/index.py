@@ -33,12 +33,13 @@ import numpy as np
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.objects import ObjectSummary, summarize_objects
+from monovoc_ros.core.palette import format_object_id, parse_object_id
 from monovoc_ros.embed.arrays import l2_normalize
 from monovoc_ros.embed.attributes import best_class_name, combine, describe, dominant_color_name
 from monovoc_ros.embed.crops import crop_object
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.objects.geometry import main_cluster_ids
-from monovoc_ros.objects.labels import format_object_id, noun, parse_object_id
+from monovoc_ros.objects.labels import noun
 from monovoc_ros.objects.records import ObjectRecord, QueryError, QueryResult
 from monovoc_ros.objects.upright import axis_vector, camera_up, estimate_up, upright_geometry
 from monovoc_ros.objects.views import ObjectView, ObjectViews, ViewConfig
@@ -342,7 +343,7 @@ class ObjectIndex:
 
     def _label(self, oid: int, backend) -> tuple[str, str]:
         labels = self.config.labels or {}
-        if oid in labels:
+        if labels.get(oid):  # an unnamed labels.json color names nothing
             return labels[oid], "given"
         if oid in self.segment_labels:  # the segmenter's leading class for the object
             return self.segment_labels[oid], "given"

@@ -1,4 +1,5 @@
-"""The topic contract between bags, replay and the live node (docs/interfaces.md has the schemas).
+"""The topic contract between bags, replay, offline mapping and the live node (docs/interfaces.md has the
+schemas): namespace, roles, frames, metadata keys, and the names under which bad input is counted.
 
 Under a namespace (default ``/monovoc``): ``image`` (CompressedImage jpeg/png or Image rgb8), ``mask``
 (lossless palette mask: CompressedImage png or Image rgb8), ``camera_info`` (of the image's resolution,
@@ -15,6 +16,16 @@ MAP_FRAME = "map"
 KEYFRAME_ROLES = ("image", "mask", "camera_info", "pose")
 MAP_ROLE = "gaussians"
 ROLES = (*KEYFRAME_ROLES, MAP_ROLE)
+# Why a message did not become part of a keyframe, as counted in diagnostics and offline reports.
+BAD_MESSAGE = {"image": "bad_image", "mask": "bad_mask", "camera_info": "bad_camera_info", "pose": "bad_pose"}
+REJECTION_REASONS = (
+    *BAD_MESSAGE.values(),
+    "size_mismatch",
+    "void_mask",
+    "stamp_out_of_order",
+    "duplicate_stamp",
+    "stamp_future",
+)
 LABELS_METADATA = "monovoc_labels"  # JSON list of {color: [r, g, b], class_name, ...} (Sequence.labels())
 SOURCE_METADATA = "monovoc_source"  # JSON: where the bag came from, formats, time offset
 MAP_LEAD_NS = 1_000_000  # a map message is logged 1 ms before the keyframe it precedes
