@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 import msg_adapters as ma
-from monovoc_ros.contract import BAD_MESSAGE, KEYFRAME_ROLES
+from monovoc_ros.contract import BAD_MESSAGE, KEYFRAME_ROLES, POSE_MESSAGE_TYPES
 from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.datasets import instance_palette
 from monovoc_ros.core.gaussians import GaussianMap
@@ -23,7 +23,7 @@ from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import VOID_RGB
 from monovoc_ros.core.sync import StampSynchronizer
 
-POSE_TYPES = ("pose", "odometry", "transform")
+POSE_TYPES = tuple(POSE_MESSAGE_TYPES)
 _POSE_READERS = {
     "pose": ma.pose_stamped_to_matrix,
     "odometry": ma.odometry_to_matrix,

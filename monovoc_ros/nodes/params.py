@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from monovoc_ros.contract import MAP_FRAME
+from monovoc_ros.contract import IMAGE_MESSAGE_TYPES, MAP_FRAME
 from monovoc_ros.core.association import MASK_ID_MODES
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
 from monovoc_ros.core.palette import read_labels
@@ -24,7 +24,7 @@ from monovoc_ros.ingest import FRAME_CONVENTIONS, POSE_TYPES, IngestConfig
 from monovoc_ros.nodes.param_spec import Param, ParameterError, defaults, validate
 from monovoc_ros.nodes.worker import WorkerSettings
 
-TRANSPORTS = ("raw", "compressed")
+TRANSPORTS = tuple(IMAGE_MESSAGE_TYPES)
 RELIABILITIES = ("reliable", "best_effort")
 _INGEST, _MAPPER, _WORKER = IngestConfig(), MapperConfig(), WorkerSettings()
 

@@ -40,7 +40,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
 import msg_adapters as ma
-from monovoc_ros.contract import DEFAULT_NAMESPACE
+from monovoc_ros.contract import DEFAULT_NAMESPACE, keyframe_types, message_class
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.ply import load_ply
@@ -60,18 +60,8 @@ EXECUTOR_THREADS = 8
 
 
 def _message_types(params: NodeParams) -> dict[str, type]:
-    from geometry_msgs.msg import PoseStamped, TransformStamped
-    from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-
-    image = {"raw": Image, "compressed": CompressedImage}
-    pose = {"pose": PoseStamped, "odometry": Odometry, "transform": TransformStamped}
-    return {
-        "image": image[params.image_transport],
-        "mask": image[params.mask_transport],
-        "camera_info": CameraInfo,
-        "pose": pose[params.ingest.pose_type],
-    }
+    names = keyframe_types(params.image_transport, params.mask_transport, params.ingest.pose_type)
+    return {role: message_class(name) for role, name in names.items()}
 
 
 class SemanticMapperNode(Node):
