@@ -12,10 +12,10 @@ import pytest
 import yaml
 
 from monovoc_ros.core.mapping import MapperConfig
-from monovoc_ros.ingest import IngestConfig
+from monovoc_ros.ingest import POSE_TYPES, IngestConfig
 from monovoc_ros.nodes.object_query_params import PARAMETERS as OBJECT_PARAMETERS
 from monovoc_ros.nodes.param_spec import Param, ParameterError, validate
-from monovoc_ros.nodes.params import DEFAULTS, PARAMETERS, NodeParams, load_labels
+from monovoc_ros.nodes.params import DEFAULTS, PARAMETERS, TRANSPORTS, NodeParams, load_labels
 from tests.node_scene import NODE
 from tests.rosutil import (
     REPO,
@@ -257,3 +257,17 @@ def test_running_node_describes_its_parameters_with_their_ranges(tmp_path):
         weight = described["objects.description_weight"].floating_point_range[0]
         assert (weight.from_value, weight.to_value) == (0.0, 1.0)
         assert node.stop() == 0
+
+
+def test_contract_names_a_message_class_for_every_input_setting():
+    from monovoc_ros.contract import MAP_TYPE, keyframe_types, message_class
+
+    images = {"raw": "Image", "compressed": "CompressedImage"}
+    poses = {"pose": "PoseStamped", "odometry": "Odometry", "transform": "TransformStamped"}
+    for transport in TRANSPORTS:
+        for pose_type in POSE_TYPES:
+            names = keyframe_types(transport, transport, pose_type)
+            types = {role: message_class(name).__name__ for role, name in names.items()}
+            assert types == {"image": images[transport], "mask": images[transport], "camera_info": "CameraInfo",
+                             "pose": poses[pose_type]}  # fmt: skip
+    assert message_class(MAP_TYPE).__name__ == "PointCloud2"
