@@ -13,6 +13,7 @@ import yaml
 
 from monovoc_ros.core.mapping import MapperConfig
 from monovoc_ros.ingest import POSE_TYPES, IngestConfig
+from monovoc_ros.nodes.mapper_process import WITH_OBJECTS as OBJECT_NODE_MODULE
 from monovoc_ros.nodes.object_query_params import PARAMETERS as OBJECT_PARAMETERS
 from monovoc_ros.nodes.param_spec import Param, ParameterError, validate
 from monovoc_ros.nodes.params import DEFAULTS, PARAMETERS, TRANSPORTS, NodeParams, load_labels
@@ -30,7 +31,7 @@ from tests.rosutil import (
 
 CONFIG = REPO / "config" / "semantic_mapper.yaml"
 OBJECT_CONFIG = REPO / "config" / "object_query.yaml"
-WITH_OBJECTS = ["-m", "monovoc_ros.nodes.object_query"]
+WITH_OBJECTS = ["-m", OBJECT_NODE_MODULE]
 
 
 def _yaml_comments(path) -> dict[str, str]:
@@ -106,6 +107,7 @@ def test_descriptors_carry_ranges_and_constraints():
     assert not by_name["impl"].integer_range and not by_name["impl"].floating_point_range
     assert by_name["diagnostics_period_s"].additional_constraints == "must be > 0"
     assert by_name["objects.description_weight"].floating_point_range[0].to_value == 1.0
+    assert Param("n", 2, "", above=0).descriptor().integer_range[0].from_value == 1  # > 0 for integers
 
 
 @pytest.mark.parametrize(

@@ -73,6 +73,8 @@ class Param:
                 )
             ]
         elif isinstance(self.default, int) and not isinstance(self.default, bool):
+            if self.above is not None and not self.choices:
+                low = math.floor(self.above) + 1  # integers: > above is >= the next one
             descriptor.integer_range = [
                 IntegerRange(
                     from_value=_INT_MIN if low is None else math.ceil(low),
