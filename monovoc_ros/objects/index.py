@@ -99,7 +99,8 @@ class IndexConfig:
         if int(self.min_gaussians) < 1:
             raise ValueError(f"min_gaussians must be >= 1, got {self.min_gaussians}")
         if self.labels is not None:
-            self.labels = {parse_object_id(k): str(v) for k, v in self.labels.items()}
+            # An unnamed labels.json color (class name "") names nothing.
+            self.labels = {parse_object_id(k): str(v) for k, v in self.labels.items() if str(v)}
         self.view_config()  # validates the view fields
 
     def view_config(self) -> ViewConfig:
@@ -343,7 +344,7 @@ class ObjectIndex:
 
     def _label(self, oid: int, backend) -> tuple[str, str]:
         labels = self.config.labels or {}
-        if labels.get(oid):  # an unnamed labels.json color names nothing
+        if oid in labels:
             return labels[oid], "given"
         if oid in self.segment_labels:  # the segmenter's leading class for the object
             return self.segment_labels[oid], "given"
