@@ -65,10 +65,10 @@ def _percentiles(samples_s: list[float]) -> dict:
 def build(args):
     from monovoc_ros.core.map_store import save_snapshot
     from monovoc_ros.core.mapping import SemanticMapper
+    from monovoc_ros.core.palette import labels_from_entries
     from monovoc_ros.embed import load_backend
     from monovoc_ros.objects.database import save_object_index
     from monovoc_ros.objects.index import IndexConfig, ObjectIndex
-    from monovoc_ros.objects.labels import labels_from_entries
     from monovoc_ros.synthetic import SceneConfig, generate_scene
 
     scene = generate_scene(SceneConfig(n_gaussians=args.gaussians, n_keyframes=args.keyframes))

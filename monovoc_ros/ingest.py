@@ -15,32 +15,20 @@ from typing import Any
 import numpy as np
 
 import msg_adapters as ma
+from monovoc_ros.contract import BAD_MESSAGE, KEYFRAME_ROLES, POSE_MESSAGE_TYPES
 from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.datasets import instance_palette
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import VOID_RGB
 from monovoc_ros.core.sync import StampSynchronizer
 
-ROLES = ("image", "mask", "camera_info", "pose")
-POSE_TYPES = ("pose", "odometry", "transform")
+POSE_TYPES = tuple(POSE_MESSAGE_TYPES)
 _POSE_READERS = {
     "pose": ma.pose_stamped_to_matrix,
     "odometry": ma.odometry_to_matrix,
     "transform": ma.transform_stamped_to_matrix,
 }
-# Rejection reasons, as counted in diagnostics.
-REASONS = (
-    "bad_image",
-    "bad_mask",
-    "bad_camera_info",
-    "bad_pose",
-    "size_mismatch",
-    "void_mask",
-    "stamp_out_of_order",
-    "duplicate_stamp",
-    "stamp_future",
-)
-_BAD = {"image": "bad_image", "mask": "bad_mask", "camera_info": "bad_camera_info", "pose": "bad_pose"}
+FRAME_CONVENTIONS = ("optical", "body")  # the pose is of the camera optical frame, or of a REP-103 body frame
 
 
 class _VoidMask(ValueError):
@@ -63,8 +51,8 @@ class IngestConfig:
     def __post_init__(self) -> None:
         if self.pose_type not in POSE_TYPES:
             raise ValueError(f"pose_type must be one of {POSE_TYPES}, got {self.pose_type!r}")
-        if self.frame_convention not in ("optical", "body"):
-            raise ValueError(f"frame_convention must be 'optical' or 'body', got {self.frame_convention!r}")
+        if self.frame_convention not in FRAME_CONVENTIONS:
+            raise ValueError(f"frame_convention must be one of {FRAME_CONVENTIONS}, got {self.frame_convention!r}")
         if not self.sync_tolerance_s >= 0:
             raise ValueError(f"sync_tolerance_s must be >= 0, got {self.sync_tolerance_s}")
         if not self.max_stamp_lead_s >= 0:
@@ -73,7 +61,7 @@ class IngestConfig:
 
 @dataclass
 class Rejection:
-    reason: str  # one of REASONS
+    reason: str  # one of contract.REJECTION_REASONS
     role: str
     stamp_ns: int | None
     detail: str
@@ -130,7 +118,7 @@ def mask_from_image(array: np.ndarray) -> np.ndarray:
 class KeyframeAssembler:
     def __init__(self, config: IngestConfig | None = None) -> None:
         self.config = config or IngestConfig()
-        roles = ROLES if self.config.use_image else tuple(r for r in ROLES if r != "image")
+        roles = KEYFRAME_ROLES if self.config.use_image else tuple(r for r in KEYFRAME_ROLES if r != "image")
         self.roles = roles
         self.sync = StampSynchronizer(
             roles, "mask", int(round(self.config.sync_tolerance_s * 1e9)), self.config.max_pending
@@ -157,7 +145,7 @@ class KeyframeAssembler:
             stamp = ma.header_stamp_ns(msg)
             item = self._convert(role, msg)
         except ValueError as exc:
-            reason = "void_mask" if isinstance(exc, _VoidMask) else _BAD[role]
+            reason = "void_mask" if isinstance(exc, _VoidMask) else BAD_MESSAGE[role]
             reason = "size_mismatch" if isinstance(exc, _SizeMismatch) else reason
             return [], [self._reject(reason, role, stamp, str(exc))]
         rejections = []

@@ -29,9 +29,9 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from monovoc_ros.contract import DEFAULT_NAMESPACE as NAMESPACE
 from monovoc_ros.nodes import service_call
 
-NAMESPACE = "/monovoc"
 SEMANTIC_MAPPER = "monovoc_ros.nodes.semantic_mapper"  # mapping + object database + query service
 MAPPING_ONLY = "monovoc_ros.nodes.mapping_node"
 # Variables that would take a child off loopback or onto a profile the caller did not choose.

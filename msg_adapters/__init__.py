@@ -8,7 +8,7 @@ lazily, so readers work without a ROS environment). Every conversion raises ``Ad
 
 from msg_adapters import buffers, compressed_image
 from msg_adapters.camera_info import camera_info_to_intrinsics, has_distortion, intrinsics_to_camera_info
-from msg_adapters.colors import packed_to_rgb, rgb_to_packed
+from msg_adapters.colors import rgb_to_packed
 from msg_adapters.compressed_image import compressed_image_header, compressed_image_to_numpy, numpy_to_compressed_image
 from msg_adapters.errors import AdapterError
 from msg_adapters.gaussian_cloud import cloud_to_gaussian_map, gaussian_map_to_cloud
@@ -50,7 +50,6 @@ __all__ = [
     "numpy_to_image",
     "object_markers",
     "odometry_to_matrix",
-    "packed_to_rgb",
     "pose_stamped_to_matrix",
     "pose_to_matrix",
     "rgb_to_packed",

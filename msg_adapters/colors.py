@@ -1,9 +1,11 @@
-"""Palette colors: (N, 3) uint8 RGB <-> packed 0x00RRGGBB uint32 (the object id and RViz's ``rgb``)."""
+"""Colors as messages give them -> packed 0x00RRGGBB uint32 (the object id and RViz's ``rgb``; core.palette
+unpacks them)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from monovoc_ros.core.palette import pack_rgb
 from msg_adapters.errors import AdapterError
 
 
@@ -19,17 +21,11 @@ def rgb_to_packed(rgb: np.ndarray, what: str = "rgb") -> np.ndarray:
     if rgb.dtype.kind in "ui":
         if rgb.size and (rgb.min() < 0 or rgb.max() > 255):
             raise AdapterError(f"{what}: integer colors must be in [0, 255]")
-        c = rgb.astype(np.uint32)
+        c = rgb.astype(np.uint8)
     elif rgb.dtype.kind == "f":
         if not np.all(np.isfinite(rgb)) or (rgb.size and (rgb.min() < 0 or rgb.max() > 1)):
             raise AdapterError(f"{what}: float colors must be finite and in [0, 1]")
-        c = np.rint(rgb * 255.0).astype(np.uint32)
+        c = np.rint(rgb * 255.0).astype(np.uint8)
     else:
         raise AdapterError(f"{what}: (N, 3) colors must be integers or floats in [0, 1], got {rgb.dtype}")
-    return (c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]
-
-
-def packed_to_rgb(packed: np.ndarray) -> np.ndarray:
-    """(N, 3) uint8 RGB of packed 0x00RRGGBB integers."""
-    p = np.asarray(packed).astype(np.uint32)
-    return np.stack([(p >> 16) & 0xFF, (p >> 8) & 0xFF, p & 0xFF], axis=-1).astype(np.uint8)
+    return pack_rgb(c)

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from monovoc_ros.contract import MAP_FRAME
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.ply import SH_C0
 from msg_adapters.errors import AdapterError
@@ -97,7 +98,7 @@ def cloud_to_gaussian_map(msg: Any) -> GaussianMap:
         raise AdapterError(f"GaussianCloud: {e}") from None
 
 
-def gaussian_map_to_cloud(gmap: GaussianMap, *, frame_id: str = "map", stamp: Any = 0, include_ids: bool = True):
+def gaussian_map_to_cloud(gmap: GaussianMap, *, frame_id: str = MAP_FRAME, stamp: Any = 0, include_ids: bool = True):
     """A ``sensor_msgs.msg.PointCloud2`` of ``gmap`` (f_dc when it has colors, id when it has ids)."""
     columns: list[tuple[str, np.ndarray]] = []
     for names, values in ((POSITION_FIELDS, gmap.means), (SCALE_FIELDS, gmap.scales), (ROTATION_FIELDS, gmap.quats)):

@@ -19,7 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from msg_adapters.colors import packed_to_rgb, rgb_to_packed
+from monovoc_ros.contract import MAP_FRAME
+from monovoc_ros.core.palette import format_object_id, unpack_rgb
+from msg_adapters.colors import rgb_to_packed
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import make_header
 
@@ -33,7 +35,7 @@ def object_markers(
     extents: np.ndarray,
     rgb: np.ndarray,
     *,
-    frame_id: str = "map",
+    frame_id: str = MAP_FRAME,
     stamp: Any = 0,
     namespace: str = "monovoc",
     alpha: float = 0.4,
@@ -61,7 +63,7 @@ def object_markers(
     labels = list(labels)
     centroids = np.asarray(centroids, dtype=np.float64).reshape(-1, 3) if n else np.zeros((0, 3))
     extents = np.asarray(extents, dtype=np.float64).reshape(-1, 3) if n else np.zeros((0, 3))
-    colors = packed_to_rgb(rgb_to_packed(rgb, "object_markers.rgb")) if n else np.zeros((0, 3), np.uint8)
+    colors = unpack_rgb(rgb_to_packed(rgb, "object_markers.rgb")) if n else np.zeros((0, 3), np.uint8)
     for name, count in (("labels", len(labels)), ("centroids", len(centroids)), ("extents", len(extents)),
                         ("rgb", len(colors))):  # fmt: skip
         if count != n:
@@ -97,6 +99,6 @@ def object_markers(
         text.pose = Pose(position=Point(x=lx, y=ly, z=lz), orientation=identity)
         text.scale = Vector3(x=0.0, y=0.0, z=float(text_height))
         text.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
-        text.text = str(label) or f"#{oid:06x}"
+        text.text = str(label) or format_object_id(oid)
         out.markers += [box, text]
     return out

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from monovoc_ros.contract import CAMERA_FRAME, MAP_FRAME
 from monovoc_ros.core.camera import matrix_to_quat_wxyz, quat_wxyz_to_matrix, validate_pose
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import make_header
@@ -98,7 +99,9 @@ def _translation_quat(T: np.ndarray, frame_convention: str) -> tuple[np.ndarray,
     return T[:3, 3], matrix_to_quat_wxyz(T[:3, :3])
 
 
-def matrix_to_pose_stamped(T: np.ndarray, *, frame_id: str = "map", stamp: Any = 0, frame_convention: str = "optical"):
+def matrix_to_pose_stamped(
+    T: np.ndarray, *, frame_id: str = MAP_FRAME, stamp: Any = 0, frame_convention: str = "optical"
+):
     """A ``geometry_msgs.msg.PoseStamped`` of a camera-to-world 4x4 (``frame_convention`` of the output)."""
     from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
 
@@ -113,8 +116,8 @@ def matrix_to_pose_stamped(T: np.ndarray, *, frame_id: str = "map", stamp: Any =
 def matrix_to_transform_stamped(
     T: np.ndarray,
     *,
-    frame_id: str = "map",
-    child_frame_id: str = "camera_optical_frame",
+    frame_id: str = MAP_FRAME,
+    child_frame_id: str = CAMERA_FRAME,
     stamp: Any = 0,
     frame_convention: str = "optical",
 ):

@@ -19,7 +19,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from msg_adapters.colors import packed_to_rgb, rgb_to_packed
+from monovoc_ros.contract import MAP_FRAME
+from monovoc_ros.core.palette import unpack_rgb
+from msg_adapters.colors import rgb_to_packed
 from msg_adapters.errors import AdapterError
 from msg_adapters.point_cloud import FLOAT32, FLOATS, INTEGERS, UINT32, make_cloud, read_fields
 
@@ -39,7 +41,7 @@ def semantic_cloud_from_arrays(
     object_ids: np.ndarray,
     confidence: np.ndarray,
     *,
-    frame_id: str = "map",
+    frame_id: str = MAP_FRAME,
     stamp: Any = 0,
 ):
     """A ``sensor_msgs.msg.PointCloud2`` in the semantic schema.
@@ -86,7 +88,7 @@ def semantic_cloud_to_arrays(msg: Any) -> SemanticCloud:
     packed = rgb_bits.view(rgb_bits.dtype.str.replace("f", "u")).astype(np.uint32) & 0xFFFFFF
     return SemanticCloud(
         points=points,
-        rgb=packed_to_rgb(packed),
+        rgb=unpack_rgb(packed),
         object_ids=columns["object_id"].astype(np.uint32),
         confidence=columns["confidence"].astype(np.float32),
     )

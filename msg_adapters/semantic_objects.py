@@ -7,10 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from msg_adapters.colors import packed_to_rgb
+from monovoc_ros.core.palette import format_object_id, unpack_rgb
 from msg_adapters.errors import AdapterError
-
-VOID_ID = 0xFFFFFF
 
 
 def semantic_object(
@@ -44,7 +42,7 @@ def semantic_object(
         raise AdapterError(f"SemanticObject: bbox_max {hi.tolist()} is below bbox_min {lo.tolist()}")
     if not np.isfinite(score):
         raise AdapterError(f"SemanticObject: score {score} is not finite")
-    r, g, b = (packed_to_rgb(np.array([object_id]))[0] / 255.0).tolist()
+    r, g, b = (unpack_rgb(np.array([object_id]))[0] / 255.0).tolist()
     (cx, cy, cz), (x0, y0, z0), (x1, y1, z1) = c.tolist(), lo.tolist(), hi.tolist()
     return SemanticObject(
         id=object_id,
@@ -69,7 +67,7 @@ def semantic_object_to_dict(msg: Any) -> dict:
 
     return {
         "id": int(msg.id),
-        "hex": f"#{int(msg.id):06x}",
+        "hex": format_object_id(msg.id),
         "label": str(msg.label),
         "description": str(msg.description),
         "score": float(msg.score),

@@ -59,7 +59,7 @@ def room() -> SyntheticScene:
 
 
 def room_labels() -> dict[int, str]:
-    from monovoc_ros.objects.labels import labels_from_entries
+    from monovoc_ros.core.palette import labels_from_entries
 
     return labels_from_entries(room().labels())
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros.cli import main as cli_main
-from monovoc_ros.core.palette import pack_rgb
+from monovoc_ros.core.palette import pack_rgb, read_labels
 from monovoc_ros.embed import imgviz_eval
 from monovoc_ros.embed.crops import crop_object
 from monovoc_ros.embed.retrieval import rank, topk_accuracy
@@ -28,7 +28,6 @@ from monovoc_ros.objects.evaluation import (
     load_queries,
     resolve_expected,
 )
-from monovoc_ros.objects.labels import load_labels
 from monovoc_ros.objects.views import ObjectViews, ViewConfig
 from tests.object_room import (
     REPLICA_QUERIES,
@@ -126,7 +125,7 @@ def test_replica_office0_retrieval(replica_office0, tmp_path):
     up = index.up_vector()
     assert abs(up[0]) < 0.1 and up[1] < -0.6 and up[2] < -0.6
     save_object_index(index, tmp_path, keyframes=mapper.n_keyframes)
-    labels = load_labels(replica_office0 / "labels.json")
+    labels = read_labels(replica_office0 / "labels.json")
     queries = load_queries(REPLICA_QUERIES)
     report = evaluate_map(tmp_path, queries, backend(), description_weights=(0.0, 0.3), labels=labels)
     print(format_table(report))

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import yaml
 
-from monovoc_ros.bags.topics import ROLES
+from monovoc_ros import contract
+from monovoc_ros.contract import ROLES
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch" / "monovoc.launch.py"
@@ -291,6 +292,9 @@ def test_package_xml_names_every_ros_package_and_rosdep_key_the_code_imports():
     # Nothing listed that the code does not use (besides the launch/RViz tools).
     ros_deps = {d for d in depends if not d.startswith("python3-")}
     imported = set(imported_modules("monovoc_ros", "msg_adapters", "launch"))
+    # The input message types are imported by name (contract.message_class).
+    named = [*contract.IMAGE_MESSAGE_TYPES.values(), *contract.POSE_MESSAGE_TYPES.values(), contract.MAP_TYPE]
+    imported |= {name.split("/")[0] for name in [*named, contract.CAMERA_INFO_TYPE]}
     assert ros_deps - imported == {"ros2launch", "rviz2"}
     assert {d for d in depends if d.startswith("python3-")} == set(ROSDEP_KEYS.values())
 

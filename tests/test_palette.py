@@ -15,7 +15,12 @@ from monovoc_ros.core.palette import (
     Palette,
     PaletteBuilder,
     color_counts,
+    format_object_id,
+    labels_from_entries,
     pack_rgb,
+    parse_object_id,
+    read_label_entries,
+    read_labels,
     region_counts_reference,
     unpack_rgb,
 )
@@ -235,3 +240,26 @@ def test_replica_palette_keeps_every_labeled_object(replica_office0):
     assert len(blended.rejected_ids) > 1000
     assert set(blended.ids.tolist()) <= real
     assert len(blended) >= len(real) - 2  # only objects the resampling erased entirely may go
+
+
+def test_object_ids_are_written_and_read_as_people_write_them():
+    assert format_object_id(0xFF7700) == "#ff7700"
+    for text in ("#ff7700", "0xff7700", "FF7700", " #ff7700 ", 16742144, "16742144"):
+        assert parse_object_id(text) == 0xFF7700, text
+    for bad in ("#ff77", "red", True, 0x1000000, -1):
+        with pytest.raises(ValueError):
+            parse_object_id(bad)
+
+
+def test_labels_name_every_color_of_a_labels_file(tmp_path):
+    entries = [{"color": [1, 2, 3], "class_name": " chair ", "instance_id": 4}, {"color": [255, 0, 0]}]
+    assert labels_from_entries(entries) == {0x010203: "chair", 0xFF0000: ""}
+    path = tmp_path / "labels.json"
+    path.write_text(json.dumps(entries))
+    assert read_label_entries(path) == entries and read_labels(path) == {0x010203: "chair", 0xFF0000: ""}
+    for bad in ([1, 2], [1, 2, 256], [1.0, 2, 3], "abc"):
+        with pytest.raises(ValueError, match="labels entry 0"):
+            labels_from_entries([{"color": bad}])
+    path.write_text("{}")
+    with pytest.raises(ValueError, match="expected a JSON list"):
+        read_labels(path)

@@ -2,13 +2,14 @@
 
 ROS-graph free: ``writer``, ``reader``, ``convert``, ``events`` (rclpy is only used to serialize
 message objects). ``replayer`` (``replay``) and ``recorder`` (``record``) talk to live topics.
-The topic contract is in ``topics``.
+The topic contract is ``monovoc_ros.contract``.
 """
 
 from monovoc_ros.bags.convert import ConvertReport, sequence_to_bag
 from monovoc_ros.bags.events import BAD_GAUSSIANS, bag_events
 from monovoc_ros.bags.reader import BagError, BagInfo, BagMessage, TopicInfo, bag_info, bag_metadata, iter_messages
-from monovoc_ros.bags.topics import (
+from monovoc_ros.bags.writer import BagWriter
+from monovoc_ros.contract import (
     CAMERA_FRAME,
     DEFAULT_NAMESPACE,
     LABELS_METADATA,
@@ -16,7 +17,6 @@ from monovoc_ros.bags.topics import (
     SOURCE_METADATA,
     topic_names,
 )
-from monovoc_ros.bags.writer import BagWriter
 
 
 def bag_labels(path) -> list[dict]:

@@ -24,7 +24,8 @@ import numpy as np
 
 import msg_adapters as ma
 from monovoc_ros.bags.qos import OfferedQos
-from monovoc_ros.bags.topics import (
+from monovoc_ros.bags.writer import BagWriter
+from monovoc_ros.contract import (
     CAMERA_FRAME,
     DEFAULT_NAMESPACE,
     LABELS_METADATA,
@@ -33,7 +34,6 @@ from monovoc_ros.bags.topics import (
     SOURCE_METADATA,
     topic_names,
 )
-from monovoc_ros.bags.writer import BagWriter
 from monovoc_ros.core.datasets import Sequence
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe

@@ -12,7 +12,7 @@ from collections.abc import Iterator, Mapping
 
 import msg_adapters as ma
 from monovoc_ros.bags.reader import iter_messages
-from monovoc_ros.bags.topics import DEFAULT_NAMESPACE, MAP_ROLE, topic_names
+from monovoc_ros.contract import BAD_MESSAGE, DEFAULT_NAMESPACE, MAP_ROLE, topic_names
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.ingest import IngestConfig, KeyframeAssembler, Rejection
@@ -74,6 +74,6 @@ def _undecodable(assembler: KeyframeAssembler, role: str, log_time_ns: int, exc:
         yield Rejection(BAD_GAUSSIANS, MAP_ROLE, log_time_ns, detail)
         return
     # Counted like any other bad message of that role, as the live node would (its rmw drops it).
-    reason = {"image": "bad_image", "mask": "bad_mask", "camera_info": "bad_camera_info", "pose": "bad_pose"}[role]
+    reason = BAD_MESSAGE[role]
     assembler.rejected[reason] += 1
     yield Rejection(reason, role, log_time_ns, detail)

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from monovoc_ros.contract import DEFAULT_NAMESPACE
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("bag", help="convert datasets to MCAP bags, show bag contents, rebuild bundled bags")
@@ -29,7 +31,7 @@ def register(subparsers) -> None:
     c.add_argument("--mask-format", choices=("png", "raw"), default="png", help="mask topic (default png)")
     c.add_argument("--jpeg-quality", type=int, default=95)
     c.add_argument("--max-keyframes", type=int, default=None)
-    c.add_argument("--namespace", default="/monovoc")
+    c.add_argument("--namespace", default=DEFAULT_NAMESPACE)
     c.add_argument("--no-map", action="store_true", help="leave the Gaussian map out")
     c.add_argument(
         "--mask-noise",

@@ -225,16 +225,18 @@ def _session(node, mapper, bag, out, n_keyframes, queries, rate, top_k, timeout)
 
 
 def _print_answer(text: str, answer: Any) -> dict:
+    from monovoc_ros.core.palette import format_object_id
+
     print(f"\nquery: {text!r} -> {answer.message}")
     found = []
     for rank, o in enumerate(answer.objects, start=1):
         c = (o.centroid.x, o.centroid.y, o.centroid.z)
         print(
-            f"  {rank}. {o.label or '-':12s} #{o.id:06x}  score {o.score:.3f}"
+            f"  {rank}. {o.label or '-':12s} {format_object_id(o.id)}  score {o.score:.3f}"
             f"  at ({c[0]:6.2f}, {c[1]:6.2f}, {c[2]:6.2f}) m"
             f"  size {o.extent.x:.2f} x {o.extent.y:.2f} x {o.extent.z:.2f} m"
         )
-        found.append({"id": f"#{o.id:06x}", "label": o.label, "score": round(float(o.score), 4), "centroid": c})
+        found.append({"id": format_object_id(o.id), "label": o.label, "score": round(float(o.score), 4), "centroid": c})
     return {"text": text, "success": bool(answer.success), "message": answer.message, "objects": found}
 
 
@@ -244,8 +246,9 @@ def _render(bag: Path, cloud: Any, map_dir: Path, out: Path) -> dict:
     import numpy as np
 
     from monovoc_ros.bags import bag_labels
-    from monovoc_ros.commands.eval import bag_frames, label_names, score, write_figure
+    from monovoc_ros.commands.eval import bag_frames, score, write_figure
     from monovoc_ros.core.map_store import load_snapshot
+    from monovoc_ros.core.palette import labels_from_entries
 
     frames = bag_frames(bag, every=3)
     points = types.SimpleNamespace(means=cloud.points)  # all that the points protocol reads of a map
@@ -253,7 +256,9 @@ def _render(bag: Path, cloud: Any, map_dir: Path, out: Path) -> dict:
     mapper = load_snapshot(map_dir)
     on_splats, rendered = score(mapper.gaussians, mapper.result().object_ids, frames, "splats", 0.05)
     figure = out / "semantic_render.png"
-    write_figure(figure, frames, ("splats", rendered, on_splats), label_names(bag_labels(bag)), mapper.config.metric)
+    write_figure(
+        figure, frames, ("splats", rendered, on_splats), labels_from_entries(bag_labels(bag)), mapper.config.metric
+    )
     return {
         "frames_evaluated": len(frames),
         "miou_points": round(float(on_points["miou"]), 4),

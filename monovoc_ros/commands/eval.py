@@ -14,7 +14,7 @@ from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labe
 from monovoc_ros.core.instance_eval import UNMATCHED_ID, score_matched
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.mapping import label_gaussians
-from monovoc_ros.core.palette import UNOBSERVED_ID, pack_rgb
+from monovoc_ros.core.palette import UNOBSERVED_ID, labels_from_entries, pack_rgb
 from monovoc_ros.core.quantize import METRICS
 
 PROTOCOLS = ("points", "splats")
@@ -47,7 +47,7 @@ def _frames(args: argparse.Namespace):
         from monovoc_ros.bags import bag_labels
 
         frames = bag_frames(args.bag, args.every, args.max_keyframes)
-        return Path(args.bag).name, frames, label_names(bag_labels(args.bag)), None
+        return Path(args.bag).name, frames, labels_from_entries(bag_labels(args.bag)), None
     seq = open_source_args(args)
     return sequence_frames(seq, args.every, args.max_keyframes)
 
@@ -75,12 +75,7 @@ def sequence_frames(seq, every: int = 1, max_keyframes: int | None = None):
         truth = np.full(len(seq.gaussian_object), UNOBSERVED_ID, np.uint32)
         labelled = seq.gaussian_object >= 0
         truth[labelled] = pack_rgb(palette[seq.gaussian_object[labelled]])
-    return seq.name, frames, label_names(seq.labels()), truth
-
-
-def label_names(labels: list[dict]) -> dict[int, str]:
-    """Packed palette color -> class name of a labels.json list."""
-    return {int(pack_rgb(np.array(e["color"], np.uint8))): str(e.get("class_name", "")) for e in labels}
+    return seq.name, frames, labels_from_entries(seq.labels()), truth
 
 
 def score(gaussians, object_ids, frames, protocol: str, point_size: float) -> tuple[dict, list[np.ndarray]]:

@@ -76,8 +76,7 @@ def matched_queries(map_dir: str, source: str, queries: list):
     from monovoc_ros.core.evaluation import render_splat_labels
     from monovoc_ros.core.instance_eval import match_instances
     from monovoc_ros.core.map_store import load_snapshot
-    from monovoc_ros.core.palette import pack_rgb
-    from monovoc_ros.objects.labels import format_object_id, parse_object_id
+    from monovoc_ros.core.palette import format_object_id, pack_rgb, parse_object_id
 
     mapper = load_snapshot(Path(map_dir) if Path(map_dir).is_dir() else Path(map_dir).parent)
     seq = offline.open_source(source)
@@ -100,18 +99,18 @@ def matched_queries(map_dir: str, source: str, queries: list):
 
 
 def run(args: argparse.Namespace) -> int:
+    from monovoc_ros.core.palette import read_labels
     from monovoc_ros.embed.backend import load_backend
     from monovoc_ros.embed.model_store import ModelMissingError
     from monovoc_ros.objects.database import ObjectDatabase, ObjectDatabaseError, database_path
     from monovoc_ros.objects.evaluation import evaluate_map, format_table, load_queries
-    from monovoc_ros.objects.labels import load_labels
 
     try:
         queries = load_queries(args.queries)
         modes = [m.strip() for m in args.modes.split(",") if m.strip()]
         weights = [args.description_weight if on else 0.0 for on in _switches(args.description, "--description")]
         nouns = _switches(args.label_nouns, "--label-nouns")
-        labels = load_labels(args.labels) if args.labels else None
+        labels = read_labels(args.labels) if args.labels else None
         noun_labels = None
         if args.reference:
             queries, labels, noun_labels = matched_queries(args.map, args.reference, queries)

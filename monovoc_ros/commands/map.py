@@ -7,48 +7,58 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
+from monovoc_ros.core.association import MASK_ID_MODES
 from monovoc_ros.core.map_store import save_snapshot
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
+from monovoc_ros.core.palette import labels_from_entries
 from monovoc_ros.core.quantize import METRICS
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
 
 
 def add_mapper_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--impl", choices=IMPLEMENTATIONS, default="numba", help="rasterizer (default numba)")
-    parser.add_argument("--device", default=None, help="torch device for --impl torch (e.g. cuda)")
-    parser.add_argument("--metric", choices=METRICS, default="cmc", help="palette quantization metric (default cmc)")
+    defaults = MapperConfig()
+    parser.add_argument(
+        "--impl", choices=IMPLEMENTATIONS, default=defaults.impl, help=f"rasterizer (default {defaults.impl})"
+    )
+    parser.add_argument("--device", default=defaults.device, help="torch device for --impl torch (e.g. cuda)")
+    parser.add_argument(
+        "--metric",
+        choices=METRICS,
+        default=defaults.metric,
+        help=f"palette quantization metric (default {defaults.metric})",
+    )
     parser.add_argument(
         "--weight-power",
         type=int,
         choices=WEIGHT_POWERS,
-        default=MapperConfig.weight_power,
-        help=f"exponent k of the evidence weights w^k (1 = the paper's SCD; default {MapperConfig.weight_power})",
+        default=defaults.weight_power,
+        help=f"exponent k of the evidence weights w^k (1 = the paper's SCD; default {defaults.weight_power})",
     )
     parser.add_argument(
         "--void-policy",
         choices=VOID_POLICIES,
-        default="skip",
-        help="white (void) mask pixels: skip = no evidence (default); include = evidence for white",
+        default=defaults.void_policy,
+        help="white (void) mask pixels: skip = no evidence; include = evidence for white "
+        f"(default {defaults.void_policy})",
     )
     parser.add_argument(
         "--semantic-mode",
         choices=SEMANTIC_MODES,
-        default=MapperConfig.semantic_mode,
-        help="vote = per-object weighted votes; scd = the paper's color deblending "
-        f"(default {MapperConfig.semantic_mode})",
+        default=defaults.semantic_mode,
+        help=f"vote = per-object weighted votes; scd = the paper's color deblending (default {defaults.semantic_mode})",
     )
     parser.add_argument(
         "--vote-slots",
         type=int,
-        default=MapperConfig.vote_slots,
-        help=f"objects kept per Gaussian in vote mode (default {MapperConfig.vote_slots})",
+        default=defaults.vote_slots,
+        help=f"objects kept per Gaussian in vote mode (default {defaults.vote_slots})",
     )
     parser.add_argument(
         "--min-snap-margin",
         type=float,
-        default=MapperConfig.min_snap_margin,
+        default=defaults.min_snap_margin,
         help="vote mode: margin below which a non-palette mask color adds no evidence "
-        f"(default {MapperConfig.min_snap_margin})",
+        f"(default {defaults.min_snap_margin})",
     )
     parser.add_argument(
         "--palette-from-labels",
@@ -58,18 +68,18 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--mask-ids",
-        choices=("global", "per-frame"),
-        default="global",
-        help="global = a mask color names the same object in every keyframe (default); per-frame = "
-        "segment ids hold for one mask only and are associated with the map's objects",
+        choices=[mode.replace("_", "-") for mode in MASK_ID_MODES],
+        default=defaults.mask_ids.replace("_", "-"),
+        help="global = a mask color names the same object in every keyframe; per-frame = segment ids hold "
+        f"for one mask only and are associated with the map's objects (default {defaults.mask_ids})",
     )
     parser.add_argument(
         "--association-scale",
         type=int,
         choices=(1, 2, 3, 4),
-        default=MapperConfig.association_scale,
+        default=defaults.association_scale,
         help="per-frame ids: render the map at 1/N of the mask resolution to associate segments "
-        f"(1 = full: slower, more exact under noisy segments; default {MapperConfig.association_scale})",
+        f"(1 = full: slower, more exact under noisy segments; default {defaults.association_scale})",
     )
 
 
@@ -105,7 +115,6 @@ def _object_index(args: argparse.Namespace, labels: list[dict]):
     if not args.objects:
         return None
     from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
-    from monovoc_ros.objects.labels import labels_from_entries
 
     return ObjectIndex(
         lazy_backend("conse"), IndexConfig(crop_mode=args.crop_mode, labels=labels_from_entries(labels) or None)
@@ -119,8 +128,6 @@ def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) ->
     if getattr(args, "palette_from_labels", False):
         if not labels:
             raise SystemExit("monovoc map: --palette-from-labels needs labels (labels.json, or the bag's labels)")
-        from monovoc_ros.objects.labels import labels_from_entries
-
         colors = tuple(labels_from_entries(labels))
     return MapperConfig(
         object_colors=colors,

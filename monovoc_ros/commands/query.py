@@ -14,6 +14,8 @@ import json
 import math
 import sys
 
+from monovoc_ros.contract import DEFAULT_NAMESPACE
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -26,7 +28,9 @@ def register(subparsers) -> None:
     p.add_argument("text", help="what to look for, e.g. 'the sofa'")
     p.add_argument("--top-k", type=int, default=0, help="objects to return (default 0: the node's / index's default)")
     p.add_argument("--min-score", type=float, default=-1.0, help="drop objects scoring below this (default -1)")
-    p.add_argument("--namespace", default="/monovoc", help="namespace of the node (default /monovoc)")
+    p.add_argument(
+        "--namespace", default=DEFAULT_NAMESPACE, help=f"namespace of the node (default {DEFAULT_NAMESPACE})"
+    )
     p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the service (default 10)")
     p.add_argument("--map", metavar="DIR", help="query a saved map directory's objects.db instead of the node")
     p.add_argument("--json", action="store_true", help="print the answer as JSON")

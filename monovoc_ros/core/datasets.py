@@ -50,6 +50,7 @@ from monovoc_ros.core.camera import Intrinsics, pose_from_translation_quat, vali
 from monovoc_ros.core.color import srgb_to_lab
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.palette import read_label_entries
 from monovoc_ros.core.ply import load_ply, save_ply
 
 LAYOUTS = ("plain", "nice-slam", "hislam2")
@@ -320,7 +321,12 @@ class PlainSequence(Sequence):
             self.stamps_ns = read_stamps(stamps_path, len(self.poses))
         else:
             self.stamps_ns = _stamps_from_frames(np.arange(len(self.poses)), DEFAULT_FRAME_RATE)
-        self._labels = read_labels(self.root / "labels.json") if (self.root / "labels.json").exists() else []
+        self._labels = []
+        if (self.root / "labels.json").exists():
+            try:
+                self._labels = read_label_entries(self.root / "labels.json")
+            except ValueError as exc:
+                raise SequenceError(str(exc)) from None
         self.gaussians_path = self.root / "gaussians.ply" if (self.root / "gaussians.ply").exists() else None
 
     def keyframe(self, i: int) -> Keyframe:
@@ -370,17 +376,6 @@ def read_stamps(path: str | os.PathLike, count: int) -> np.ndarray:
     if np.any(np.diff(stamps) < 0):
         raise SequenceError(f"{path}: timestamps decrease")
     return stamps
-
-
-def read_labels(path: str | os.PathLike) -> list[dict]:
-    path = Path(path)
-    try:
-        labels = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise SequenceError(f"{path}: not JSON: {exc}") from None
-    if not isinstance(labels, list) or not all(isinstance(d, dict) and "color" in d for d in labels):
-        raise SequenceError(f"{path}: expected a list of objects each with a 'color'")
-    return labels
 
 
 class NiceSlamSequence(Sequence):

@@ -3,7 +3,9 @@
 Object identity *is* the mask color, packed as ``r << 16 | g << 8 | b`` (a uint32 "object id"), so ids
 do not depend on the order in which colors are discovered and two maps built from the same masks agree.
 Pure white (``VOID_ID``) is void (unlabeled) and never a palette color; ``UNOBSERVED_ID`` (which no
-24-bit color can take) marks Gaussians without evidence.
+24-bit color can take) marks Gaussians without evidence. This module owns that identity: packing
+(`pack_rgb`, `unpack_rgb`), ids as people write them (`format_object_id`, `parse_object_id`) and the
+class names of colors in labels.json files (`read_label_entries`, `labels_from_entries`, `read_labels`).
 
 Masks with anti-aliased or resampled edges hold blended colors that are no object. Counting pixels does
 not separate them: a blend of two objects' colors sits on every pixel of their shared boundary, in every
@@ -31,7 +33,12 @@ kernel of `core.palette_kernels` 1 ms; its plain twin is `region_counts_referenc
 
 from __future__ import annotations
 
+import json
+import os
+import re
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -69,6 +76,73 @@ def unpack_rgb(ids: np.ndarray) -> np.ndarray:
         raise ValueError("unpack_rgb: ids must be in [0, 0xFFFFFF] (UNOBSERVED_ID has no color)")
     ids = ids.astype(np.uint32)
     return np.stack([(ids >> 16) & 0xFF, (ids >> 8) & 0xFF, ids & 0xFF], axis=-1).astype(np.uint8)
+
+
+_HEX_ID = re.compile(r"^(?:#|0x)?([0-9a-fA-F]{6})$")
+
+
+def format_object_id(oid: int) -> str:
+    """``#rrggbb``: how ids are shown to people (logs, answers, JSON reports, marker texts)."""
+    return f"#{int(oid):06x}"
+
+
+def parse_object_id(value: str | int) -> int:
+    """A packed palette color from ``#rrggbb``, ``0xrrggbb``, ``rrggbb`` or a decimal integer.
+
+    Six hex digits always read as a color (``"102030"`` is 0x102030), so decimals need another length."""
+    if isinstance(value, bool):
+        raise ValueError(f"not an object id: {value!r}")
+    if isinstance(value, int):
+        oid = value
+    else:
+        text = str(value).strip()
+        match = _HEX_ID.match(text)
+        if match:
+            oid = int(match.group(1), 16)
+        elif text.isdigit():
+            oid = int(text)
+        else:
+            raise ValueError(f"not an object id (expected #rrggbb, 0xrrggbb or an integer): {value!r}")
+    if not 0 <= oid <= 0xFFFFFF:
+        raise ValueError(f"object id {value!r} is not a 24-bit palette color")
+    return oid
+
+
+def read_label_entries(path: str | os.PathLike) -> list[dict]:
+    """The entries of a labels.json file (Replica / plain layout: ``[{color: [r, g, b], class_name, ...}]``),
+    as written (sequences keep and forward every field)."""
+    path = Path(path)
+    try:
+        entries = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: unreadable labels file ({exc})") from None
+    if not isinstance(entries, list) or not all(isinstance(d, dict) and "color" in d for d in entries):
+        raise ValueError(f"{path}: expected a JSON list of {{color, class_name}} entries")
+    return entries
+
+
+def labels_from_entries(entries: Iterable[Mapping]) -> dict[int, str]:
+    """``{object id: class name}`` of labels.json-style entries; an entry without a class name gives ""."""
+    out: dict[int, str] = {}
+    for n, entry in enumerate(entries):
+        try:
+            rgb = list(entry["color"])
+            name = str(entry.get("class_name", "")).strip()
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"labels entry {n}: expected color [r, g, b] and class_name ({exc})") from None
+        if len(rgb) != 3 or not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= 255 for c in rgb):
+            raise ValueError(f"labels entry {n}: color {rgb!r} is not three integers 0..255")
+        out[int(pack_rgb(np.array(rgb, np.uint8)))] = name
+    return out
+
+
+def read_labels(path: str | os.PathLike) -> dict[int, str]:
+    """``{object id: class name}`` of a labels.json file."""
+    entries = read_label_entries(path)
+    try:
+        return labels_from_entries(entries)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def _check_mask(mask: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.palette import VOID_ID, MaskColors, Palette, PaletteBuilder, mask_colors
+from monovoc_ros.core.palette import VOID_ID, MaskColors, Palette, PaletteBuilder, mask_colors, unpack_rgb
 from monovoc_ros.core.quantize import confidence, quantize
 
 # A thin color (no 3x3 region in the mask) is an object of that mask from this many pixels on, when it
@@ -48,8 +48,7 @@ def pixel_labels(
     foreign = (index < 0) & (colors != VOID_ID)
     snapped = ambiguous = 0
     if foreign.any() and len(palette):
-        rgb = np.stack([(colors[foreign] >> 16) & 255, (colors[foreign] >> 8) & 255, colors[foreign] & 255], axis=1)
-        q = quantize(rgb / 255.0, palette.colors, metric=metric)
+        q = quantize(unpack_rgb(colors[foreign]) / 255.0, palette.colors, metric=metric)
         sure = confidence(q) >= min_snap_margin
         index[np.flatnonzero(foreign)[sure]] = q.index[sure]
         snapped = int(counts[foreign][sure].sum())

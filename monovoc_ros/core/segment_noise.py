@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from monovoc_ros.core.palette import VOID_ID, pack_rgb, unpack_rgb
+from monovoc_ros.core.palette import VOID_ID, labels_from_entries, pack_rgb, unpack_rgb
 
 
 def _random_colors(n: int, rng: np.random.Generator, avoid: np.ndarray | None = None) -> np.ndarray:
@@ -150,8 +150,7 @@ class PaletteSegments:
 
     def __init__(self, sequence) -> None:
         self._seq = sequence
-        self.names = {int(pack_rgb(np.array(e["color"], np.uint8).reshape(1, 3))[0]): str(e.get("class_name", ""))
-                      for e in sequence.labels() if str(e.get("class_name", "")).strip()}  # fmt: skip
+        self.names = {oid: name for oid, name in labels_from_entries(sequence.labels()).items() if name}
 
     def __getattr__(self, name):
         return getattr(self._seq, name)

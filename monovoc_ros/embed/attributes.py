@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from monovoc_ros.core.color import srgb_to_lab
 from monovoc_ros.embed.arrays import l2_normalize
 
 BASIC_COLORS = ("black", "white", "gray", "red", "orange", "yellow", "green", "blue", "purple", "pink", "brown")
@@ -47,31 +48,25 @@ _SIZE_WORDS = ((0.1, "tiny"), (0.35, "small"), (1.5, ""), (float("inf"), "large"
 ON_FLOOR_MAX_M = 0.15
 
 
-def _srgb_to_lab(rgb_uint8: np.ndarray) -> np.ndarray:
-    import colour  # ~1 s to import: only when colors are actually named
-
-    return colour.XYZ_to_Lab(colour.sRGB_to_XYZ(np.asarray(rgb_uint8, dtype=np.float64) / 255.0))
-
-
 _PROTOTYPE_CACHE: dict[str, np.ndarray] = {}
 
 
 def _prototypes() -> tuple[list[str], np.ndarray]:
     if "lab" not in _PROTOTYPE_CACHE:
         rgb = np.array([c for cs in _CHROMATIC_PROTOTYPES.values() for c in cs], dtype=np.uint8)
-        _PROTOTYPE_CACHE["lab"] = _srgb_to_lab(rgb)
+        _PROTOTYPE_CACHE["lab"] = srgb_to_lab(rgb)
     names = [name for name, cs in _CHROMATIC_PROTOTYPES.items() for _ in cs]
     return names, _PROTOTYPE_CACHE["lab"]
 
 
 def color_names(pixels: np.ndarray) -> list[str]:
     """Basic color term of each sRGB uint8 pixel of an (n, 3) array."""
-    import colour
+    import colour  # ~1 s to import: only when colors are actually named
 
     pixels = _check_pixels(pixels)
     if len(pixels) == 0:
         return []
-    lab = _srgb_to_lab(pixels)
+    lab = srgb_to_lab(pixels)
     lightness = lab[:, 0]
     chroma = np.hypot(lab[:, 1], lab[:, 2])
     proto_names, proto_lab = _prototypes()

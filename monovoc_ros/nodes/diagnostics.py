@@ -14,14 +14,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from monovoc_ros.contract import REJECTION_REASONS
 from monovoc_ros.core.session import SESSION_REASONS, SessionStats
-from monovoc_ros.ingest import REASONS
 
-# Rejections the mapper adds to the ingest reasons (monovoc_ros.ingest.REASONS): the session's
+# Rejections the mapper adds to the ingest reasons (monovoc_ros.contract.REJECTION_REASONS): the session's
 # (monovoc_ros.core.session.SESSION_REASONS) and
 #   bad_gaussians       a Gaussian map cloud that cannot be read (missing fields, NaN, a header that lies, ...)
-MAPPER_REASONS = (*SESSION_REASONS, "bad_gaussians")
-ALL_REASONS = REASONS + MAPPER_REASONS
+MAPPER_REASONS = tuple(r for r in (*SESSION_REASONS, "bad_gaussians") if r not in REJECTION_REASONS)
+ALL_REASONS = REJECTION_REASONS + MAPPER_REASONS
 
 
 @dataclass

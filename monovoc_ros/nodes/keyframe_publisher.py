@@ -12,6 +12,15 @@ from __future__ import annotations
 from typing import Any
 
 import msg_adapters as ma
+from monovoc_ros.contract import (
+    CAMERA_FRAME,
+    DEFAULT_NAMESPACE,
+    MAP_FRAME,
+    MAP_ROLE,
+    MAP_TYPE,
+    keyframe_types,
+    message_class,
+)
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.nodes.qos import input_qos, latched_qos
@@ -23,8 +32,8 @@ def keyframe_messages(
     keyframe: Keyframe,
     *,
     stamp_ns: int | None = None,
-    frame_id: str = "map",
-    camera_frame: str = "camera_optical",
+    frame_id: str = MAP_FRAME,
+    camera_frame: str = CAMERA_FRAME,
     image_format: str = "jpeg",
 ) -> dict[str, Any]:
     """role -> message for one keyframe (mask as PNG; camera_info for the mask's resolution unless the RGB
@@ -46,16 +55,14 @@ def keyframe_messages(
 class KeyframePublisher:
     """Publishers for the node's inputs, created on `node` (any rclpy node, e.g. a test's client node)."""
 
-    def __init__(self, node: Any, namespace: str = "/monovoc", *, depth: int = 1000) -> None:
-        from geometry_msgs.msg import PoseStamped
-        from sensor_msgs.msg import CameraInfo, CompressedImage, PointCloud2
-
+    def __init__(self, node: Any, namespace: str = DEFAULT_NAMESPACE, *, depth: int = 1000) -> None:
         ns = namespace.rstrip("/")
         # Deep writer history: a reliable writer drops unacknowledged samples beyond its depth.
         qos = input_qos(depth)
-        types = {"image": CompressedImage, "mask": CompressedImage, "camera_info": CameraInfo, "pose": PoseStamped}
-        self.publishers = {role: node.create_publisher(t, f"{ns}/{role}", qos) for role, t in types.items()}
-        self.gaussians = node.create_publisher(PointCloud2, f"{ns}/gaussians", latched_qos())
+        self.publishers = {
+            role: node.create_publisher(message_class(t), f"{ns}/{role}", qos) for role, t in keyframe_types().items()
+        }
+        self.gaussians = node.create_publisher(message_class(MAP_TYPE), f"{ns}/{MAP_ROLE}", latched_qos())
 
     def all_publishers(self) -> list[Any]:
         return [*self.publishers.values(), self.gaussians]
@@ -65,7 +72,7 @@ class KeyframePublisher:
             if role in msgs:
                 self.publishers[role].publish(msgs[role])
 
-    def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int = 0, frame_id: str = "map") -> Any:
+    def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int = 0, frame_id: str = MAP_FRAME) -> Any:
         msg = ma.gaussian_map_to_cloud(gaussians, frame_id=frame_id, stamp=stamp_ns)
         self.gaussians.publish(msg)
         return msg

@@ -31,13 +31,12 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
 import msg_adapters as ma
+from monovoc_ros.contract import DEFAULT_NAMESPACE, keyframe_types, message_class
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.ply import load_ply
@@ -46,31 +45,21 @@ from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.component import Component, MappingHost
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
 from monovoc_ros.nodes.outputs import SemanticOutputs
-from monovoc_ros.nodes.params import PARAMETERS, NodeParams, ParameterError
+from monovoc_ros.nodes.param_spec import ParameterError, declare
+from monovoc_ros.nodes.params import PARAMETERS, NodeParams
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
-DEFAULT_NAMESPACE = "/monovoc"
 # One per callback group (4 inputs, map, diagnostics) plus services, which may block waiting for the worker.
 EXECUTOR_THREADS = 8
 
 
 def _message_types(params: NodeParams) -> dict[str, type]:
-    from geometry_msgs.msg import PoseStamped, TransformStamped
-    from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-
-    image = {"raw": Image, "compressed": CompressedImage}
-    pose = {"pose": PoseStamped, "odometry": Odometry, "transform": TransformStamped}
-    return {
-        "image": image[params.image_transport],
-        "mask": image[params.mask_transport],
-        "camera_info": CameraInfo,
-        "pose": pose[params.ingest.pose_type],
-    }
+    names = keyframe_types(params.image_transport, params.mask_transport, params.ingest.pose_type)
+    return {role: message_class(name) for role, name in names.items()}
 
 
 class MappingNode(Node):
@@ -187,17 +176,7 @@ class MappingNode(Node):
     # ------------------------------------------------------------------ set-up
 
     def _read_parameters(self) -> NodeParams:
-        values = {}
-        for spec in PARAMETERS:
-            # Float parameters take integers too (-p save_period_s:=10); NodeParams checks the type.
-            dynamic = isinstance(spec.default, float)
-            descriptor = ParameterDescriptor(description=spec.description, read_only=True, dynamic_typing=dynamic)
-            try:
-                values[spec.name] = self.declare_parameter(spec.name, spec.default, descriptor).value
-            except ParameterException as exc:
-                kind = type(spec.default).__name__
-                raise ParameterError(f"{spec.name}: {exc} (expected a {kind} like {spec.default!r})") from None
-        return NodeParams.from_values(values)
+        return NodeParams.from_values(declare(self, PARAMETERS))
 
     def _initial_mapper(self) -> SemanticMapper | None:
         p, log = self.params, self.get_logger()

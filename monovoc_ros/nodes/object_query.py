@@ -33,36 +33,21 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor
 
 import msg_adapters as ma
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
+from monovoc_ros.nodes.object_query_params import PARAMETERS
+from monovoc_ros.nodes.param_spec import declare
 from monovoc_ros.nodes.qos import SERVICE_QOS
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase, ObjectDatabaseError, load_object_index
-from monovoc_ros.objects.index import LIVE_OBJECTS_PER_REFRESH, UP_AXES, IndexConfig, ObjectIndex, lazy_backend
+from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
 
 REFRESH_DEFER_S = 5.0  # longest time embedding waits while keyframes are queued for the worker
-
-# (name, default, description): declared on the node next to its own parameters.
-PARAMETERS: tuple[tuple[str, Any, str], ...] = (
-    ("query.top_k", 5, "objects returned when a TextQuery asks for top_k = 0"),
-    ("query.max_text_chars", 1000, "longer query texts are truncated (the answer's message says so)"),
-    ("query.highlight", True, "publish query/highlight (Gaussians) and query/markers for answers"),
-    ("query.highlight_rate_hz", 5.0, "max highlight publications per second (the newest answer wins)"),
-    ("objects.backend", "conse", "embedding backend: 'conse' (offline default) or 'clip_onnx' (user-supplied)"),
-    ("objects.model_dir", "", "embedding model directory (empty: ~/.cache/monovoc_ros/models)"),
-    ("objects.crop_mode", "soft", "object crops: 'soft' (context dimmed) or 'hard' (object only)"),
-    ("objects.views_per_object", 3, "best keyframe views kept per object (by mask pixel count)"),
-    ("objects.description_weight", 0.3, "share of the attribute description in each object's embedding (0-1)"),
-    ("objects.min_gaussians", 10, "objects with fewer Gaussians are not listed"),
-    ("objects.up_axis", "auto", "up direction for sizes and heights: +x..-z, or 'auto' (cameras + flat surfaces)"),
-    ("objects.max_objects_per_refresh", LIVE_OBJECTS_PER_REFRESH, "objects (re-)embedded per chunk of work"),
-)
 
 
 @dataclass(frozen=True)
@@ -79,21 +64,7 @@ class QuerySettings:
 
 def read_settings(node: Any, labels: Mapping[int, str] | None = None) -> QuerySettings:
     """Declares PARAMETERS on ``node`` (the mapping node) and reads them; ``labels``: its labels_file."""
-    values = {}
-    for name, default, description in PARAMETERS:
-        descriptor = ParameterDescriptor(description=description, read_only=True, dynamic_typing=True)
-        values[name] = node.declare_parameter(name, default, descriptor).value
-
-    def need(ok: bool, name: str, what: str) -> None:
-        if not ok:
-            raise ValueError(f"{name}: {what}, got {values[name]!r}")
-
-    need(int(values["query.top_k"]) >= 1, "query.top_k", "must be >= 1")
-    need(int(values["query.max_text_chars"]) >= 1, "query.max_text_chars", "must be >= 1")
-    need(float(values["query.highlight_rate_hz"]) > 0, "query.highlight_rate_hz", "must be > 0")
-    need(values["objects.backend"] in ("conse", "clip_onnx"), "objects.backend", "must be 'conse' or 'clip_onnx'")
-    need(values["objects.up_axis"] in UP_AXES, "objects.up_axis", f"must be one of {list(UP_AXES)}")
-    need(int(values["objects.max_objects_per_refresh"]) >= 1, "objects.max_objects_per_refresh", "must be >= 1")
+    values = declare(node, PARAMETERS)  # ParameterError on a bad value
     index = IndexConfig(
         crop_mode=str(values["objects.crop_mode"]),
         views_per_object=int(values["objects.views_per_object"]),

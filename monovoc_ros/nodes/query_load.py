@@ -12,12 +12,13 @@ import threading
 import time
 from typing import Any
 
+from monovoc_ros.contract import DEFAULT_NAMESPACE
 from monovoc_ros.nodes.qos import SERVICE_QOS
 
 TEXTS = ("a chair", "the sofa", "a lamp", "a small box on the table", "a plant", "something red")
 
 
-def query_client(node: Any, name: str = "/monovoc/query") -> Any:
+def query_client(node: Any, name: str = f"{DEFAULT_NAMESPACE}/query") -> Any:
     """A TextQuery client whose response queue holds as many answers as the service queues requests."""
     from monovoc_interfaces.srv import TextQuery
 

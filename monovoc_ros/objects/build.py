@@ -16,8 +16,8 @@ from tqdm import tqdm
 
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.palette import labels_from_entries
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
-from monovoc_ros.objects.labels import labels_from_entries
 
 
 def build_object_index(

@@ -32,10 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
+from monovoc_ros.core.palette import format_object_id, parse_object_id
 from monovoc_ros.embed.retrieval import chance_topk, rank
 from monovoc_ros.objects.database import ObjectDatabase
 from monovoc_ros.objects.index import CROP_MODES, IndexConfig, ObjectIndex
-from monovoc_ros.objects.labels import noun, parse_object_id
+from monovoc_ros.objects.labels import noun
 
 KS = (1, 3)
 
@@ -128,8 +129,8 @@ def evaluate_index(index: ObjectIndex, queries: Sequence[RetrievalQuery], labels
         {
             "text": q.text,
             "kind": q.kind,
-            "expected": sorted(f"#{i:06x}" for i in e),
-            "top3": [f"#{i:06x}" for i in row[:3]],
+            "expected": sorted(format_object_id(i) for i in e),
+            "top3": [format_object_id(i) for i in row[:3]],
             "rank": next((n + 1 for n, oid in enumerate(row) if oid in e), None),
         }
         for q, e, row in zip(queries, expected, ranked, strict=True)

@@ -32,11 +32,12 @@ import numpy as np
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.objects import ObjectSummary
+from monovoc_ros.core.palette import format_object_id, parse_object_id
 from monovoc_ros.embed.arrays import l2_normalize
 from monovoc_ros.embed.attributes import best_class_name, combine, describe, dominant_color_name
 from monovoc_ros.embed.crops import crop_object
 from monovoc_ros.embed.model_store import ModelMissingError
-from monovoc_ros.objects.labels import format_object_id, noun, parse_object_id
+from monovoc_ros.objects.labels import noun
 from monovoc_ros.objects.records import ObjectRecord, QueryError, QueryResult
 from monovoc_ros.objects.upright import axis_vector, camera_up, estimate_up, upright_geometry
 from monovoc_ros.objects.views import ObjectView, ObjectViews, ViewConfig
@@ -92,7 +93,8 @@ class IndexConfig:
         if int(self.min_gaussians) < 1:
             raise ValueError(f"min_gaussians must be >= 1, got {self.min_gaussians}")
         if self.labels is not None:
-            self.labels = {parse_object_id(k): str(v) for k, v in self.labels.items()}
+            # An unnamed labels.json color (class name "") names nothing.
+            self.labels = {parse_object_id(k): str(v) for k, v in self.labels.items() if str(v)}
         self.view_config()  # validates the view fields
 
     def view_config(self) -> ViewConfig:

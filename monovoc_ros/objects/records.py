@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from monovoc_ros.core.palette import format_object_id, unpack_rgb
+
 
 class QueryError(ValueError):
     """A query that cannot be answered (empty text, bad arguments, no embedding models); the message
@@ -36,11 +38,12 @@ class ObjectRecord:
 
     @property
     def rgb(self) -> tuple[int, int, int]:
-        return ((self.id >> 16) & 0xFF, (self.id >> 8) & 0xFF, self.id & 0xFF)
+        r, g, b = unpack_rgb(np.array(self.id)).tolist()
+        return (r, g, b)
 
     @property
     def hex(self) -> str:
-        return f"#{self.id:06x}"
+        return format_object_id(self.id)
 
     @property
     def extent(self) -> np.ndarray:
