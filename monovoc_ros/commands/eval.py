@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.commands.map import add_source_options, check_source_options, open_source_args
+from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
 from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
 from monovoc_ros.core.instance_eval import renamed, score_matched
 from monovoc_ros.core.map_store import load_snapshot
