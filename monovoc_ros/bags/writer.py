@@ -173,6 +173,11 @@ class Rosbag2Writer(BagWriter):
     ``finish()`` adds the ``rosbag2`` metadata record to the MCAP file (as rosbag2's MCAP plugin does)
     and then writes ``metadata.yaml`` (atomically); rosbags' ``rosbag2.Reader`` and ``ros2 bag``
     open the directory. Like ``ros2 bag record``, refuses a directory that already exists.
+
+    Not rosbags' ``rosbag2.Writer``: its MCAP storage (rosbags 0.11) records no ``topic_type_hash`` per
+    channel, writes every message's publish time as its log time, offers neither lz4 nor a chunk size, and
+    names the file ``<DIR name>.mcap`` with ``ros_distro: rosbags``; this bag is what ``ros2 bag record``
+    writes.
     """
 
     def __init__(self, directory: str | os.PathLike, **kwargs: Any) -> None:

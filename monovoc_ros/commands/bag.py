@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from monovoc_ros.commands.sources import SOURCE_HELP, add_sequence_options, open_source_args
 from monovoc_ros.contract import DEFAULT_NAMESPACE
 
 
@@ -21,25 +22,14 @@ def register(subparsers) -> None:
         "camera_info, image and mask under /monovoc (topics: docs/interfaces.md), plus the palette labels "
         "as metadata. Deterministic: the same input gives the same file.",
     )
-    c.add_argument("source", help="a dataset folder (plain, nice-slam or hislam2 layout) or synthetic[:VARIANT]")
+    c.add_argument("source", help=SOURCE_HELP)
     c.add_argument("-o", "--out", required=True, help="output .mcap file")
-    c.add_argument("--layout", default="auto", choices=("auto", "plain", "nice-slam", "hislam2"))
-    c.add_argument("--gaussians", help="Gaussian map PLY (nice-slam / hislam2 layouts)")
-    c.add_argument("--masks", help="mask folder (nice-slam / hislam2 layouts)")
-    c.add_argument("--rgb", help="RGB folder (hislam2 layout)")
+    add_sequence_options(c, "the bag holds only the corrupted masks: map a shuffled one with --mask-ids per-frame")
     c.add_argument("--rgb-format", choices=("jpeg", "png", "raw"), default="jpeg", help="image topic (default jpeg)")
     c.add_argument("--mask-format", choices=("png", "raw"), default="png", help="mask topic (default png)")
     c.add_argument("--jpeg-quality", type=int, default=95)
-    c.add_argument("--max-keyframes", type=int, default=None)
     c.add_argument("--namespace", default=DEFAULT_NAMESPACE)
     c.add_argument("--no-map", action="store_true", help="leave the Gaussian map out")
-    c.add_argument(
-        "--mask-noise",
-        default=None,
-        help="corrupt the masks as a segmenter would: shuffled (per-frame ids), merge=P, split=P, drop=P, "
-        "small=F, comma-separated (core.segment_noise); map the bag with mask_ids per_frame",
-    )
-    c.add_argument("--noise-seed", type=int, default=0, help="seed of --mask-noise (default 0)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=run_convert)
 
@@ -77,16 +67,9 @@ def register(subparsers) -> None:
 def run_convert(args: argparse.Namespace) -> int:
     from monovoc_ros.bags.convert import sequence_to_bag
     from monovoc_ros.core.datasets import SequenceError
-    from monovoc_ros.offline import open_source
 
-    options = {k: getattr(args, k) for k in ("gaussians", "masks", "rgb") if getattr(args, k)}
     try:
-        sequence = open_source(args.source, args.layout, **options)
-        if args.mask_noise:
-            from monovoc_ros.core.segment_noise import CorruptedMasks, parse_mask_noise
-
-            shuffled, rates = parse_mask_noise(args.mask_noise)
-            sequence = CorruptedMasks(sequence, shuffled=shuffled, rates=rates, seed=args.noise_seed)
+        sequence = open_source_args(args)
         report = sequence_to_bag(
             sequence,
             args.out,

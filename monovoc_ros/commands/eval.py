@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.commands.map import add_source_options, check_source_options, open_source_args
+from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
 from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
-from monovoc_ros.core.instance_eval import UNMATCHED_ID, score_matched
+from monovoc_ros.core.instance_eval import renamed, score_matched
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.mapping import label_gaussians
 from monovoc_ros.core.palette import UNOBSERVED_ID, labels_from_entries, pack_rgb
@@ -148,9 +148,7 @@ def run(args: argparse.Namespace) -> int:
                 # The map's ids are its own: score after matching its objects to the reference instances.
                 scores, match = score_matched(rendered, [pack_rgb(f[2]) for f in frames])
                 entry[protocol] = {**_public(scores, names), **_instances(match, result.object_ids)}
-                known = np.unique(result.object_ids)
-                mapped = np.array([match.mapping.get(int(i), UNMATCHED_ID) for i in known], np.uint32)
-                object_ids = np.where(result.observed, mapped[np.searchsorted(known, result.object_ids)], UNOBSERVED_ID)
+                object_ids = np.where(result.observed, renamed(result.object_ids, match.mapping), UNOBSERVED_ID)
             if metric == mapper.config.metric and figure_rows is None:
                 figure_rows = (protocol, rendered, scores)
         if truth is not None and len(truth) == len(mapper.gaussians):

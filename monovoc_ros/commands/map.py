@@ -7,6 +7,7 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
+from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
 from monovoc_ros.core.association import MASK_ID_MODES
 from monovoc_ros.core.map_store import save_snapshot
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
@@ -83,33 +84,6 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_source_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "source",
-        nargs="?",
-        help="a dataset folder (plain, nice-slam or hislam2 layout) or synthetic[:VARIANT]",
-    )
-    parser.add_argument("--bag", help="read keyframes and the Gaussian map from an MCAP bag instead")
-    parser.add_argument("--layout", default="auto", choices=("auto", "plain", "nice-slam", "hislam2"))
-    parser.add_argument("--gaussians", help="Gaussian map PLY (nice-slam / hislam2 layouts)")
-    parser.add_argument("--masks", help="mask folder (nice-slam / hislam2 layouts)")
-    parser.add_argument("--rgb", help="RGB folder (hislam2 layout)")
-    parser.add_argument("--max-keyframes", type=int, default=None)
-    parser.add_argument(
-        "--mask-noise",
-        default=None,
-        help="corrupt the input masks as a segmenter would: 'shuffled' (every mask renumbered), "
-        "merge=P, split=P, drop=P, small=F, comma-separated (core.segment_noise; references stay clean)",
-    )
-    parser.add_argument("--noise-seed", type=int, default=0, help="seed of --mask-noise (default 0)")
-    parser.add_argument(
-        "--segments-from-labels",
-        action="store_true",
-        help="give every keyframe the segment class names a perfect segmenter would (from the source's "
-        "labels.json), before --mask-noise",
-    )
-
-
 def _object_index(args: argparse.Namespace, labels: list[dict]):
     """The object index to fill while mapping (None without --objects), named from the source's labels."""
     if not args.objects:
@@ -142,42 +116,6 @@ def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) ->
         mask_ids=args.mask_ids.replace("-", "_"),
         association_scale=args.association_scale,
     )
-
-
-def check_source_options(args: argparse.Namespace) -> None:
-    """Refuses options that would be ignored (a bag carries its own Gaussian map, masks and RGB)."""
-    if args.max_keyframes is not None and args.max_keyframes < 1:
-        raise SystemExit(f"monovoc: --max-keyframes must be >= 1, got {args.max_keyframes}")
-    if args.bag:
-        ignored = [f"--{k}" for k in ("gaussians", "masks", "rgb") if getattr(args, k)]
-        if args.layout != "auto":
-            ignored.append("--layout")
-        if ignored:
-            raise SystemExit(
-                f"monovoc: {', '.join(ignored)} cannot be used with --bag (the bag carries its own Gaussian "
-                "map, masks and images)"
-            )
-
-
-def source_options(args: argparse.Namespace) -> dict:
-    return {k: getattr(args, k) for k in ("gaussians", "masks", "rgb") if getattr(args, k)}
-
-
-def open_source_args(args: argparse.Namespace):
-    """The sequence SOURCE names, its masks corrupted by --mask-noise when given."""
-    from monovoc_ros import offline
-
-    sequence = offline.open_source(args.source, args.layout, **source_options(args))
-    if getattr(args, "segments_from_labels", False):
-        from monovoc_ros.core.segment_noise import PaletteSegments
-
-        sequence = PaletteSegments(sequence)
-    if getattr(args, "mask_noise", None):
-        from monovoc_ros.core.segment_noise import CorruptedMasks, parse_mask_noise
-
-        shuffled, rates = parse_mask_noise(args.mask_noise)
-        sequence = CorruptedMasks(sequence, shuffled=shuffled, rates=rates, seed=args.noise_seed)
-    return sequence
 
 
 def register(subparsers) -> None:
