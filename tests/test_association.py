@@ -9,9 +9,11 @@ import pytest
 from monovoc_ros.core.association import (
     AssociationConfig,
     Associator,
+    compact_index_reference,
     display_color,
     overlap_counts,
     overlap_counts_reference,
+    rendered_object_index,
 )
 from monovoc_ros.core.evaluation import render_splat_labels
 from monovoc_ros.core.instance_eval import UNMATCHED_ID, match_instances, renamed, score_matched
@@ -43,6 +45,28 @@ def test_label_render_leads_as_render_splat_labels():
     gaussian_ids = np.where(labels >= 0, ids[np.maximum(labels, 0)], UNOBSERVED_ID).astype(np.uint32)
     splat = render_splat_labels(gmap, gaussian_ids, k, pose)
     assert (mine == splat).mean() >= 0.995
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compact_index_matches_reference(seed):
+    from monovoc_ros.core.label_render_kernels import compact_index
+
+    rng = np.random.default_rng(seed)
+    table = np.unique(rng.integers(0, 0xFFFFFE, 40)).astype(np.uint32)
+    ids = rng.choice(np.concatenate([table, [UNOBSERVED_ID, 7, 0xFFFFFD]]).astype(np.uint32), 5000)
+    out = np.empty(len(ids), np.int32)
+    missing = compact_index(ids, table, np.uint32(UNOBSERVED_ID), out)
+    np.testing.assert_array_equal(out, compact_index_reference(ids, table))
+    assert missing == int(np.sum(out == -2)) and missing > 0
+    # Every id issued: the table is the answer; one id not issued: the ids are collected instead.
+    issued_only = ids[(out >= 0) | (out == -1)]
+    compact, rendered = rendered_object_index(issued_only, table.tolist())
+    np.testing.assert_array_equal(rendered, table)
+    np.testing.assert_array_equal(compact, compact_index_reference(issued_only, table))
+    compact, rendered = rendered_object_index(ids, table.tolist())
+    known = ids != UNOBSERVED_ID
+    np.testing.assert_array_equal(rendered[compact[known]], ids[known])
+    assert np.all(compact[~known] == -1)
 
 
 def test_overlap_counts_match_reference():

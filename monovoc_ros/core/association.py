@@ -269,17 +269,30 @@ class Associator:
         return out
 
 
+def compact_index_reference(gaussian_ids: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """Plain twin of label_render_kernels.compact_index: (N,) int32 position of each id in the sorted
+    `table`, -1 where unobserved, -2 where absent."""
+    pos = np.searchsorted(table, gaussian_ids).clip(0, max(table.size - 1, 0))
+    found = table[pos] == gaussian_ids if table.size else np.zeros(len(gaussian_ids), bool)
+    out = np.where(found, pos, -2).astype(np.int32)
+    out[gaussian_ids == UNOBSERVED_ID] = -1
+    return out
+
+
 def rendered_object_index(gaussian_ids: np.ndarray, issued: list[int]) -> tuple[np.ndarray, np.ndarray]:
     """(N,) int32 compact index of each Gaussian's object (-1 = unobserved) and (R,) uint32 the ids.
 
     With every id among `issued` (the per-frame case) a binary search over the issued ids replaces
     sorting the Gaussians' ids."""
-    known = gaussian_ids != UNOBSERVED_ID
+    from monovoc_ros.core.label_render_kernels import compact_index
+
+    gaussian_ids = np.ascontiguousarray(gaussian_ids, np.uint32)
     table = np.unique(np.asarray(issued, np.uint32))
     if table.size:
-        pos = np.searchsorted(table, gaussian_ids).clip(0, table.size - 1)
-        if np.array_equal(table[pos][known], gaussian_ids[known]):
-            return np.where(known, pos, -1).astype(np.int32), table
+        compact = np.empty(len(gaussian_ids), np.int32)
+        if compact_index(gaussian_ids, table, np.uint32(UNOBSERVED_ID), compact) == 0:
+            return compact, table
+    known = gaussian_ids != UNOBSERVED_ID
     ids, index = np.unique(gaussian_ids[known], return_inverse=True)
     compact = np.full(len(gaussian_ids), -1, np.int32)
     compact[known] = index

@@ -102,3 +102,32 @@ def label_tiles(rows, tile_start, tile_list, tile_order, gx, width, height, out_
         while m < n:
             _label_tile(tile_order[m], rows, tile_start, tile_list, gx, width, height, out_label, out_weight)
             m = _fetch_add(counter, 0)
+
+
+@njit(parallel=True, cache=True)
+def compact_index(ids: np.ndarray, table: np.ndarray, unobserved: np.uint32, out: np.ndarray) -> int:
+    """Per Gaussian the position of its object id in the sorted ``table``: out (N,) int32, -1 where the id is
+    ``unobserved``, -2 where it is not in the table; returns how many are not. ids (N,) uint32, table (R,)
+    uint32 ascending. A binary search per Gaussian, in place of numpy's searchsorted + gather + compare
+    (7 ms at 140k Gaussians; the association's budget is 40 ms). Plain twin:
+    `association.compact_index_reference`."""
+    r = table.shape[0]
+    missing = 0
+    for i in prange(ids.shape[0]):
+        x = ids[i]
+        if x == unobserved:
+            out[i] = -1
+            continue
+        lo, hi = 0, r
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if table[mid] < x:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo < r and table[lo] == x:
+            out[i] = lo
+        else:
+            out[i] = -2
+            missing += 1
+    return missing
