@@ -1,7 +1,7 @@
 """ros2 launch monovoc_ros monovoc.launch.py [ARG:=VALUE ...]
 
 Starts the semantic_mapper node (or mapping_node: mapping only, no objects, no models) with both parameter files,
-in a namespace, with the five inputs remapped by launch arguments; optionally replays a bag into it
+in a namespace, with the six inputs remapped by launch arguments; optionally replays a bag into it
 (`monovoc replay`, publishing /clock) and opens RViz with rviz/monovoc.rviz.
 
     ros2 launch monovoc_ros monovoc.launch.py image:=/camera/color/image_raw/compressed \\
@@ -49,6 +49,9 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("mask", default_value="mask", description="input topic: palette masks"),
         DeclareLaunchArgument("camera_info", default_value="camera_info", description="input topic: CameraInfo"),
         DeclareLaunchArgument("pose", default_value="pose", description="input topic: camera-to-map pose"),
+        DeclareLaunchArgument(
+            "segments", default_value="segments", description="input topic: segment class names (use_segments)"
+        ),
         DeclareLaunchArgument("gaussians", default_value="gaussians", description="input topic: Gaussian map"),
         DeclareLaunchArgument("map_directory", default_value="", description="snapshot directory ('' = none)"),
         DeclareLaunchArgument("use_sim_time", default_value="false", description="stamp by /clock (bag replay)"),
@@ -78,6 +81,7 @@ def generate_launch_description() -> LaunchDescription:
             ("mask", LaunchConfiguration("mask")),
             ("camera_info", LaunchConfiguration("camera_info")),
             ("pose", LaunchConfiguration("pose")),
+            ("segments", LaunchConfiguration("segments")),
             ("gaussians", LaunchConfiguration("gaussians")),
         ],
     )

@@ -15,11 +15,12 @@ from typing import Any
 import numpy as np
 
 import msg_adapters as ma
-from monovoc_ros.contract import BAD_MESSAGE, KEYFRAME_ROLES, POSE_MESSAGE_TYPES
+from monovoc_ros.contract import BAD_MESSAGE, KEYFRAME_ROLES, POSE_MESSAGE_TYPES, SEGMENTS_ROLE
 from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.datasets import instance_palette
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.palette import VOID_RGB
+from monovoc_ros.core.palette import VOID_RGB, pack_rgb
+from monovoc_ros.core.segment_labels import SegmentLabel
 from monovoc_ros.core.sync import StampSynchronizer
 
 POSE_TYPES = tuple(POSE_MESSAGE_TYPES)
@@ -41,6 +42,8 @@ class IngestConfig:
     frame_convention: str = "optical"  # "optical" (camera optical frame) or "body" (REP-103 x forward)
     sync_tolerance_s: float = 0.02
     use_image: bool = True  # the RGB image is only needed for object views; masks and poses suffice for SCD
+    # Every mask waits for a SegmentArray of its stamp (the segmenter's class names of its segments).
+    use_segments: bool = False
     rectified: bool = False  # CameraInfo: use P (rectified images) instead of K
     allow_distortion: bool = False
     max_pending: int = 32  # per-stream synchronizer buffer
@@ -115,13 +118,21 @@ def mask_from_image(array: np.ndarray) -> np.ndarray:
     return instance_palette(array)
 
 
+def instance_segments(segments: tuple[SegmentLabel, ...]) -> tuple[SegmentLabel, ...]:
+    """Segments of an instance-id mask with their ids in the colors `mask_from_image` gives those ids (0, void,
+    and ids a mono16 mask cannot hold name no segment and are left out)."""
+    kept = [s for s in segments if 1 <= s.id <= 0xFFFF]
+    colors = pack_rgb(instance_palette(np.array([s.id for s in kept], np.int64))) if kept else []
+    return tuple(SegmentLabel(int(c), s.class_name, s.score) for c, s in zip(colors, kept, strict=True))
+
+
 class KeyframeAssembler:
     def __init__(self, config: IngestConfig | None = None) -> None:
         self.config = config or IngestConfig()
         roles = KEYFRAME_ROLES if self.config.use_image else tuple(r for r in KEYFRAME_ROLES if r != "image")
-        self.roles = roles
+        self.roles = (*roles, SEGMENTS_ROLE) if self.config.use_segments else roles
         self.sync = StampSynchronizer(
-            roles, "mask", int(round(self.config.sync_tolerance_s * 1e9)), self.config.max_pending
+            self.roles, "mask", int(round(self.config.sync_tolerance_s * 1e9)), self.config.max_pending
         )
         self.rejected: Counter[str] = Counter()
         self.received: Counter[str] = Counter()
@@ -201,6 +212,8 @@ class KeyframeAssembler:
             )
             self._camera_latest = (int(msg.width), int(msg.height))
             return msg
+        if role == SEGMENTS_ROLE:
+            return ma.segment_array_to_labels(msg)  # ids checked as colors; instance ids mapped on assembly
         array = image_message_to_numpy(msg, self._check_size(role, msg))
         if role == "image":
             if array.ndim != 3:
@@ -209,7 +222,7 @@ class KeyframeAssembler:
         mask = mask_from_image(array)
         if not np.any(mask != np.array(VOID_RGB, np.uint8)):
             raise _VoidMask(f"mask {mask.shape[1]}x{mask.shape[0]} is entirely void (white)")
-        return mask
+        return mask, array.ndim == 2  # and whether its values were instance ids
 
     def _check_size(self, role: str, msg: Any) -> int:
         """The most pixels `msg` may decode to; raises _SizeMismatch when its header disagrees with the camera
@@ -229,7 +242,7 @@ class KeyframeAssembler:
         return MASK_MAX_SCALE * max(cw * ch for cw, ch in sizes)
 
     def _assemble(self, stamp: int, parts: dict[str, Any]) -> Keyframe:
-        mask = parts["mask"]
+        mask, instance_ids = parts["mask"]
         h, w = mask.shape[:2]
         info = parts["camera_info"]
         cam_w, cam_h = int(info.width), int(info.height)
@@ -242,7 +255,10 @@ class KeyframeAssembler:
         intrinsics: Intrinsics = ma.camera_info_to_intrinsics(
             info, w, h, rectified=self.config.rectified, allow_distortion=self.config.allow_distortion
         )
-        keyframe = Keyframe(self._count, stamp, parts["pose"], intrinsics, mask, rgb)
+        segments = parts.get(SEGMENTS_ROLE)
+        if segments is not None and instance_ids:
+            segments = instance_segments(segments)
+        keyframe = Keyframe(self._count, stamp, parts["pose"], intrinsics, mask, rgb, segments=segments)
         self._count += 1
         if (cam_w, cam_h) in self._camera_sizes:
             self._camera_sizes.remove((cam_w, cam_h))

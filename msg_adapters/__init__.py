@@ -23,6 +23,7 @@ from msg_adapters.pose import (
     pose_to_matrix,
     transform_stamped_to_matrix,
 )
+from msg_adapters.segments import segment_array, segment_array_to_labels
 from msg_adapters.semantic_cloud import SemanticCloud, semantic_cloud_from_arrays, semantic_cloud_to_arrays
 from msg_adapters.semantic_objects import semantic_object, semantic_object_to_dict
 from msg_adapters.stamps import header_stamp_ns, make_header, ns_to_time, time_to_ns
@@ -53,6 +54,8 @@ __all__ = [
     "pose_stamped_to_matrix",
     "pose_to_matrix",
     "rgb_to_packed",
+    "segment_array",
+    "segment_array_to_labels",
     "semantic_cloud_from_arrays",
     "semantic_cloud_to_arrays",
     "semantic_object",

@@ -161,7 +161,7 @@ def test_record_a_replay_gives_the_same_bag(bag: Path, tmp_path: Path, monkeypat
     _use_ros_env(env, monkeypatch)
     out = tmp_path / "recorded.mcap"
     total = bag_info(bag).message_count
-    args = ["-m", "monovoc_ros.cli", "record", "-o", str(out), *TOPICS.values()]
+    args = ["-m", "monovoc_ros.cli", "record", "-o", str(out), *bag_info(bag).topics]
     with NodeProcess.python([*args, "--count", str(total), "--log-time", "header"], env, name="record") as rec:
         rec.wait_for_output("monovoc record: recording", timeout=30.0)
         summary = replay(bag, fast=True, wait_subscribers=1, wait_timeout=30.0)

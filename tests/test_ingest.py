@@ -132,3 +132,47 @@ def test_body_frame_convention_and_pose_types():
     np.testing.assert_allclose(kfs[0].cam_to_world, T, atol=1e-12)
     with pytest.raises(ValueError, match="pose_type"):
         IngestConfig(pose_type="tf")
+
+
+def test_segments_wait_for_their_mask_and_follow_instance_ids():
+    from monovoc_ros.core.datasets import instance_palette
+    from monovoc_ros.core.palette import pack_rgb
+    from monovoc_ros.core.segment_labels import SegmentLabel
+
+    asm = KeyframeAssembler(IngestConfig(use_segments=True))
+    assert asm.roles[-1] == "segments"
+    chair = SegmentLabel(int(pack_rgb(np.array([200, 10, 10], np.uint8))), "chair", 0.8)
+    msgs = messages(100 * MS)
+    kfs, rej = feed(asm, msgs)  # no segments yet: the mask waits
+    assert kfs == [] and rej == []
+    kfs, rej = asm.push("segments", ma.segment_array([chair], stamp=100 * MS))
+    assert rej == [] and len(kfs) == 1 and kfs[0].segments == (chair,)
+
+    # A mono16 instance mask: segment ids are instance ids and become the colors the mask is given.
+    ids = np.zeros((30, 40), np.uint16)
+    ids[2:10, 2:10] = 300
+    msgs = messages(200 * MS)
+    msgs["mask"] = ma.numpy_to_image(ids, "mono16", stamp=200 * MS)
+    named = [SegmentLabel(300, "lamp", 1.0), SegmentLabel(70000, "ghost", 1.0)]  # 70000: no mono16 id
+    msgs["segments"] = ma.segment_array(named, stamp=200 * MS)
+    kfs, rej = feed(asm, msgs, order=("pose", "image", "camera_info", "segments", "mask"))
+    assert rej == [] and len(kfs) == 1
+    color = int(pack_rgb(instance_palette(np.array([300])))[0])
+    assert kfs[0].segments == (SegmentLabel(color, "lamp", 1.0),)
+    assert int(pack_rgb(kfs[0].mask[5, 5])) == color
+
+
+@pytest.mark.parametrize(
+    ("class_name", "score", "segment_id"), [("", 1.0, 5), ("chair", 1.5, 5), ("chair", 1.0, 0xFFFFFF)]
+)
+def test_bad_segments_are_rejected_and_their_mask_never_completes(class_name, score, segment_id):
+    from monovoc_interfaces.msg import Segment, SegmentArray
+
+    asm = KeyframeAssembler(IngestConfig(use_segments=True))
+    bad = SegmentArray(header=ma.make_header("", 100 * MS), segments=[Segment(id=segment_id, class_name=class_name,
+                                                                              score=score)])  # fmt: skip
+    kfs, rej = asm.push("segments", bad)
+    assert kfs == [] and [r.reason for r in rej] == ["bad_segments"]
+    kfs, rej = feed(asm, messages(100 * MS))
+    assert kfs == [] and rej == []
+    assert asm.rejected["bad_segments"] == 1

@@ -87,7 +87,7 @@ DEFINITIONS = sorted(p.relative_to(SOURCE).as_posix() for p in [*SOURCE.glob("ms
 
 
 def test_every_definition_is_built() -> None:
-    assert len(DEFINITIONS) == 6, DEFINITIONS
+    assert len(DEFINITIONS) == 8, DEFINITIONS
     cmake = (SOURCE / "CMakeLists.txt").read_text()
     assert all(f'"{d}"' in cmake for d in DEFINITIONS), "CMakeLists.txt does not list every definition"
 
@@ -169,3 +169,20 @@ def test_text_query_between_two_processes(tmp_path: Path) -> None:
         code = server.stop()
         assert code == 0, f"server did not shut down cleanly on SIGINT\n{server.describe()}"
         assert "Traceback" not in server.output(), server.describe()
+
+
+def test_segment_array_round_trips_through_cdr() -> None:
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    import msg_adapters as ma
+    from monovoc_interfaces.msg import SegmentArray
+    from monovoc_ros.core.segment_labels import SegmentLabel
+
+    labels = (SegmentLabel(0x00AA11, "chair", 0.75), SegmentLabel(3, "lamp", 1.0))
+    msg = ma.segment_array(labels, frame_id="camera_optical_frame", stamp=5_000_000_123)
+    back = deserialize_message(serialize_message(msg), SegmentArray)
+    assert ma.header_stamp_ns(back) == 5_000_000_123
+    assert ma.segment_array_to_labels(back) == labels
+    back.segments[1].score = 2.0
+    with pytest.raises(ma.AdapterError, match="score"):
+        ma.segment_array_to_labels(back)

@@ -1,5 +1,6 @@
-"""mask_ids per_frame in the live node: the bundled per-frame bag (every mask renumbered) replayed into
-semantic_mapper gives the same objects as `monovoc map --bag ... --mask-ids per-frame`."""
+"""mask_ids per_frame in the live node: the bundled per-frame bag (every mask renumbered, each with the
+segmenter's class names on `segments`) replayed into semantic_mapper gives the same objects and labels as
+`monovoc map --bag ... --mask-ids per-frame`."""
 
 from __future__ import annotations
 
@@ -42,7 +43,9 @@ def test_live_node_on_the_per_frame_bag_matches_offline_mapping(tmp_path):
     assert len(mapper.associator.issued) >= 15
 
     env = ros_environment(tmp_path)
-    params = {"publish_rate_hz": 0.0, "mask_ids": "per_frame", "diagnostics_period_s": 0.2}
+    labels = mapper.object_labels()
+    assert len(labels) >= 15 and "sofa" in labels.values()  # the bag's segment names reached the objects
+    params = {"publish_rate_hz": 0.0, "mask_ids": "per_frame", "use_segments": True, "diagnostics_period_s": 0.2}
     with (
         NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
         ClientNode(env) as client,
@@ -68,3 +71,4 @@ def test_live_node_on_the_per_frame_bag_matches_offline_mapping(tmp_path):
     ids = sorted(o.id for o in final.objects)
     assert ids == sorted(set(expected.object_ids[known].tolist())) and len(ids) >= 15
     assert set(ids) <= set(mapper.associator.issued)
+    assert {o.id: o.label for o in final.objects} == {i: labels.get(i, "") for i in ids}

@@ -33,12 +33,13 @@ def make_synthetic_bag(out_dir: str | os.PathLike = BUNDLED_DIR, *, progress: bo
 
 def per_frame_scene():
     """The scene of the per-frame bag: a small synthetic room (30k Gaussians, 20 keyframes at 308x172)
-    whose every mask is renumbered at random (core.segment_noise, seed 0): segment ids hold per frame."""
-    from monovoc_ros.core.segment_noise import CorruptedMasks
+    whose every mask is renumbered at random (core.segment_noise, seed 0): segment ids hold per frame; each
+    mask's segments carry the class names a perfect segmenter would give (the `segments` topic)."""
+    from monovoc_ros.core.segment_noise import CorruptedMasks, PaletteSegments
     from monovoc_ros.synthetic import SceneConfig, generate_scene
 
     scene = generate_scene(SceneConfig.at_resolution(308, 172, n_gaussians=30_000, n_keyframes=20))
-    return CorruptedMasks(scene, shuffled=True, seed=0)
+    return CorruptedMasks(PaletteSegments(scene), shuffled=True, seed=0)
 
 
 def make_per_frame_bag(out_dir: str | os.PathLike = BUNDLED_DIR, *, progress: bool = False) -> ConvertReport:

@@ -31,6 +31,7 @@ from monovoc_ros.contract import (
     LABELS_METADATA,
     MAP_FRAME,
     MAP_LEAD_NS,
+    SEGMENTS_ROLE,
     SOURCE_METADATA,
     topic_names,
 )
@@ -127,8 +128,12 @@ def sequence_to_bag(
     time_offset_ns: int | None = None,
     compression: str = "zstd",
     progress: bool = False,
+    segments: bool | None = None,
 ) -> ConvertReport:
     """Writes ``sequence`` as a bag at ``out_path`` (atomically: a partial file never has the final name).
+
+    ``segments``: write a SegmentArray beside every mask (the keyframes' segment class names); None = when
+    the first keyframe has segments.
 
     ``map_updates``: ``{k: GaussianMap}`` or ``[(k, map), ...]``: a map message logged 1 ms before keyframe
     ``k`` (1 <= k < number of keyframes written), e.g. a moved or densified map halfway, for tests.
@@ -202,6 +207,11 @@ def sequence_to_bag(
                     writer.write(topics["image"], image, stamp, qos=STREAM_QOS)
                 elif "image" not in " ".join(skipped):
                     skipped.append("image (the sequence has no RGB images)")
+                if i == 0:
+                    with_segments = kf.segments is not None if segments is None else segments
+                if with_segments:  # one per mask, empty when the segmenter named nothing in it
+                    names = ma.segment_array(kf.segments or (), frame_id=CAMERA_FRAME, stamp=stamp)
+                    writer.write(topics[SEGMENTS_ROLE], names, stamp, qos=STREAM_QOS)
                 writer.write(topics["mask"], _mask_message(kf.mask, mask_format, stamp), stamp, qos=STREAM_QOS)
             counts = dict(writer.counts)
         os.replace(tmp_path, out_path)

@@ -7,12 +7,13 @@ equal those of a replay into the node. A map message that does not convert is yi
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Iterator, Mapping
 
 import msg_adapters as ma
-from monovoc_ros.bags.reader import iter_messages
-from monovoc_ros.contract import BAD_MESSAGE, DEFAULT_NAMESPACE, MAP_ROLE, topic_names
+from monovoc_ros.bags.reader import bag_info, iter_messages
+from monovoc_ros.contract import BAD_MESSAGE, DEFAULT_NAMESPACE, MAP_ROLE, SEGMENTS_ROLE, topic_names
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.ingest import IngestConfig, KeyframeAssembler, Rejection
@@ -32,8 +33,9 @@ def bag_events(
     """Yields, in log-time order, each Gaussian map message as a ``GaussianMap`` and the ``Keyframe``s and
     ``Rejection``s of a ``KeyframeAssembler`` fed with the decoded keyframe messages.
 
-    ``topics``: role -> topic overrides (roles image, mask, camera_info, pose, gaussians), for bags
-    recorded with other names. ``assembler``: pass one to read its counters afterwards.
+    ``topics``: role -> topic overrides (roles image, mask, camera_info, pose, segments, gaussians), for bags
+    recorded with other names. ``assembler``: pass one to read its counters afterwards. A bag with a
+    segments topic is read with ``use_segments`` (every mask waits for its SegmentArray).
     """
     names = topic_names(namespace)
     if topics:
@@ -41,7 +43,11 @@ def bag_events(
         if unknown:
             raise ValueError(f"unknown role(s) {sorted(unknown)}; roles are {sorted(names)}")
         names.update(topics)
-    assembler = assembler or KeyframeAssembler(ingest_config)
+    if assembler is None:
+        config = ingest_config or IngestConfig()
+        if not config.use_segments and names[SEGMENTS_ROLE] in bag_info(path).topics:
+            config = dataclasses.replace(config, use_segments=True)  # as a node with use_segments: true
+        assembler = KeyframeAssembler(config)
     role_of = {topic: role for role, topic in names.items() if role == MAP_ROLE or role in assembler.roles}
     for message in iter_messages(path, topics=list(role_of)):
         role = role_of[message.topic]

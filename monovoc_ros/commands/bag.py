@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from monovoc_ros.commands.sources import SOURCE_HELP, add_sequence_options, open_source_args
+from monovoc_ros.commands.sources import SOURCE_HELP, add_segment_names_option, add_sequence_options, open_source_args
 from monovoc_ros.contract import DEFAULT_NAMESPACE
 
 
@@ -19,12 +19,14 @@ def register(subparsers) -> None:
         "convert",
         help="write a dataset sequence or a synthetic scene as a ROS 2 MCAP bag",
         description="Writes the Gaussian map (once, before the first keyframe) and per keyframe pose, "
-        "camera_info, image and mask under /monovoc (topics: docs/interfaces.md), plus the palette labels "
-        "as metadata. Deterministic: the same input gives the same file.",
+        "camera_info, image and mask under /monovoc (topics: docs/interfaces.md), the segment class names "
+        "(segments, when the source has them) and the palette labels as metadata. Deterministic: the same "
+        "input gives the same file.",
     )
     c.add_argument("source", help=SOURCE_HELP)
     c.add_argument("-o", "--out", required=True, help="output .mcap file")
     add_sequence_options(c, "the bag holds only the corrupted masks: map a shuffled one with --mask-ids per-frame")
+    add_segment_names_option(c)  # a segments topic (SegmentArray per mask) then; also from segments/*.json
     c.add_argument("--rgb-format", choices=("jpeg", "png", "raw"), default="jpeg", help="image topic (default jpeg)")
     c.add_argument("--mask-format", choices=("png", "raw"), default="png", help="mask topic (default png)")
     c.add_argument("--jpeg-quality", type=int, default=95)

@@ -25,17 +25,21 @@ def add_sequence_options(parser: argparse.ArgumentParser, noise_note: str) -> No
     parser.add_argument("--noise-seed", type=int, default=0, help="seed of --mask-noise (default 0)")
 
 
-def add_source_options(parser: argparse.ArgumentParser) -> None:
-    """A sequence SOURCE or --bag, with the sequence options and the segment names of a perfect segmenter."""
-    parser.add_argument("source", nargs="?", help=SOURCE_HELP)
-    parser.add_argument("--bag", help="read keyframes and the Gaussian map from an MCAP bag instead")
-    add_sequence_options(parser, "references stay clean")
+def add_segment_names_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--segments-from-labels",
         action="store_true",
         help="give every keyframe the segment class names a perfect segmenter would (from the source's "
         "labels.json), before --mask-noise",
     )
+
+
+def add_source_options(parser: argparse.ArgumentParser) -> None:
+    """A sequence SOURCE or --bag, with the sequence options and the segment names of a perfect segmenter."""
+    parser.add_argument("source", nargs="?", help=SOURCE_HELP)
+    parser.add_argument("--bag", help="read keyframes and the Gaussian map from an MCAP bag instead")
+    add_sequence_options(parser, "references stay clean")
+    add_segment_names_option(parser)
 
 
 def check_source_options(args: argparse.Namespace) -> None:

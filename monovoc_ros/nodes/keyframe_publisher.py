@@ -18,6 +18,7 @@ from monovoc_ros.contract import (
     MAP_FRAME,
     MAP_ROLE,
     MAP_TYPE,
+    SEGMENTS_ROLE,
     keyframe_types,
     message_class,
 )
@@ -25,7 +26,7 @@ from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.nodes.qos import input_qos, latched_qos
 
-ROLE_ORDER = ("pose", "camera_info", "image", "mask")  # the mask (the synchronizer's pivot) last
+ROLE_ORDER = ("pose", "camera_info", "image", SEGMENTS_ROLE, "mask")  # the mask (the synchronizer's pivot) last
 
 
 def keyframe_messages(
@@ -49,18 +50,23 @@ def keyframe_messages(
     }
     if keyframe.rgb is not None:
         msgs["image"] = ma.numpy_to_compressed_image(keyframe.rgb, image_format, frame_id=camera_frame, stamp=stamp)
+    if keyframe.segments is not None:
+        msgs[SEGMENTS_ROLE] = ma.segment_array(keyframe.segments, frame_id=camera_frame, stamp=stamp)
     return msgs
 
 
 class KeyframePublisher:
     """Publishers for the node's inputs, created on `node` (any rclpy node, e.g. a test's client node)."""
 
-    def __init__(self, node: Any, namespace: str = DEFAULT_NAMESPACE, *, depth: int = 1000) -> None:
+    def __init__(
+        self, node: Any, namespace: str = DEFAULT_NAMESPACE, *, depth: int = 1000, segments: bool = False
+    ) -> None:
         ns = namespace.rstrip("/")
         # Deep writer history: a reliable writer drops unacknowledged samples beyond its depth.
         qos = input_qos(depth)
         self.publishers = {
-            role: node.create_publisher(message_class(t), f"{ns}/{role}", qos) for role, t in keyframe_types().items()
+            role: node.create_publisher(message_class(t), f"{ns}/{role}", qos)
+            for role, t in keyframe_types(segments=segments).items()
         }
         self.gaussians = node.create_publisher(message_class(MAP_TYPE), f"{ns}/{MAP_ROLE}", latched_qos())
 
@@ -68,8 +74,9 @@ class KeyframePublisher:
         return [*self.publishers.values(), self.gaussians]
 
     def publish_messages(self, msgs: dict[str, Any], order: tuple[str, ...] = ROLE_ORDER) -> None:
+        """Publishes the messages of the roles it has publishers for (segments only with ``segments=True``)."""
         for role in order:
-            if role in msgs:
+            if role in msgs and role in self.publishers:
                 self.publishers[role].publish(msgs[role])
 
     def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int = 0, frame_id: str = MAP_FRAME) -> Any:

@@ -58,7 +58,9 @@ EXECUTOR_THREADS = 8
 
 
 def _message_types(params: NodeParams) -> dict[str, type]:
-    names = keyframe_types(params.image_transport, params.mask_transport, params.ingest.pose_type)
+    names = keyframe_types(
+        params.image_transport, params.mask_transport, params.ingest.pose_type, segments=params.ingest.use_segments
+    )
     return {role: message_class(name) for role, name in names.items()}
 
 
