@@ -24,6 +24,8 @@ and the answers agree.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -48,6 +50,7 @@ from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
 
 REFRESH_DEFER_S = 5.0  # longest time embedding waits while keyframes are queued for the worker
+EMBEDDING_NICENESS = 10  # added to the indexing thread's (and its encoder threads') nice value
 
 
 @dataclass(frozen=True)
@@ -236,6 +239,10 @@ class ObjectQueryComponent:
     # ------------------------------------------------------------------ indexing thread
 
     def _run(self) -> None:
+        # Embedding is background work: below the mapping worker in the scheduler (Linux niceness is per
+        # thread, and onnxruntime's pool threads, created with the models just below, inherit it).
+        with contextlib.suppress(OSError, AttributeError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), EMBEDDING_NICENESS)
         try:
             _ = self.index.backend  # load the models now, so the first query does not pay for it
         except (ModelMissingError, ValueError, OSError) as exc:  # a clip_onnx dir with bad files: ValueError
