@@ -1,0 +1,65 @@
+"""The import graph: core/ is the engine (no ROS, nothing from the layers above it), and no module-level
+import cycles anywhere in the package."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("monovoc_ros", "msg_adapters")
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path, *, top_level_only: bool, modules: frozenset[str] = frozenset()) -> set[str]:
+    """What ``path`` imports; ``from pkg import sub`` of a submodule counts as importing ``pkg.sub`` only."""
+    tree = ast.parse(path.read_text())
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    found = set()
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            subs = {f"{node.module}.{a.name}" for a in node.names} & modules
+            found |= subs
+            if len(subs) < len(node.names):
+                found.add(node.module)
+    return {m for m in found if m.split(".")[0] in (*PACKAGES, "rclpy")}
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for pkg in PACKAGES for p in (REPO / pkg).rglob("*.py")}
+
+
+def test_core_imports_only_core():
+    for name, path in _modules().items():
+        if name.startswith("monovoc_ros.core"):
+            above = {m for m in _imports(path, top_level_only=False) if not m.startswith("monovoc_ros.core")}
+            assert not above, f"{name} imports {sorted(above)}"
+
+
+def test_no_module_level_import_cycles():
+    modules = _modules()
+    graph = {
+        name: {m for m in _imports(path, top_level_only=True, modules=frozenset(modules)) if m in modules and m != name}
+        for name, path in modules.items()
+    }
+    state: dict[str, int] = {}
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle = stack[stack.index(nxt) :] + [nxt] if nxt in stack else [node, nxt]
+                raise AssertionError(f"import cycle: {' -> '.join(cycle)}")
+            if nxt not in state:
+                visit(nxt, [*stack, nxt])
+        state[node] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [name])
