@@ -80,11 +80,6 @@ def diagnostic_status(stats: dict[str, Any], *, name: str, hardware_id: str, ext
     )
 
 
-def status_values(status: Any) -> dict[str, str]:
-    """key -> value of a DiagnosticStatus (for clients and tests)."""
-    return {kv.key: kv.value for kv in status.values}
-
-
 class RejectionLog:
     """Logs rejections per reason: the first at once, then at most one line per `interval_s` per reason
     with the number suppressed since, so a stream of bad messages cannot flood the log."""

@@ -1,39 +1,17 @@
-"""Building an object index offline: from a finished mapper and its keyframes, or while mapping.
-
-For ``monovoc map`` (or any offline driver) either
-- map first, then ``build_object_index(mapper, keyframes, config, backend)`` (views chosen with the
-  final palette), or
-- pass ``index.keyframe_listener`` as the per-keyframe hook while mapping (as the live node does) and
-  call ``index.refresh(mapper)`` at the end; then ``save_object_index(index, map_dir, ...)``.
+"""Building an object index offline, while mapping (as the live node does): ``map_with_objects`` passes
+``index.keyframe_listener`` as the per-keyframe hook and calls ``index.refresh(mapper)`` at the end; then
+``save_object_index(index, map_dir, ...)``.
 """
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterable
 
 from tqdm import tqdm
 
-from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.palette import labels_from_entries
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
-
-
-def build_object_index(
-    mapper: SemanticMapper,
-    keyframes: Iterable[Keyframe],
-    config: IndexConfig | None = None,
-    backend: object | None = None,
-) -> ObjectIndex:
-    """The index of a finished map: every keyframe offers views of the final palette's objects, then
-    every object is embedded once."""
-    index = ObjectIndex(backend if backend is not None else lazy_backend("conse"), config)
-    palette_ids = mapper.result().palette.ids
-    for keyframe in keyframes:
-        index.observe(keyframe, palette_ids)
-    index.refresh(mapper)
-    return index
 
 
 def map_with_objects(
