@@ -31,6 +31,7 @@ class MapperStats(SessionStats):
     keyframes_received: int = 0  # keyframes completed by the KeyframeAssembler
     queue_length: int = 0  # keyframes waiting for the worker
     publish_ms_last: float = 0.0  # result + outputs
+    warm_up_ms: float = 0.0  # loading the mapping kernels at start (0 until done)
     objects: int = 0
     observed_gaussians: int = 0
     maps_coalesced: int = 0  # pending maps replaced by a newer one before being applied

@@ -396,6 +396,10 @@ def _diagnostic_array_type() -> type:
 
 def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Component]] | None = None) -> int:
     """Runs the mapping node, and the components ``compose(node)`` creates beside it, until SIGINT/SIGTERM."""
+    # The executor's callbacks, the worker and the components hand the GIL to each other many times per
+    # keyframe and per query; with the default 5 ms switch interval each handoff could wait up to 5 ms
+    # behind another thread's Python code (the tails of query and keyframe-to-cloud latency).
+    sys.setswitchinterval(0.001)
     rclpy.init(args=args)
     node = None
     try:

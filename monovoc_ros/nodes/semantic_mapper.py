@@ -31,9 +31,6 @@ def compose(node: MappingNode) -> list[Component]:
 
 
 def main(args: list[str] | None = None) -> int:
-    # A query needs the GIL for a few short steps; with the default 5 ms switch interval each waited up to
-    # 5 ms per step behind the worker's and the indexer's Python code (the tail of the query latency).
-    sys.setswitchinterval(0.001)
     return run(args, compose)
 
 

@@ -49,6 +49,7 @@ from monovoc_ros.core.session import (
     MappingSession,
     SaveListener,
 )
+from monovoc_ros.core.warm_up import warm_up
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
@@ -325,6 +326,7 @@ class MapWorker:
     # ------------------------------------------------------------------ the loop
 
     def _run(self) -> None:
+        self._warm_up()
         while not self.queue.closed:
             # Keyframes the session holds are older than anything queued: they go first.
             ready = self.session.keyframes_ready
@@ -343,6 +345,17 @@ class MapWorker:
             except Exception as exc:  # the worker must outlive any single bad task or listener
                 self.stats.add(worker_errors=1)
                 self.log.error(f"worker: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+
+    def _warm_up(self) -> None:
+        # Before the first task: a map or keyframe that arrives meanwhile waits in the queue, as it would
+        # have waited for the kernels on its first call.
+        try:
+            seconds = warm_up(self.session.config)
+        except Exception as exc:  # the real keyframes will show the same error, counted; mapping goes on
+            self.log.warning(f"kernel warm-up failed: {type(exc).__name__}: {exc}")
+            return
+        self.stats.update(warm_up_ms=1e3 * seconds)
+        self.log.info(f"mapping kernels loaded in {seconds:.1f} s")
 
     def _execute(self, task: _Task) -> None:
         if task.kind == "keyframe":

@@ -1,0 +1,27 @@
+"""The start-up warm-up runs the configured mapping path on a scene that exercises it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.palette import UNOBSERVED_ID
+from monovoc_ros.core.warm_up import warm_up, warm_up_scene
+
+
+@pytest.mark.parametrize(
+    "config", [MapperConfig(), MapperConfig(semantic_mode="scd"), MapperConfig(mask_ids="per_frame")]
+)
+def test_the_warm_up_scene_labels_both_objects_in_every_mode(config):
+    gaussians, keyframes = warm_up_scene()
+    mapper = SemanticMapper(gaussians, config)
+    for keyframe in keyframes:
+        mapper.integrate(keyframe)
+    result = mapper.result()
+    assert len(set(result.object_ids[result.object_ids != UNOBSERVED_ID].tolist())) == 2
+    assert len(result.objects(gaussians).objects) == 2
+    if config.mask_ids == "per_frame":  # the second keyframe was associated with the first one's objects
+        assert len(mapper.associator.issued) == 2
+    assert warm_up(config) > 0
+    assert np.all(np.isfinite(result.confidence))
