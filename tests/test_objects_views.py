@@ -133,3 +133,26 @@ def test_restore_and_clear():
 def test_bad_view_config(bad):
     with pytest.raises(ValueError):
         ViewConfig(**bad)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_view_kernels_match_their_plain_twins(seed):
+    from monovoc_ros.core.palette import pack_rgb
+    from monovoc_ros.objects import views_kernels as vk
+    from monovoc_ros.objects.views import boxes_reference, label_image_reference
+
+    rng = np.random.default_rng(seed)
+    colors = rng.integers(0, 256, (6, 3), dtype=np.uint8)
+    mask = colors[rng.integers(0, 6, (37, 53))]
+    mask[rng.random((37, 53)) < 0.2] = 255  # void and colors outside the palette
+    ids = np.unique(pack_rgb(colors[:4])).astype(np.uint32)
+    labels = np.empty(mask.shape[:2], np.int32)
+    vk.label_image(mask, ids, labels)
+    np.testing.assert_array_equal(labels, label_image_reference(mask, ids))
+    counts, boxes = vk.label_boxes(labels, ids.size + 1)  # one label without pixels
+    wanted = np.arange(labels.max() + 1)
+    ref_boxes, ref_visible = boxes_reference(labels, wanted)
+    np.testing.assert_array_equal(counts[wanted] > 0, ref_visible)
+    np.testing.assert_array_equal(boxes[wanted][ref_visible], ref_boxes[ref_visible])
+    np.testing.assert_array_equal(counts[: ids.size], np.bincount(labels[labels >= 0], minlength=ids.size))
+    assert counts[-1] == 0

@@ -25,6 +25,7 @@ import numpy as np
 
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import VOID_ID, pack_rgb
+from monovoc_ros.objects import views_kernels as vk
 
 
 @dataclass
@@ -74,9 +75,10 @@ class ObjectView:
         return self.rgb[self.mask]
 
 
-def _label_image(packed: np.ndarray, palette_ids: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _label_image(mask: np.ndarray, palette_ids: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """(ids, labels): the object ids considered and an (H, W) int32 index into them, -1 elsewhere."""
     if palette_ids is None:
+        packed = pack_rgb(mask)
         ids, inverse = np.unique(packed, return_inverse=True)
         labels = inverse.reshape(packed.shape).astype(np.int32)
         void = np.searchsorted(ids, VOID_ID)
@@ -87,13 +89,21 @@ def _label_image(packed: np.ndarray, palette_ids: np.ndarray | None) -> tuple[np
         return ids.astype(np.uint32), labels
     ids = np.unique(np.asarray(palette_ids, dtype=np.uint32))
     ids = ids[ids != VOID_ID]
+    labels = np.empty(mask.shape[:2], np.int32)
+    vk.label_image(np.ascontiguousarray(mask), ids, labels)
+    return ids, labels
+
+
+def label_image_reference(mask: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Plain twin of views_kernels.label_image: (H, W) int32 index of each pixel's color in ``ids``, -1."""
+    packed = pack_rgb(mask)
     if ids.size == 0:
-        return ids, np.full(packed.shape, -1, np.int32)
+        return np.full(packed.shape, -1, np.int32)
     pos = np.searchsorted(ids, packed).clip(0, ids.size - 1)
-    return ids, np.where(ids[pos] == packed, pos, -1).astype(np.int32)
+    return np.where(ids[pos] == packed, pos, -1).astype(np.int32)
 
 
-def _boxes(labels: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def boxes_reference(labels: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(len(wanted), 4) end-exclusive (y0, x0, y1, x1) boxes of the wanted labels and whether each is
     present at all, from row/column presence tables (labels x rows, labels x columns): no per-pixel
     Python, no sort."""
@@ -173,9 +183,8 @@ class ObjectViews:
         Keyframes without RGB count observations only.
         """
         cfg = self.config
-        packed = pack_rgb(keyframe.mask)
-        ids, labels = _label_image(packed, palette_ids)
-        counts = np.bincount(labels[labels >= 0], minlength=ids.size)[: ids.size]
+        ids, labels = _label_image(keyframe.mask, palette_ids)
+        counts, _ = vk.label_boxes(labels, ids.size)
         present = np.flatnonzero(counts >= cfg.min_pixels)
         with self._lock:
             self.keyframes += 1
@@ -200,7 +209,8 @@ class ObjectViews:
         if labels.shape != (height, width):
             labels = cv2.resize(labels, (width, height), interpolation=cv2.INTER_NEAREST)
         wanted = np.array(candidates, dtype=np.int64)
-        boxes, visible = _boxes(labels, wanted)  # a tiny object may vanish when the mask is downscaled
+        present_pixels, all_boxes = vk.label_boxes(labels, ids.size)
+        boxes, visible = all_boxes[wanted], present_pixels[wanted] > 0  # a tiny object may vanish when resized
         new_views = []
         for i, (y0, x0, y1, x1) in zip(wanted[visible].tolist(), boxes[visible].tolist(), strict=True):
             pad_y, pad_x = round(cfg.context * (y1 - y0)), round(cfg.context * (x1 - x0))
