@@ -211,13 +211,18 @@ class ClientNode:
                     os.environ[key] = self._env[key]
             for key in FOREIGN_ROS_VARIABLES:
                 self._saved[key] = os.environ.pop(key, None)
-        self.context = rclpy.Context()
-        domain = os.environ.get("ROS_DOMAIN_ID")
-        rclpy.init(context=self.context, domain_id=int(domain) if domain else None,
-                   signal_handler_options=SignalHandlerOptions.NO)  # fmt: skip
-        self.node = rclpy.create_node(self._name, context=self.context)
-        self._spin = spinning(self.node)
-        self._spin.__enter__()
+        try:
+            self.context = rclpy.Context()
+            domain = os.environ.get("ROS_DOMAIN_ID")
+            rclpy.init(context=self.context, domain_id=int(domain) if domain else None,
+                       signal_handler_options=SignalHandlerOptions.NO)  # fmt: skip
+            self.node = rclpy.create_node(self._name, context=self.context)
+            spin = spinning(self.node)
+            spin.__enter__()
+            self._spin = spin
+        except BaseException:
+            self.__exit__(None, None, None)  # the environment restored, the context shut down
+            raise
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -240,12 +245,17 @@ def wait_for_service(client: Any, timeout: float = 10.0, *, process: Watched = N
     wait_until(client.service_is_ready, timeout, f"service {client.srv_name}", process=process, interval=0.05)
 
 
+_DEFAULT = object()
+
+
 def call_service(
-    client: Any, request: Any, timeout: float = 10.0, *, process: Watched = None, resend_s: float | None = 2.0
+    client: Any, request: Any, timeout: float = 10.0, *, process: Watched = None, resend_s: Any = _DEFAULT
 ) -> Any:
-    """The response (the client's node must be spinning elsewhere, as in ClientNode). An unanswered request is
-    sent again (monovoc_ros.nodes.service_call); ``resend_s`` None for requests that must run once."""
-    response = service_call.call_service(client, request, timeout, time.sleep, resend_s=resend_s,
+    """The response (the client's node must be spinning elsewhere, as in ClientNode). An unanswered cheap
+    read-only request is sent again (monovoc_ros.nodes.service_call.default_resend); ``resend_s`` overrides
+    (None: send once)."""
+    resend = service_call.default_resend(request) if resend_s is _DEFAULT else resend_s
+    response = service_call.call_service(client, request, timeout, time.sleep, resend_s=resend,
                                          poll=_poller(process))  # fmt: skip
     if response is None:
         what = f"a response from {client.srv_name}"
@@ -304,6 +314,7 @@ class DiagnosticsMonitor:
 
         self.name = name
         self.latest: dict[str, Any] = {}
+        self._newest: Any = None
         self._lock = threading.Lock()
         self.subscription = node.create_subscription(DiagnosticArray, topic, self._on_message, 10)
 
@@ -312,13 +323,12 @@ class DiagnosticsMonitor:
             for status in msg.status:
                 if self.name in status.name:
                     self.latest[status.name] = status
+                    self._newest = status
 
     def values(self) -> dict[str, str]:
         with self._lock:
-            statuses = list(self.latest.values())
-        if not statuses:
-            return {}
-        return {kv.key: kv.value for kv in statuses[-1].values}
+            newest = self._newest
+        return {} if newest is None else {kv.key: kv.value for kv in newest.values}
 
     def wait_for(
         self,

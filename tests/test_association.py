@@ -63,6 +63,10 @@ def test_compact_index_matches_reference(seed):
     compact, rendered = rendered_object_index(issued_only, table.tolist())
     np.testing.assert_array_equal(rendered, table)
     np.testing.assert_array_equal(compact, compact_index_reference(issued_only, table))
+    # Issued ids no Gaussian holds (merged away) are left out of the table.
+    compact, rendered = rendered_object_index(issued_only, [*table.tolist(), 0xFFFFFE])
+    np.testing.assert_array_equal(rendered, table)
+    np.testing.assert_array_equal(compact, compact_index_reference(issued_only, table))
     compact, rendered = rendered_object_index(ids, table.tolist())
     known = ids != UNOBSERVED_ID
     np.testing.assert_array_equal(rendered[compact[known]], ids[known])

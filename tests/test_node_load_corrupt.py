@@ -122,7 +122,7 @@ def test_corrupt_snapshots_through_load_map(tmp_path):
             assert _answers(service, node) == before, name  # map and objects untouched
 
         # The next save writes the objects the node still holds, not an empty index.
-        saved = call_service(save, SaveMap.Request(), 60.0, process=node, resend_s=None)
+        saved = call_service(save, SaveMap.Request(), 60.0, process=node)
         assert saved.success, saved.message
         assert len(ObjectDatabase(directory / DB_NAME, create=False).records()) == records
         # And a good directory still loads.
@@ -148,7 +148,7 @@ def test_resume_keeps_an_unreadable_objects_db_aside(tmp_path):
         kept = sorted(directory.glob(f"{DB_NAME}.unreadable-*"))
         kept = [p for p in kept if not p.name.endswith(("-wal", "-shm"))]
         assert len(kept) == 1 and kept[0].read_bytes() == damaged
-        assert call_service(save, SaveMap.Request(), 60.0, process=node, resend_s=None).success
+        assert call_service(save, SaveMap.Request(), 60.0, process=node).success
         node.check_running()
     assert kept[0].read_bytes() == damaged  # never overwritten
     db = ObjectDatabase(directory / DB_NAME, create=False)  # a fresh, readable database beside it

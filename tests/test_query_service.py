@@ -250,7 +250,7 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
 
         save = client.node.create_client(SaveMap, "/monovoc/save_map")
         wait_for_service(save, process=node)
-        saved = call_service(save, SaveMap.Request(), 60.0, process=node, resend_s=None)
+        saved = call_service(save, SaveMap.Request(), 60.0, process=node)
         assert saved.success, saved.message
         db = ObjectDatabase(directory / DB_NAME, create=False)
         assert len(db.records()) >= 20 and db.gaussian_index().object_ids.size == len(scene.gaussians)

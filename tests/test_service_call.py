@@ -66,3 +66,13 @@ def test_poll_failures_reach_the_caller():
     with pytest.raises(RuntimeError, match="the node exited"):
         call_service(client, "q", 5.0, time.sleep, poll=poll)
     assert client.pending == []
+
+
+def test_only_cheap_read_only_requests_are_resent_by_default():
+    from monovoc_interfaces.srv import Reset, SaveMap, TextQuery
+    from monovoc_ros.nodes.service_call import RESEND_S, default_resend
+
+    assert default_resend(TextQuery.Request(text="a chair")) == RESEND_S
+    assert default_resend(SaveMap.Request()) is None and default_resend(Reset.Request()) is None
+    with pytest.raises(ValueError, match="resend_s"):
+        call_service(LossyClient(lost=set()), "q", 1.0, time.sleep, resend_s=0.0)

@@ -7,7 +7,6 @@ equal those of a replay into the node. A map message that does not convert is yi
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from collections.abc import Iterator, Mapping
 
@@ -34,8 +33,9 @@ def bag_events(
     ``Rejection``s of a ``KeyframeAssembler`` fed with the decoded keyframe messages.
 
     ``topics``: role -> topic overrides (roles image, mask, camera_info, pose, segments, gaussians), for bags
-    recorded with other names. ``assembler``: pass one to read its counters afterwards. A bag with a
-    segments topic is read with ``use_segments`` (every mask waits for its SegmentArray).
+    recorded with other names. ``assembler``: pass one to read its counters afterwards. Without
+    ``ingest_config``, a bag with a segments topic is read with ``use_segments`` (every mask waits for its
+    SegmentArray); an explicit config is taken as given.
     """
     names = topic_names(namespace)
     if topics:
@@ -44,9 +44,9 @@ def bag_events(
             raise ValueError(f"unknown role(s) {sorted(unknown)}; roles are {sorted(names)}")
         names.update(topics)
     if assembler is None:
-        config = ingest_config or IngestConfig()
-        if not config.use_segments and names[SEGMENTS_ROLE] in bag_info(path).topics:
-            config = dataclasses.replace(config, use_segments=True)  # as a node with use_segments: true
+        config = ingest_config
+        if config is None:  # read what the bag holds: its segments as a node with use_segments: true
+            config = IngestConfig(use_segments=names[SEGMENTS_ROLE] in bag_info(path).topics)
         assembler = KeyframeAssembler(config)
     role_of = {topic: role for role, topic in names.items() if role == MAP_ROLE or role in assembler.roles}
     for message in iter_messages(path, topics=list(role_of)):

@@ -181,7 +181,7 @@ def _session(node, mapper, bag, out, n_keyframes, queries, rate, top_k, timeout)
         f"{diag['objects']} objects, {diag['objects.indexed']} embedded after {indexed_s:.1f} s",
         flush=True,
     )
-    saved = call_service(save, SaveMap.Request(), timeout, process=mapper, resend_s=None)
+    saved = call_service(save, SaveMap.Request(), timeout, process=mapper)
     if not saved.success:
         raise DemoError(f"save_map failed: {saved.message}")
 

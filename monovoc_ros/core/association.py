@@ -291,7 +291,12 @@ def rendered_object_index(gaussian_ids: np.ndarray, issued: list[int]) -> tuple[
     if table.size:
         compact = np.empty(len(gaussian_ids), np.int32)
         if compact_index(gaussian_ids, table, np.uint32(UNOBSERVED_ID), compact) == 0:
-            return compact, table
+            # Only the ids some Gaussian holds: merged-away ids would grow every overlap matrix with the run.
+            present = np.bincount(compact[compact >= 0], minlength=table.size) > 0
+            if present.all():
+                return compact, table
+            renumber = np.cumsum(present, dtype=np.int32) - 1
+            return np.where(compact >= 0, renumber[np.maximum(compact, 0)], -1).astype(np.int32), table[present]
     known = gaussian_ids != UNOBSERVED_ID
     ids, index = np.unique(gaussian_ids[known], return_inverse=True)
     compact = np.full(len(gaussian_ids), -1, np.int32)

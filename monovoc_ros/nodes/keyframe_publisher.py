@@ -74,9 +74,12 @@ class KeyframePublisher:
         return [*self.publishers.values(), self.gaussians]
 
     def publish_messages(self, msgs: dict[str, Any], order: tuple[str, ...] = ROLE_ORDER) -> None:
-        """Publishes the messages of the roles it has publishers for (segments only with ``segments=True``)."""
+        """Publishes the messages of one keyframe; a segments message needs ``segments=True``."""
+        unknown = set(msgs) - set(self.publishers)
+        if unknown:
+            raise ValueError(f"no publisher for {sorted(unknown)} (KeyframePublisher(..., segments=True)?)")
         for role in order:
-            if role in msgs and role in self.publishers:
+            if role in msgs:
                 self.publishers[role].publish(msgs[role])
 
     def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int = 0, frame_id: str = MAP_FRAME) -> Any:

@@ -15,7 +15,7 @@ operations on the same worker, so they apply in order with keyframes, while sepa
 MultiThreadedExecutor keep callbacks and services responsive during a long integration.
 
 Topics (relative, default namespace /monovoc; remap with `-r __ns:=/x` or `-r image:=/camera/image`):
-    in:  image, mask, camera_info, pose, gaussians          out: semantic_cloud, objects, objects/markers,
+    in:  image, mask, camera_info, pose, [segments], gaussians   out: semantic_cloud, objects, objects/markers,
     services: save_map, load_map, reset, publish            /diagnostics
 Parameters: monovoc_ros.nodes.params.PARAMETERS (config/semantic_mapper.yaml lists them all). The ROS node
 name is `semantic_mapper` whichever executable runs it.
@@ -36,7 +36,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
 import msg_adapters as ma
-from monovoc_ros.contract import DEFAULT_NAMESPACE, keyframe_types, message_class
+from monovoc_ros.contract import BAD_MESSAGE, DEFAULT_NAMESPACE, keyframe_types, message_class
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.ply import load_ply
@@ -53,7 +53,7 @@ from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
-# One per callback group (4 inputs, map, diagnostics) plus services, which may block waiting for the worker.
+# One per callback group (4 or 5 inputs, map, diagnostics) plus services, which may block waiting for the worker.
 EXECUTOR_THREADS = 8
 
 
@@ -257,7 +257,7 @@ class MappingNode(Node):
             try:
                 keyframes, rejections = self.assembler.push(role, msg)
             except Exception as exc:  # a conversion bug must cost one message, not the subscription
-                reason = "bad_camera_info" if role == "camera_info" else f"bad_{role}"
+                reason = BAD_MESSAGE[role]
                 keyframes, rejections = [], []
                 self.stats.reject(reason)
                 self._reject_log(reason, f"{role}: unexpected {type(exc).__name__}: {exc}")

@@ -5,7 +5,9 @@ reader within the writer's max_blocking_time (100 ms): the server logs "failed t
 client will not receive response" and the caller waits forever. A fresh client's first call on a loaded
 machine hits it (CI once saw a warm-up query time out after 30 s), and `service_is_ready()` only reports the
 client's half of the match. So an idempotent request is sent again when no answer came within `resend_s`
-(doubling each time); the first answer wins and the other requests are dropped from the client.
+(doubling each time); the first answer wins and the other requests are dropped from the client. Only
+cheap read-only requests are resent by default (`RESENT_REQUESTS`): a slow load_map or reset that ran
+twice would hold executor threads, or wipe what came after it.
 """
 
 from __future__ import annotations
@@ -14,6 +16,15 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+RESEND_S = 2.0
+# Request classes (rclpy's "<Service>_Request") that may run any number of times: read-only and cheap.
+RESENT_REQUESTS = frozenset({"TextQuery_Request", "GetParameters_Request", "DescribeParameters_Request"})
+
+
+def default_resend(request: Any) -> float | None:
+    """RESEND_S for the requests of RESENT_REQUESTS, else None (sent once)."""
+    return RESEND_S if type(request).__name__ in RESENT_REQUESTS else None
+
 
 def call_service(
     client: Any,
@@ -21,12 +32,14 @@ def call_service(
     timeout_s: float,
     wait: Callable[[float], None],
     *,
-    resend_s: float | None = 2.0,
+    resend_s: float | None = RESEND_S,
     poll: Callable[[], None] | None = None,
 ) -> Any | None:
     """The response, or None after ``timeout_s``. ``wait(seconds)`` lets the client's node spin (spin_once,
     or sleep when an executor spins it in another thread); ``poll`` runs between waits and may raise (a
     watched process that died). ``resend_s`` None sends once: for requests that must not run twice."""
+    if resend_s is not None and not resend_s > 0:
+        raise ValueError(f"resend_s must be > 0 or None, got {resend_s!r}")
     start = time.monotonic()
     deadline = start + timeout_s
     futures = [client.call_async(request)]

@@ -405,13 +405,15 @@ class MapWorker:
         self._last_publish = time.monotonic()
         mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
+        # Outputs first: the worker computes (and caches on the result) the object geometry before a
+        # listener's thread, possibly of lower priority, asks the result for it and holds its lock.
+        objects = self.sink.publish(mapper, result) if self.sink is not None else 0
         if mapper is not None and result is not None:
             for fn in self._result_listeners:
                 try:
                     fn(mapper, result)
                 except Exception as exc:
                     self._listener_failed(fn, exc)
-        objects = self.sink.publish(mapper, result) if self.sink is not None else 0
         observed = int(result.observed.sum()) if result is not None else 0
         self.stats.update(
             objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (time.perf_counter() - start)
