@@ -28,6 +28,7 @@ sys.path.insert(0, str(REPO))
 
 from monovoc_ros import offline  # noqa: E402
 from monovoc_ros.commands.eval import score, sequence_frames  # noqa: E402
+from monovoc_ros.core.datasets import SequenceView  # noqa: E402
 from monovoc_ros.core.mapping import MapperConfig  # noqa: E402
 from monovoc_ros.core.palette import labels_from_entries  # noqa: E402
 
@@ -52,17 +53,12 @@ CONFIGS = {
 }
 
 
-class JpegMasks:
+class JpegMasks(SequenceView):
     """A sequence whose keyframe masks went through JPEG at `quality` (clean_mask stays the original)."""
 
     def __init__(self, sequence, quality: int) -> None:
-        self._seq, self._quality = sequence, quality
-
-    def __getattr__(self, name):
-        return getattr(self._seq, name)
-
-    def __len__(self) -> int:
-        return len(self._seq)
+        super().__init__(sequence)
+        self._quality = quality
 
     def keyframe(self, i: int):
         from PIL import Image
@@ -71,10 +67,6 @@ class JpegMasks:
         buf = io.BytesIO()
         Image.fromarray(kf.mask).save(buf, format="JPEG", quality=self._quality)
         return replace(kf, mask=np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB")))
-
-    def clean_mask(self, i: int) -> np.ndarray:
-        clean = getattr(self._seq, "clean_mask", None)
-        return clean(i) if clean else self._seq.keyframe(i).mask
 
 
 def _second(item):

@@ -44,3 +44,19 @@ def offline_mapper(gaussians, keyframes) -> SemanticMapper:
     for keyframe in keyframes:
         mapper.integrate(keyframe)
     return mapper
+
+
+class RecordingLog:
+    """A logger (info / warning / error) that keeps its lines, for the worker and session tests."""
+
+    def __init__(self):
+        self.lines = []
+
+    def info(self, msg):
+        self.lines.append(("info", msg))
+
+    def warning(self, msg):
+        self.lines.append(("warning", msg))
+
+    def error(self, msg):
+        self.lines.append(("error", msg))

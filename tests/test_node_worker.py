@@ -17,6 +17,7 @@ from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped
 from tests.evidence import assert_same_evidence
+from tests.node_scene import RecordingLog
 
 CAM = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
 
@@ -49,22 +50,8 @@ class Sink:
         return 0
 
 
-class Log:
-    def __init__(self):
-        self.lines = []
-
-    def info(self, msg):
-        self.lines.append(("info", msg))
-
-    def warning(self, msg):
-        self.lines.append(("warning", msg))
-
-    def error(self, msg):
-        self.lines.append(("error", msg))
-
-
-def make_worker(tmp_path: Path | None = None, **settings) -> tuple[MapWorker, Sink, Log]:
-    sink, log = Sink(), Log()
+def make_worker(tmp_path: Path | None = None, **settings) -> tuple[MapWorker, Sink, RecordingLog]:
+    sink, log = Sink(), RecordingLog()
     opts = {"queue_size": 8, "publish_period_s": 0.0, "save_period_s": 0.0}
     opts.update(settings)
     worker = MapWorker(MapperConfig(), WorkerSettings(**opts), sink=sink, log=log)

@@ -14,21 +14,7 @@ from monovoc_ros.core.session import MappingSession, SessionStats
 from monovoc_ros.nodes.worker import MapWorker, WorkerSettings
 from monovoc_ros.offline import map_events
 from tests.evidence import assert_same_evidence
-from tests.node_scene import offline_mapper, small_scene
-
-
-class Log:
-    def __init__(self):
-        self.lines = []
-
-    def info(self, msg):
-        self.lines.append(("info", msg))
-
-    def warning(self, msg):
-        self.lines.append(("warning", msg))
-
-    def error(self, msg):
-        self.lines.append(("error", msg))
+from tests.node_scene import RecordingLog, offline_mapper, small_scene
 
 
 def integrate_ready(session: MappingSession) -> list[int]:
@@ -44,7 +30,7 @@ def test_session_life_counts_every_outcome(tmp_path):
     scene = small_scene()
     gaussians, kfs = scene.gaussians, [scene.keyframe(i) for i in range(6)]
     n = len(gaussians)
-    log, seen, resets, saves = Log(), [], [], []
+    log, seen, resets, saves = RecordingLog(), [], [], []
     session = MappingSession(MapperConfig(), max_waiting=2, log=log)
     session.add_keyframe_listener(lambda kf, mapper: seen.append((kf.stamp_ns, mapper.n_keyframes)))
     session.add_reset_listener(lambda: resets.append(session.mapper))
@@ -159,7 +145,7 @@ def test_worker_and_offline_mapping_give_the_same_evidence_for_the_same_events()
     )
 
     worker = MapWorker(
-        MapperConfig(), WorkerSettings(queue_size=100, publish_period_s=0.0, save_period_s=0.0), log=Log()
+        MapperConfig(), WorkerSettings(queue_size=100, publish_period_s=0.0, save_period_s=0.0), log=RecordingLog()
     )
     worker.add_keyframe_listener(lambda kf, mapper: live_seen.append(kf.stamp_ns))
     worker.start()

@@ -61,6 +61,27 @@ NICE_SLAM_DEPTH_SCALE = 6553.5  # Replica depth PNG units per metre
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
 
+class SequenceView:
+    """A sequence seen through a change of its keyframes (`keyframe(i)`, e.g. corrupted masks or segment
+    names); everything else is the wrapped sequence's, and `clean_mask(i)` is the original mask."""
+
+    def __init__(self, sequence) -> None:
+        self._seq = sequence
+
+    def __getattr__(self, name):
+        return getattr(self._seq, name)
+
+    def __len__(self) -> int:
+        return len(self._seq)
+
+    def keyframe(self, i: int) -> Keyframe:
+        return self._seq.keyframe(i)
+
+    def clean_mask(self, i: int) -> np.ndarray:
+        clean = getattr(self._seq, "clean_mask", None)
+        return clean(i) if clean else self._seq.keyframe(i).mask
+
+
 class SequenceError(ValueError):
     """A sequence that cannot be read as asked; the message names the offending path."""
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from monovoc_ros.core.palette_kernels import lower_bound
 from monovoc_ros.core.raster.constants import TILE
 from monovoc_ros.core.raster.numba_kernels import (
     _FASTMATH,
@@ -118,13 +119,7 @@ def compact_index(ids: np.ndarray, table: np.ndarray, unobserved: np.uint32, out
         if x == unobserved:
             out[i] = -1
             continue
-        lo, hi = 0, r
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if table[mid] < x:
-                lo = mid + 1
-            else:
-                hi = mid
+        lo = lower_bound(table, x)
         if lo < r and table[lo] == x:
             out[i] = lo
         else:

@@ -14,7 +14,9 @@ _BLEND_DEN = 4
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _find(ids: np.ndarray, value: np.uint32) -> int:
+def lower_bound(ids: np.ndarray, value: np.uint32) -> int:
+    """First position in the ascending ``ids`` whose id is >= ``value`` (ids.shape[0] when none): the binary
+    search of every packed-color lookup in a kernel."""
     lo, hi = 0, ids.shape[0]
     while lo < hi:
         mid = (lo + hi) >> 1
@@ -54,7 +56,7 @@ def region_counts(mask: np.ndarray, packed: np.ndarray, ids: np.ndarray) -> tupl
             c = packed[y, x]
             if c != last_c:  # colors come in runs: look each run up once
                 last_c = c
-                last_k = _find(ids, c)
+                last_k = lower_bound(ids, c)
             if (
                 packed[y, x - 1] == c
                 and packed[y, x + 1] == c

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from monovoc_ros.core.datasets import SequenceView
 from monovoc_ros.core.palette import VOID_ID, labels_from_entries, pack_rgb, unpack_rgb
 
 
@@ -111,18 +112,13 @@ def segment_noise(mask: np.ndarray, rates: NoiseRates, rng: np.random.Generator)
     return unpack_rgb(out), counts
 
 
-class CorruptedMasks:
+class CorruptedMasks(SequenceView):
     """A sequence whose keyframe masks went through `segment_noise` and then (with `shuffled`) a per-frame
     renumbering, deterministically per keyframe index and `seed`; `clean_mask` is the original."""
 
     def __init__(self, sequence, *, shuffled: bool = True, rates: NoiseRates | None = None, seed: int = 0) -> None:
-        self._seq, self.shuffled, self.rates, self.seed = sequence, bool(shuffled), rates or NoiseRates(), int(seed)
-
-    def __getattr__(self, name):
-        return getattr(self._seq, name)
-
-    def __len__(self) -> int:
-        return len(self._seq)
+        super().__init__(sequence)
+        self.shuffled, self.rates, self.seed = bool(shuffled), rates or NoiseRates(), int(seed)
 
     def keyframe(self, i: int):
         kf = self._seq.keyframe(i)
@@ -139,24 +135,14 @@ class CorruptedMasks:
             segments = relabel_segments(segments, pack_rgb(kf.mask), pack_rgb(mask))
         return replace(kf, mask=mask, segments=segments)
 
-    def clean_mask(self, i: int) -> np.ndarray:
-        clean = getattr(self._seq, "clean_mask", None)
-        return clean(i) if clean else self._seq.keyframe(i).mask
 
-
-class PaletteSegments:
+class PaletteSegments(SequenceView):
     """A sequence whose keyframes carry the segment labels a perfect segmenter would give: every mask
     color that the sequence's labels.json names gets its class name (score 1)."""
 
     def __init__(self, sequence) -> None:
-        self._seq = sequence
+        super().__init__(sequence)
         self.names = {oid: name for oid, name in labels_from_entries(sequence.labels()).items() if name}
-
-    def __getattr__(self, name):
-        return getattr(self._seq, name)
-
-    def __len__(self) -> int:
-        return len(self._seq)
 
     def keyframe(self, i: int):
         from monovoc_ros.core.segment_labels import palette_segments

@@ -184,7 +184,7 @@ class ObjectViews:
         """
         cfg = self.config
         ids, labels = _label_image(keyframe.mask, palette_ids)
-        counts, _ = vk.label_boxes(labels, ids.size)
+        counts, boxes = vk.label_boxes(labels, ids.size)
         present = np.flatnonzero(counts >= cfg.min_pixels)
         with self._lock:
             self.keyframes += 1
@@ -206,11 +206,12 @@ class ObjectViews:
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ValueError(f"keyframe rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
         height, width = rgb.shape[:2]
+        pixels = counts
         if labels.shape != (height, width):
             labels = cv2.resize(labels, (width, height), interpolation=cv2.INTER_NEAREST)
+            pixels, boxes = vk.label_boxes(labels, ids.size)
         wanted = np.array(candidates, dtype=np.int64)
-        present_pixels, all_boxes = vk.label_boxes(labels, ids.size)
-        boxes, visible = all_boxes[wanted], present_pixels[wanted] > 0  # a tiny object may vanish when resized
+        boxes, visible = boxes[wanted], pixels[wanted] > 0  # a tiny object may vanish when resized
         new_views = []
         for i, (y0, x0, y1, x1) in zip(wanted[visible].tolist(), boxes[visible].tolist(), strict=True):
             pad_y, pad_x = round(cfg.context * (y1 - y0)), round(cfg.context * (x1 - x0))

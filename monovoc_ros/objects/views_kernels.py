@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from monovoc_ros.core.palette_kernels import lower_bound
+
 
 @njit(parallel=True, cache=True)
 def label_image(mask: np.ndarray, ids: np.ndarray, out: np.ndarray) -> None:
@@ -16,13 +18,7 @@ def label_image(mask: np.ndarray, ids: np.ndarray, out: np.ndarray) -> None:
     for y in prange(h):
         for x in range(w):
             key = (np.uint32(mask[y, x, 0]) << 16) | (np.uint32(mask[y, x, 1]) << 8) | np.uint32(mask[y, x, 2])
-            lo, hi = 0, r
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if ids[mid] < key:
-                    lo = mid + 1
-                else:
-                    hi = mid
+            lo = lower_bound(ids, key)
             out[y, x] = lo if lo < r and ids[lo] == key else -1
 
 
