@@ -25,3 +25,14 @@ def test_the_warm_up_scene_labels_both_objects_in_every_mode(config):
         assert len(mapper.associator.issued) == 2
     assert warm_up(config) > 0
     assert np.all(np.isfinite(result.confidence))
+
+
+def test_kernels_count_as_cached_once_their_cache_is_written(tmp_path, monkeypatch):
+    from monovoc_ros.core.raster import numba_kernels
+    from monovoc_ros.core.warm_up import kernels_cached
+
+    warm_up(MapperConfig())  # compiles (and caches) the tile kernel if this copy had no cache
+    assert kernels_cached()
+    cache_file = numba_kernels.accumulate_tiles._cache._cache_file
+    monkeypatch.setattr(cache_file, "_index_path", str(tmp_path / "absent.nbi"))
+    assert not kernels_cached()

@@ -10,6 +10,7 @@ while it waits for its first Gaussian map.
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -38,6 +39,19 @@ def warm_up_scene() -> tuple[GaussianMap, list[Keyframe]]:
     mask[10, 15:17] = (115, 30, 115)  # a blended boundary pixel: the snapping path
     keyframes = [Keyframe(i, (i + 1) * 1_000_000, np.eye(4), intrinsics, mask) for i in range(2)]
     return gaussians, keyframes
+
+
+def kernels_cached() -> bool:
+    """Whether the main tile kernel is in numba's on-disk cache for this copy of the code. Loading cached
+    kernels takes ~1 s; compiling an empty cache takes 25 s or more, which a warm-up must not add to start-up
+    (a node stopped meanwhile would wait for it: its worker cannot leave a compilation)."""
+    from monovoc_ros.core.raster import numba_kernels
+
+    try:
+        index = numba_kernels.accumulate_tiles._cache._cache_file._index_path
+    except AttributeError:  # another numba: assume cached and warm up
+        return True
+    return os.path.exists(index)
 
 
 def warm_up(config: MapperConfig) -> float:

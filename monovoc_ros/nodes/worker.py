@@ -49,7 +49,7 @@ from monovoc_ros.core.session import (
     MappingSession,
     SaveListener,
 )
-from monovoc_ros.core.warm_up import warm_up
+from monovoc_ros.core.warm_up import kernels_cached, warm_up
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
@@ -348,7 +348,11 @@ class MapWorker:
 
     def _warm_up(self) -> None:
         # Before the first task: a map or keyframe that arrives meanwhile waits in the queue, as it would
-        # have waited for the kernels on its first call.
+        # have waited for the kernels on its first call. Not when they would be compiled (an empty cache):
+        # then the first keyframe compiles what it needs, and a stop does not wait for all of them.
+        if not kernels_cached():
+            self.log.info("mapping kernels not in numba's cache yet: compiled on first use")
+            return
         try:
             seconds = warm_up(self.session.config)
         except Exception as exc:  # the real keyframes will show the same error, counted; mapping goes on
