@@ -12,11 +12,13 @@ and the lock lets the calls share one workspace of scratch arrays.
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass
 
 import numba
 import numpy as np
+import threadpoolctl
 
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.raster import numba_kernels as nk
@@ -24,6 +26,13 @@ from monovoc_ros.core.raster.inputs import View
 from monovoc_ros.core.raster.projection import jacobian_limits, tile_grid
 
 _LOCK = threading.Lock()
+# OpenBLAS's threads busy-wait for a while after every BLAS call numpy makes (one small matmul is
+# enough) and take the cores from these kernels' threads: with them at 1, per-frame association fell
+# from 36 to 19 ms median (140k Gaussians, 2 cores) and its 50-90 ms outliers went away. Small
+# matrices are all this package hands BLAS, so its threads never paid for themselves. The limit covers
+# the BLAS libraries loaded so far (numpy's, OpenCV's); the variable, those loaded later (scipy's).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+threadpoolctl.threadpool_limits(1, user_api="blas")
 _NO_VALID = np.ones((1, 1), dtype=np.bool_)
 _NO_COLORS = np.zeros((1, 3), dtype=np.float32)
 _ZERO_BG = np.zeros(3, dtype=np.float32)
@@ -46,6 +55,12 @@ class Workspace:
             grown = 0 if buf is None or buf.dtype != dtype else int(1.25 * buf.size)
             buf = self._buffers[name] = np.empty(max(size, grown), dtype)
         return buf[:size].reshape(shape)
+
+    def whole(self, name: str, dtype) -> np.ndarray:
+        """The named buffer at its full size (empty if there is none yet), for a kernel that uses it
+        when it is large enough and allocates otherwise (then `adopt` what it allocated)."""
+        buf = self._buffers.get(name)
+        return buf if buf is not None and buf.dtype == dtype else np.empty(0, dtype)
 
     def adopt(self, name: str, array: np.ndarray) -> None:
         """Keeps an array that a kernel allocated because the named buffer was too small."""
@@ -99,7 +114,7 @@ def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: 
         rows, rects, rect, workers,
     )  # fmt: skip
     tile_start, tile_list, tile_slot, gauss_start = nk.bin_tiles(
-        rows, rects, gx * gy, gx, workers, ws.get("tile_list", (0,), np.int32), ws.get("tile_slot", (0,), np.int64)
+        rows, rects, gx * gy, gx, workers, ws.whole("tile_list", np.int32), ws.whole("tile_slot", np.int64)
     )
     ws.adopt("tile_list", tile_list)
     ws.adopt("tile_slot", tile_slot)
