@@ -202,7 +202,7 @@ class ClientNode:
         import rclpy
         from rclpy.signals import SignalHandlerOptions
 
-        from monovoc_ros.bags.rosnode import spinning
+        from monovoc_ros.bags.rosnode import WRITER_HEARTBEAT_MS, spinning, writer_heartbeat
 
         if self._env is not None:
             for key in self._ENV_KEYS:
@@ -214,9 +214,12 @@ class ClientNode:
         try:
             self.context = rclpy.Context()
             domain = os.environ.get("ROS_DOMAIN_ID")
-            rclpy.init(context=self.context, domain_id=int(domain) if domain else None,
-                       signal_handler_options=SignalHandlerOptions.NO)  # fmt: skip
-            self.node = rclpy.create_node(self._name, context=self.context)
+            # A replay in this process (tests, the demo, benchmarks) gets its writers' short heartbeat
+            # only if the process's first participant (its first node) was created with it (bags.rosnode).
+            with writer_heartbeat(WRITER_HEARTBEAT_MS):
+                rclpy.init(context=self.context, domain_id=int(domain) if domain else None,
+                           signal_handler_options=SignalHandlerOptions.NO)  # fmt: skip
+                self.node = rclpy.create_node(self._name, context=self.context)
             spin = spinning(self.node)
             spin.__enter__()
             self._spin = spin

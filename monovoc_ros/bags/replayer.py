@@ -26,13 +26,12 @@ from typing import Any
 from monovoc_ros.bags import schemas
 from monovoc_ros.bags.qos import rclpy_profile
 from monovoc_ros.bags.reader import BagInfo, bag_info, iter_messages
-from monovoc_ros.bags.rosnode import ros_node
+from monovoc_ros.bags.rosnode import WRITER_HEARTBEAT_MS, ros_node
 
 STREAM_DEPTH_MAX = 100  # history of a volatile topic (unacknowledged messages in flight in fast mode)
 LATCHED_DEPTH_MAX = 32  # history of a transient-local topic (what a late joiner gets)
 CLOCK_TOPIC = "/clock"
 DEFAULT_CLOCK_HZ = 40.0  # as ros2 bag play --clock
-WRITER_HEARTBEAT_MS = 50  # acknowledgements within ~50 ms instead of Fast DDS's 3 s (see rosnode)
 
 
 class ReplayError(RuntimeError):

@@ -5,10 +5,12 @@ rclpy's signal handlers are not installed: Ctrl-C arrives as ``KeyboardInterrupt
 and SIGTERM sets the ``stop`` event (``install_stop_signals``), so files and acknowledgements are
 finished properly either way.
 
-Replay's writers get a Fast DDS heartbeat period of 50 ms instead of 3 s (when no Fast DDS profile
-is configured): a reliable reader acknowledges only on a heartbeat, so with the default the final
-``wait_for_all_acked`` of a fast replay idled up to 3 s (measured 2.9 s of a 3.3 s replay of the
-bundled bag; 0.5 s with the profile).
+Replay's writers get a Fast DDS heartbeat period of WRITER_HEARTBEAT_MS instead of 3 s (when no Fast
+DDS profile is configured): a reliable reader acknowledges only on a heartbeat, so with the default the
+final ``wait_for_all_acked`` of a fast replay idled up to 3 s (measured 2.9 s of a 3.3 s replay of the
+bundled bag; 0.5 s with the profile). Fast DDS reads the profile once per process, when the first
+participant is created, so a process that replays beside another context (ros_harness.ClientNode:
+tests, the demo, benchmarks) must create its first context and node under `writer_heartbeat` too.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+WRITER_HEARTBEAT_MS = 50  # acknowledgements within ~50 ms instead of Fast DDS's 3 s
 _PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
 _WRITER_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
@@ -33,9 +36,10 @@ _WRITER_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
 
 
 @contextlib.contextmanager
-def _writer_heartbeat(period_ms: int | None) -> Iterator[None]:
-    # Fast DDS reads the default profiles file when it creates the process's first participant (at
-    # rclpy.init); a user's own profile, another middleware or an earlier context in the process win.
+def writer_heartbeat(period_ms: int | None) -> Iterator[None]:
+    # Fast DDS reads the default profiles file when it creates the process's first participant (with
+    # the first node of the first context); a user's own profile, another middleware or an earlier
+    # context in the process win.
     rmw = os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     if period_ms is None or os.environ.get(_PROFILES_ENV) or rmw != "rmw_fastrtps_cpp":
         yield
@@ -64,11 +68,12 @@ def ros_node(name: str, node: Any = None, *, writer_heartbeat_ms: int | None = N
     from rclpy.signals import SignalHandlerOptions
 
     context = rclpy.Context()
-    with _writer_heartbeat(writer_heartbeat_ms):
-        rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     own = None
     try:
-        own = rclpy.create_node(name, context=context, start_parameter_services=False)
+        # The participant (and with it the profile) comes with the context's first node, not with init.
+        with writer_heartbeat(writer_heartbeat_ms):
+            rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+            own = rclpy.create_node(name, context=context, start_parameter_services=False)
         yield own
     finally:
         if own is not None:
