@@ -102,3 +102,32 @@ def test_workspace_reuse_across_map_and_image_sizes():
     ref = accumulate(g, m, k, p, impl="reference")
     np.testing.assert_allclose(again[2].weight_sum, ref.weight_sum, atol=1e-4 * ref.weight_sum.max())
     assert ni.WORKSPACE.nbytes > 0
+
+
+_BLAS_THREADS = """
+import json, threadpoolctl
+import numpy, cv2
+import monovoc_ros.core.raster.numba_impl
+import scipy.linalg
+blas = [i for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
+print(json.dumps([(i["filepath"], i["num_threads"]) for i in blas]))
+"""
+
+
+def test_blas_runs_on_one_thread_unless_the_user_chose(tmp_path):
+    """OpenBLAS's spinning threads took the cores from the kernels (numba_impl): every BLAS library, loaded
+    before the rasterizer or after it, runs one thread; a user's OPENBLAS_NUM_THREADS wins."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    def blas(**env) -> list:
+        clean = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+        out = subprocess.run([sys.executable, "-c", _BLAS_THREADS], env={**clean, **env}, capture_output=True,
+                             text=True, check=True, cwd=tmp_path)  # fmt: skip
+        return json.loads(out.stdout)
+
+    ours = blas()
+    assert len(ours) >= 3 and {n for _, n in ours} == {1}, ours  # numpy's, OpenCV's, scipy's
+    assert {n for _, n in blas(OPENBLAS_NUM_THREADS="2")} == {2}

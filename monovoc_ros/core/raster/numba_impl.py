@@ -30,9 +30,11 @@ _LOCK = threading.Lock()
 # enough) and take the cores from these kernels' threads: with them at 1, per-frame association fell
 # from 36 to 19 ms median (140k Gaussians, 2 cores) and its 50-90 ms outliers went away. Small
 # matrices are all this package hands BLAS, so its threads never paid for themselves. The limit covers
-# the BLAS libraries loaded so far (numpy's, OpenCV's); the variable, those loaded later (scipy's).
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-threadpoolctl.threadpool_limits(1, user_api="blas")
+# the BLAS libraries loaded so far (numpy's, OpenCV's); the variable, those loaded later (scipy's). A
+# user's own OPENBLAS_NUM_THREADS is left as it is.
+if "OPENBLAS_NUM_THREADS" not in os.environ:
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    threadpoolctl.threadpool_limits(1, user_api="blas")
 _NO_VALID = np.ones((1, 1), dtype=np.bool_)
 _NO_COLORS = np.zeros((1, 3), dtype=np.float32)
 _ZERO_BG = np.zeros(3, dtype=np.float32)
