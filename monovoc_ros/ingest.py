@@ -21,7 +21,7 @@ from monovoc_ros.core.datasets import instance_palette
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.palette import VOID_RGB, pack_rgb
 from monovoc_ros.core.segment_labels import SegmentLabel
-from monovoc_ros.core.sync import StampSynchronizer
+from monovoc_ros.core.sync import StampSynchronizer, lead_over_others
 
 POSE_TYPES = tuple(POSE_MESSAGE_TYPES)
 _POSE_READERS = {
@@ -190,11 +190,10 @@ class KeyframeAssembler:
         if last is not None and stamp <= last:
             reason = "duplicate_stamp" if stamp == last else "stamp_out_of_order"
             return self._reject(reason, role, stamp, f"stamp {stamp} after {last} on {role}")
-        others = [t for r, t in self._newest.items() if r != role]
-        if self._lead_ns and others and stamp > max(others) + self._lead_ns:
-            ahead = (stamp - max(others)) / 1e9
+        lead = lead_over_others(stamp, (t for r, t in self._newest.items() if r != role), self._lead_ns)
+        if lead is not None:
             return self._reject(
-                "stamp_future", role, stamp, f"{role} stamp {stamp} is {ahead:.3g} s ahead of every other topic"
+                "stamp_future", role, stamp, f"{role} stamp {stamp} is {lead / 1e9:.3g} s ahead of every other topic"
             )
         return None
 

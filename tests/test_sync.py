@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from monovoc_ros.core.sync import StampSynchronizer
+from monovoc_ros.core.sync import StampSynchronizer, lead_over_others
 
 MS = 1_000_000
 
@@ -75,3 +75,12 @@ def test_rejects_non_increasing_stamps_and_bad_configuration():
         StampSynchronizer(("a",), "b", 0)
     with pytest.raises(ValueError):
         StampSynchronizer(("a",), "a", -1)
+
+
+def test_far_future_rule():
+    """One rule for ingest (stamp_future) and the node's reorder stage: ahead of every other topic's newest."""
+    s = 1_000_000_000
+    assert lead_over_others(100 * s, [50 * s, None, 60 * s], 30 * s) == 40 * s
+    assert lead_over_others(90 * s, [50 * s, 60 * s], 30 * s) is None  # exactly the allowed lead
+    assert lead_over_others(100 * s, [None, None], 30 * s) is None  # nothing to compare with yet
+    assert lead_over_others(100 * s, [1], 0) is None  # 0 disables the rule

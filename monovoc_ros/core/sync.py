@@ -11,8 +11,20 @@ dropped (counted as unmatched), as are partner items older than every pending pi
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
+
+
+def lead_over_others(stamp: int, others: Iterable[int | None], max_lead_ns: int) -> int | None:
+    """The far-future rule (ingest's stamp_future, the node's reorder stage): how far `stamp` is ahead of
+    the newest stamp of every other topic (`others`, None = nothing yet) when that is more than
+    `max_lead_ns` (> 0; 0 disables the rule), else None."""
+    known = [t for t in others if t is not None]
+    if not max_lead_ns or not known:
+        return None
+    lead = stamp - max(known)
+    return lead if lead > max_lead_ns else None
 
 
 @dataclass

@@ -30,6 +30,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from monovoc_ros.core.sync import lead_over_others
 from msg_adapters import header_stamp_ns
 
 
@@ -66,8 +67,7 @@ class StampReorder:
         now = self._clock()
         outliers: list[tuple[str, Any]] = []
         if stamp is not None and self.max_lead_ns:
-            others = [t for r, t in self._passed.items() if r != role and t is not None]
-            if others and stamp > max(others) + self.max_lead_ns:
+            if lead_over_others(stamp, (t for r, t in self._passed.items() if r != role), self.max_lead_ns) is not None:
                 return [(role, msg), *self.due()]  # far ahead of every other topic: the assembler rejects it
             queue = self._queues[role]
             if any(s is not None and s > stamp + self.max_lead_ns for s, _, _ in queue):
