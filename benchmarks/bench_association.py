@@ -2,6 +2,7 @@
 
     python benchmarks/bench_association.py                       # synthetic room: 140k Gaussians, 616x344
     python benchmarks/bench_association.py --source ../shared/data/replica_office0
+    python benchmarks/bench_association.py --association-scale 1   # overlaps at full resolution
 
 Maps the first --warmup keyframes of the source with every mask renumbered (`shuffled`) and
 `mask_ids: per_frame`, then times the association of the next --keyframes keyframes: the mask's
@@ -33,10 +34,11 @@ def main() -> int:
     parser.add_argument("--source", default="synthetic")
     parser.add_argument("--warmup", type=int, default=8)
     parser.add_argument("--keyframes", type=int, default=8)
+    parser.add_argument("--association-scale", type=int, default=MapperConfig.association_scale)
     args = parser.parse_args()
     seq = CorruptedMasks(offline.open_source(args.source), shuffled=True)
     gaussians = seq.load_gaussians()
-    mapper = SemanticMapper(gaussians, MapperConfig(mask_ids="per_frame"))
+    mapper = SemanticMapper(gaussians, MapperConfig(mask_ids="per_frame", association_scale=args.association_scale))
     n = min(len(seq), args.warmup + args.keyframes)
     total, segment, render, match, integrate, segments = [], [], [], [], [], []
     for i in range(n):
@@ -57,6 +59,7 @@ def main() -> int:
                 "source": args.source,
                 "gaussians": len(gaussians),
                 "resolution": f"{kf.intrinsics.width}x{kf.intrinsics.height}",
+                "association_scale": args.association_scale,
                 "keyframes_timed": len(total),
                 "segments_per_keyframe": med(segments),
                 "objects": len(mapper.associator.issued),
