@@ -186,6 +186,9 @@ class ClientNode:
     With ``env`` (a child's environment, e.g. a test's own domain) the node joins that domain: rclpy reads the
     discovery range and log directory from the process environment at init, so those variables are set for
     the life of the node and restored on exit. Without it, the node uses this process's environment.
+
+    The node is created under bags.rosnode.writer_heartbeat: when it is the process's first participant,
+    every writer of the process (a bag replay's too) gets the 50 ms Fast DDS heartbeat.
     """
 
     _ENV_KEYS = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOG_DIR", "HOME", "AMENT_PREFIX_PATH")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 from pathlib import Path
@@ -218,3 +219,33 @@ def test_replay_errors(bag: Path, tmp_path: Path, monkeypatch) -> None:
     with pytest.raises(ReplayError, match="1 subscriber"):
         replay(bag, topics=[TOPICS["mask"]], wait_subscribers=1, wait_timeout=0.3)
     assert time.monotonic() - start < 5.0
+
+
+def test_the_short_writer_heartbeat_is_in_place_when_the_participant_is_created(tmp_path, monkeypatch):
+    """Fast DDS reads its profile when a context's first node creates the participant (not at init): the
+    replay's own node and the harness's ClientNode are created with the 50 ms heartbeat profile in the
+    environment, and it is gone afterwards (a fast replay beside a client ended 3 s late without it)."""
+    import rclpy
+
+    from monovoc_ros.bags.rosnode import WRITER_HEARTBEAT_MS, ros_node
+
+    env = ros_environment(tmp_path)
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOG_DIR", "HOME"):
+        monkeypatch.setenv(key, env[key])
+    monkeypatch.delenv("FASTRTPS_DEFAULT_PROFILES_FILE", raising=False)
+    monkeypatch.delenv("RMW_IMPLEMENTATION", raising=False)
+    profiles: list[str] = []
+    create_node = rclpy.create_node
+
+    def recording(*args, **kwargs):
+        path = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE")
+        profiles.append(Path(path).read_text() if path else "")
+        return create_node(*args, **kwargs)
+
+    monkeypatch.setattr(rclpy, "create_node", recording)
+    with ros_node("monovoc_replay_probe", writer_heartbeat_ms=WRITER_HEARTBEAT_MS):
+        assert "FASTRTPS_DEFAULT_PROFILES_FILE" not in os.environ
+    with ClientNode(env):
+        assert "FASTRTPS_DEFAULT_PROFILES_FILE" not in os.environ
+    heartbeat = f"<nanosec>{WRITER_HEARTBEAT_MS * 1_000_000}</nanosec>"
+    assert len(profiles) == 2 and all(heartbeat in p for p in profiles), profiles

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.bags import bag_events, iter_messages, topic_names
+from monovoc_ros.bags import bag_events, bag_info, iter_messages, topic_names
 from monovoc_ros.bags.bundled import PER_FRAME_BAG, bundled_bag, make_per_frame_bag
 from monovoc_ros.cli import main
 from monovoc_ros.core.keyframe import Keyframe
@@ -23,23 +23,28 @@ from tests.test_bags_ros import finish, replay_process
 pytestmark = pytest.mark.ros
 
 
-def _pose(message) -> np.ndarray:
-    pose = message.decode().pose
-    p, q = pose.position, pose.orientation
-    return np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
+def _pose(message) -> tuple[tuple, np.ndarray]:
+    msg = message.decode()
+    p, q = msg.pose.position, msg.pose.orientation
+    header = (msg.header.frame_id, msg.header.stamp.sec, msg.header.stamp.nanosec)
+    return header, np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])
 
 
 def test_per_frame_bag_is_reproducible(tmp_path):
     """The committed bag is what the code makes: every message byte for byte, but for the poses' last
     bits (the trajectory's trigonometry and small matrix products round differently on another CPU's
     SIMD paths of numpy and OpenBLAS: 4 of 20 poses differed in 1-4 bytes between two machines)."""
-    made = list(iter_messages(make_per_frame_bag(tmp_path).path))
+    path = make_per_frame_bag(tmp_path).path
+    assert bag_info(path).topics == bag_info(bundled_bag(PER_FRAME_BAG)).topics  # types, hashes, QoS, counts
+    made = list(iter_messages(path))
     committed = list(iter_messages(bundled_bag(PER_FRAME_BAG)))
     assert [(m.topic, m.log_time_ns) for m in made] == [(m.topic, m.log_time_ns) for m in committed]
     pose_topic = topic_names()["pose"]
     for a, b in zip(made, committed, strict=True):
         if a.topic == pose_topic:
-            np.testing.assert_allclose(_pose(a), _pose(b), rtol=0, atol=1e-12)
+            (header_a, pose_a), (header_b, pose_b) = _pose(a), _pose(b)
+            assert header_a == header_b
+            np.testing.assert_allclose(pose_a, pose_b, rtol=0, atol=1e-12)
         else:
             assert a.data == b.data, a.topic
 

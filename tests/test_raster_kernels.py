@@ -128,6 +128,7 @@ def test_blas_runs_on_one_thread_unless_the_user_chose(tmp_path):
                              text=True, check=True, cwd=tmp_path)  # fmt: skip
         return json.loads(out.stdout)
 
-    ours = blas()
-    assert len(ours) >= 3 and {n for _, n in ours} == {1}, ours  # numpy's, OpenCV's, scipy's
-    assert {n for _, n in blas(OPENBLAS_NUM_THREADS="2")} == {2}
+    ours = blas()  # pip wheels: numpy's, OpenCV's and scipy's own OpenBLAS; a distro's: one shared
+    assert ours and {n for _, n in ours} == {1}, ours
+    # OpenBLAS runs no more threads than there are CPUs.
+    assert {n for _, n in blas(OPENBLAS_NUM_THREADS="2")} == {min(2, os.cpu_count() or 1)}

@@ -45,10 +45,10 @@ def writer_heartbeat(period_ms: int | None) -> Iterator[None]:
         yield
         return
     fd, name = tempfile.mkstemp(prefix="monovoc_replay_", suffix=".xml")
-    with os.fdopen(fd, "w") as f:
-        f.write(_WRITER_PROFILE.format(ns=int(period_ms) * 1_000_000))
-    os.environ[_PROFILES_ENV] = name
     try:
+        with os.fdopen(fd, "w") as f:
+            f.write(_WRITER_PROFILE.format(ns=int(period_ms) * 1_000_000))
+        os.environ[_PROFILES_ENV] = name
         yield
     finally:
         os.environ.pop(_PROFILES_ENV, None)
@@ -59,7 +59,9 @@ def writer_heartbeat(period_ms: int | None) -> Iterator[None]:
 def ros_node(name: str, node: Any = None, *, writer_heartbeat_ms: int | None = None) -> Iterator[Any]:
     """Yields ``node`` when given (its owner keeps it); else a new node in a new context, destroyed on exit.
 
-    ``writer_heartbeat_ms``: the Fast DDS heartbeat period of the new context's writers (see above).
+    ``writer_heartbeat_ms``: the Fast DDS heartbeat period of the writers (see above). The profile is
+    process-wide: it takes effect only if this node creates the process's first participant, and then
+    every later writer of the process has it too.
     """
     if node is not None:
         yield node

@@ -28,11 +28,12 @@ from monovoc_ros.core.raster.projection import jacobian_limits, tile_grid
 _LOCK = threading.Lock()
 # OpenBLAS's threads busy-wait for a while after every BLAS call numpy makes (one small matmul is
 # enough) and take the cores from these kernels' threads: with them at 1, per-frame association fell
-# from 36 to 19 ms median (140k Gaussians, 2 cores) and its 50-90 ms outliers went away. Small
-# matrices are all this package hands BLAS, so its threads never paid for themselves. The limit covers
-# the BLAS libraries loaded so far (numpy's, OpenCV's); the variable, those loaded later (scipy's). A
-# user's own OPENBLAS_NUM_THREADS is left as it is.
-if "OPENBLAS_NUM_THREADS" not in os.environ:
+# from ~41 to ~19 ms median (bench_association: 140k Gaussians, 2 cores) and its 50-90 ms outliers went
+# away. Small matrices are all this package hands BLAS, so its threads never paid for themselves. The
+# limit covers the BLAS libraries loaded so far (numpy's, OpenCV's); the variable, those loaded later
+# (scipy's) in this process and in the processes it starts. Only a user's own OPENBLAS_NUM_THREADS
+# (non-empty) is left as it is.
+if not os.environ.get("OPENBLAS_NUM_THREADS"):
     os.environ["OPENBLAS_NUM_THREADS"] = "1"
     threadpoolctl.threadpool_limits(1, user_api="blas")
 _NO_VALID = np.ones((1, 1), dtype=np.bool_)
@@ -60,7 +61,7 @@ class Workspace:
 
     def whole(self, name: str, dtype) -> np.ndarray:
         """The named buffer at its full size (empty if there is none yet), for a kernel that uses it
-        when it is large enough and allocates otherwise (then `adopt` what it allocated)."""
+        when it is large enough and otherwise allocates one with headroom (then `adopt` it)."""
         buf = self._buffers.get(name)
         return buf if buf is not None and buf.dtype == dtype else np.empty(0, dtype)
 
@@ -120,6 +121,7 @@ def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: 
     )
     ws.adopt("tile_list", tile_list)
     ws.adopt("tile_slot", tile_slot)
+    tile_list, tile_slot = tile_list[: tile_start[-1]], tile_slot[: tile_start[-1]]
     # Costly tiles first, so that the last tiles handed out are cheap ones.
     tile_order = np.argsort(-np.diff(tile_start), kind="stable")
     return Binned(order, rows, tile_start, tile_list, tile_slot, gauss_start, tile_order, (gx, gy))

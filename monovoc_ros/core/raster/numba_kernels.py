@@ -340,7 +340,8 @@ def bin_tiles(rows, rects, n_tiles, gx, n_workers, list_buffer, slot_buffer):
     Returns tile_start (n_tiles + 1) and, per pair in tile order, tile_list (its depth rank, front to
     back within a tile) and tile_slot (its Gaussian-major slot: Gaussian r owns slots
     gauss_start[r] .. gauss_start[r + 1] - 1), and gauss_start (n + 1). tile_list and tile_slot are
-    views of the given buffers when these are large enough, new arrays otherwise.
+    the given buffers when these are large enough, else new ones with 25% headroom: only their first
+    tile_start[n_tiles] entries are pairs (the caller slices them and keeps the buffers).
     """
     n = rows.shape[0]
     # Contiguous chunks of depth ranks keep each tile's list in depth order when filled chunk by chunk.
@@ -372,8 +373,8 @@ def bin_tiles(rows, rects, n_tiles, gx, n_workers, list_buffer, slot_buffer):
             fill[c, t] = total
             total += count
     tile_start[n_tiles] = total
-    tile_list = list_buffer[:total] if list_buffer.shape[0] >= total else np.empty(total, np.int32)
-    tile_slot = slot_buffer[:total] if slot_buffer.shape[0] >= total else np.empty(total, np.int64)
+    tile_list = list_buffer if list_buffer.shape[0] >= total else np.empty(total + total // 4, np.int32)
+    tile_slot = slot_buffer if slot_buffer.shape[0] >= total else np.empty(total + total // 4, np.int64)
     for _ in prange(n_workers):
         c = _fetch_add(counter, 1)
         while c < n_chunks:
