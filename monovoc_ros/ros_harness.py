@@ -312,14 +312,13 @@ class MessageCollector:
 
 
 class DiagnosticsMonitor:
-    """Keeps the latest ``/diagnostics`` status per name; ``values()`` is the key -> value dict (strings) of
-    the newest status whose name contains ``name``, ``wait_for(pred)`` polls pred(values)."""
+    """Keeps the newest ``/diagnostics`` status whose name contains ``name``; ``values()`` is its key -> value
+    dict (strings), ``wait_for(pred)`` polls pred(values)."""
 
     def __init__(self, node: Any, name: str = "", topic: str = "/diagnostics"):
         from diagnostic_msgs.msg import DiagnosticArray
 
         self.name = name
-        self.latest: dict[str, Any] = {}
         self._newest: Any = None
         self._lock = threading.Lock()
         self.subscription = node.create_subscription(DiagnosticArray, topic, self._on_message, 10)
@@ -328,7 +327,6 @@ class DiagnosticsMonitor:
         with self._lock:
             for status in msg.status:
                 if self.name in status.name:
-                    self.latest[status.name] = status
                     self._newest = status
 
     def values(self) -> dict[str, str]:

@@ -42,29 +42,37 @@ class SemanticOutputs:
         """Publishes the cloud, then the objects and markers; returns the number of objects. The cloud goes
         first: the object geometry (main clusters, percentile boxes: ~58 ms at 140k Gaussians) is not on the
         path from a keyframe to the cloud that includes it."""
+        now = self._node.get_clock().now().nanoseconds
         if mapper is None or result is None:
-            points, rgb = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-            ids, conf = np.zeros(0, np.uint32), np.zeros(0, np.float32)
-            stamp = self._node.get_clock().now().nanoseconds
-        else:
-            known = result.object_ids != UNOBSERVED_ID
-            points, rgb = mapper.gaussians.means[known], result.object_rgb()[known]
-            ids, conf = result.object_ids[known], result.confidence[known]
-            stamp = (
-                int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else self._node.get_clock().now().nanoseconds
+            header = dict(frame_id=self.frame_id, stamp=now)
+            empty = (
+                np.zeros((0, 3), np.float32),
+                np.zeros((0, 3), np.uint8),
+                np.zeros(0, np.uint32),
+                np.zeros(0, np.float32),
             )
-        header = dict(frame_id=self.frame_id, stamp=stamp)
-        self.cloud.publish(ma.semantic_cloud_from_arrays(points, rgb, ids, conf, **header))
-        if mapper is None or result is None:
-            summaries: list[ObjectSummary] = []
-            observations = np.zeros(0, np.int64)
-            labels = self.labels
-        else:
-            labels = {**mapper.object_labels(), **self.labels}  # labels_file first, then segment labels
-            geometry = result.objects(mapper.gaussians)
-            summaries = list(geometry.objects)
-            index = result.palette.index_of(geometry.ids)
-            observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
+            self.cloud.publish(ma.semantic_cloud_from_arrays(*empty, **header))
+            return self._publish_objects([], np.zeros(0, np.int64), header, self.labels)
+        known = result.object_ids != UNOBSERVED_ID
+        header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)
+        self.cloud.publish(
+            ma.semantic_cloud_from_arrays(
+                mapper.gaussians.means[known],
+                result.object_rgb()[known],
+                result.object_ids[known],
+                result.confidence[known],
+                **header,
+            )
+        )
+        labels = {**mapper.object_labels(), **self.labels}  # labels_file first, then segment labels
+        geometry = result.objects(mapper.gaussians)
+        index = result.palette.index_of(geometry.ids)
+        observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
+        return self._publish_objects(list(geometry.objects), observations, header, labels)
+
+    def _publish_objects(
+        self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict, labels: dict[int, str]
+    ) -> int:
         self.objects.publish(self._objects(summaries, observations, header, labels))
         self.markers.publish(
             ma.object_markers(
