@@ -19,6 +19,7 @@ from tqdm import tqdm
 from monovoc_ros.core.datasets import Sequence, open_sequence
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.keyframe_log import KeyframePoses
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.session import DEFAULT_MAX_SHRINK, KeyframeListener, MappingSession, SessionStats
 
@@ -120,8 +121,12 @@ def _run(
                 session.add_map(event)
             elif isinstance(event, Keyframe):
                 session.add_keyframe(event)
+            elif isinstance(event, KeyframePoses):
+                session.add_keyframe_poses(event)
             else:
                 stats.reject(getattr(event, "reason", "rejected"))
+            while session.reintegration_step():  # synchronous here; interleaved with keyframes live
+                pass
             while session.keyframes_ready and room():
                 report = session.integrate_next()
                 if report is not None:

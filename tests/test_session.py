@@ -59,7 +59,7 @@ def test_session_life_counts_every_outcome(tmp_path):
     assert session.add_map(gaussians.subset(keep), "pruned")
     np.testing.assert_array_equal(session.mapper.state.total_weight, before[keep])
     assert session.stats.map_updates == 1 and session.stats.map_version == 1 and session.stats.gaussians == keep.sum()
-    assert any("evidence by ids" in msg for _, msg in log.lines)
+    assert any(f"{keep.sum()} new by id, 0 by position" in msg for _, msg in log.lines)
 
     # A duplicate stamp is refused and leaves the state as it was.
     session.add_keyframe(kfs[2])

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from monovoc_ros.core.state import SemanticState, mutual_nearest, reindex_by_position
+from monovoc_ros.core.state import SemanticState
 
 
 @dataclass
@@ -183,66 +183,15 @@ def test_load_rejects_corrupt_and_foreign_files(tmp_path):
     assert zipfile.is_zipfile(good)
 
 
-def test_reindex_by_ids_added_removed_reordered():
-    old_ids = np.array([10, 11, 12, 13])
-    state = SemanticState.zeros(4, old_ids)
+def test_carried_over_takes_the_chosen_rows():
+    state = SemanticState.zeros(4, np.array([10, 11, 12, 13]))
     state.add(FakeEvidence(np.arange(12.0).reshape(4, 3), np.array([1.0, 2.0, 3.0, 4.0])), 7)
-    # 13 and 11 survive (in another order, possibly moved: ids do not care), 10 and 12 were pruned, 20 is new.
-    new = state.reindexed_by_ids(np.array([13, 20, 11]))
-    np.testing.assert_array_equal(new.ids, [13, 20, 11])
-    np.testing.assert_array_equal(new.weight_sum, [4.0, 0.0, 2.0])
-    np.testing.assert_array_equal(new.color_sum, [[9, 10, 11], [0, 0, 0], [3, 4, 5]])
+    # New Gaussian 0 takes old row 3, 1 starts over, 2 and 3 both take row 1 (split children); 0, 2 pruned.
+    new = state.carried_over(np.array([3, -1, 1, 1]), np.array([13, 20, 11, 21]))
+    np.testing.assert_array_equal(new.ids, [13, 20, 11, 21])
+    np.testing.assert_array_equal(new.weight_sum, [4.0, 0.0, 2.0, 2.0])
+    np.testing.assert_array_equal(new.color_sum, [[9, 10, 11], [0, 0, 0], [3, 4, 5], [3, 4, 5]])
     np.testing.assert_array_equal(new.stamps_ns, [7])
-    assert new.observed.tolist() == [True, False, True]
-    # A pure permutation keeps every Gaussian's evidence.
-    perm = state.reindexed_by_ids(old_ids[::-1])
-    np.testing.assert_array_equal(perm.weight_sum, state.weight_sum[::-1])
-    assert len(state.reindexed_by_ids(np.array([], np.int64))) == 0
-    with pytest.raises(ValueError, match="no Gaussian ids"):
-        SemanticState.zeros(2).reindexed_by_ids(np.array([1, 2]))
+    assert len(state.carried_over(np.zeros(0, np.int64), None)) == 0
     with pytest.raises(ValueError, match="unique"):
-        state.reindexed_by_ids(np.array([1, 1]))
-
-
-def test_reindex_by_position():
-    old_means = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0]])
-    state = SemanticState.zeros(5)
-    state.add(FakeEvidence(np.ones((5, 3)) * np.arange(1, 6)[:, None], np.arange(1.0, 6.0)), 1)
-    new_means = np.array(
-        [
-            [3.0, 0, 0],  # Gaussian 3, unchanged, listed first (reordered)
-            [1.004, 0, 0],  # Gaussian 1 moved 4 mm: keeps its evidence
-            [2.05, 0, 0],  # Gaussian 2 moved 5 cm: beyond tolerance, starts over
-            [0.002, 0, 0],  # Gaussian 0 densified into two; the closer one inherits ...
-            [-0.006, 0, 0],  # ... the other one starts at zero (no double counting)
-            [9.0, 0, 0],  # brand new
-        ]
-    )  # Gaussian 4 was pruned.
-    new = reindex_by_position(state, old_means, new_means, tolerance=0.01, new_ids=np.arange(6))
-    np.testing.assert_array_equal(new.weight_sum, [4.0, 2.0, 0.0, 1.0, 0.0, 0.0])
-    np.testing.assert_array_equal(new.color_sum[:, 0], [4.0, 2.0, 0.0, 1.0, 0.0, 0.0])
-    np.testing.assert_array_equal(new.ids, np.arange(6))
-    np.testing.assert_array_equal(new.stamps_ns, [1])
-    assert new.ids is not None and reindex_by_position(state, old_means, new_means).ids is None
-    # A looser tolerance lets Gaussian 2 follow too.
-    assert reindex_by_position(state, old_means, new_means, tolerance=0.1).weight_sum[2] == 3.0
-    # Exactly at the tolerance counts as inside.
-    np.testing.assert_array_equal(mutual_nearest(np.zeros((1, 3)), np.array([[0.01, 0, 0]]), 0.01), [0])
-    assert len(reindex_by_position(state, old_means, np.zeros((0, 3)))) == 0
-    assert reindex_by_position(SemanticState.zeros(0), np.zeros((0, 3)), new_means).weight_sum.sum() == 0
-    with pytest.raises(ValueError, match="old_means has 4 points"):
-        reindex_by_position(state, old_means[:4], new_means)
-    with pytest.raises(ValueError, match="tolerance"):
-        reindex_by_position(state, old_means, new_means, tolerance=-1)
-    with pytest.raises(ValueError, match="new_means"):
-        reindex_by_position(state, old_means, new_means[:, :2])
-
-
-def test_reindex_by_position_at_scale_is_a_permutation_when_nothing_moved():
-    rng = np.random.default_rng(6)
-    means = rng.random((20_000, 3)) * 5
-    state = SemanticState.zeros(len(means))
-    state.add(random_evidence(rng, len(means)), 1)
-    perm = rng.permutation(len(means))
-    new = reindex_by_position(state, means, means[perm] + rng.normal(0, 1e-4, (len(means), 3)))
-    np.testing.assert_array_equal(new.weight_sum, state.weight_sum[perm])
+        state.carried_over(np.array([0, 1]), np.array([1, 1]))

@@ -12,7 +12,6 @@ from monovoc_ros.core.raster import accumulate_votes
 from monovoc_ros.core.raster.numba_impl import tile_slots
 from monovoc_ros.core.raster.reference import dense_votes, pixel_weights
 from monovoc_ros.core.raster.vote_tables import OTHER_LABEL, tile_slots_reference
-from monovoc_ros.core.state import reindex_by_position
 from monovoc_ros.core.vote_kernels import merge_slots
 from monovoc_ros.core.votes import EMPTY_SLOT, VoteState, merge_slots_reference
 from tests.test_raster import SCENES, random_scene
@@ -201,17 +200,16 @@ def test_save_load_round_trip_and_foreign_files(tmp_path):
         SemanticState.load(tmp_path / "votes.npz")
 
 
-def test_reindex_by_ids_and_by_position_carry_votes():
+def test_carried_over_carries_votes():
     rng = np.random.default_rng(4)
     state = VoteState.zeros(50, 2, ids=np.arange(50))
     state.add(*random_votes(rng, 50, 5, seen=1.0), 1)
-    moved = state.reindexed_by_ids(np.arange(60)[::-1] - 10)  # ids 49..0 (reversed), then 10 new ones
+    rows = np.concatenate([np.arange(50)[::-1], np.full(10, -1)])  # reversed, then 10 new Gaussians
+    moved = state.carried_over(rows, np.arange(60)[::-1] - 10)
     np.testing.assert_array_equal(moved.objects[:50], state.objects[::-1])
+    np.testing.assert_array_equal(moved.votes[:50], state.votes[::-1])
     assert (moved.objects[50:] == EMPTY_SLOT).all() and (moved.votes[50:] == 0).all()
-    means = rng.random((50, 3)) * 10
-    shifted = reindex_by_position(state, means, means[::-1] + 1e-4, 0.01)
-    np.testing.assert_array_equal(shifted.votes, state.votes[::-1])
-    assert isinstance(shifted, VoteState) and shifted.stamps_ns.tolist() == [1]
+    assert isinstance(moved, VoteState) and moved.stamps_ns.tolist() == [1]
 
 
 def test_pixel_labels_exact_snapped_ambiguous_and_void():

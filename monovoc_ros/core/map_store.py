@@ -26,6 +26,7 @@ import numpy as np
 
 from monovoc_ros.core.association import Associator
 from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.keyframe_log import KeyframeLog
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, evidence_mismatch
 from monovoc_ros.core.palette import PaletteBuilder
 from monovoc_ros.core.ply import save_semantic_ply
@@ -124,6 +125,7 @@ def save_snapshot(mapper: SemanticMapper, map_dir: str | os.PathLike, *, export_
         (partial / "association.json").write_text(mapper.associator.to_json())
     if mapper.segment_labels.scores:
         (partial / "segment_labels.json").write_text(mapper.segment_labels.to_json())
+    mapper.keyframe_log.save(partial / "keyframe_log.npz")
     meta = {
         "format_version": FORMAT_VERSION,
         "created_unix": time.time(),
@@ -215,6 +217,8 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
     segment_labels = (
         _read(path, lambda p: LabelHistogram.from_json(p.read_text())) if path.exists() else LabelHistogram()
     )
+    path = snap / "keyframe_log.npz"
+    keyframe_log = _read(path, KeyframeLog.load) if path.exists() else None  # older snapshots have none
     if len(state) != len(gaussians):
         raise MapStoreError(f"{snap}: state has {len(state)} Gaussians, map has {len(gaussians)}")
     if "gaussians" in meta and meta["gaussians"] != len(gaussians):
@@ -232,6 +236,9 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
         mapper.state = state
     mapper.palette_builder = builder
     mapper.segment_labels = segment_labels
+    if keyframe_log is not None:
+        keyframe_log.max_bytes = mapper.config.keyframe_log_bytes
+        mapper.keyframe_log = keyframe_log
     if mapper.associator is not None and association is not None:
         mapper.associator = association
         association.config.render_scale = mapper.config.association_scale  # a rendering setting only

@@ -25,16 +25,21 @@ from monovoc_ros.core.association import (
 )
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.keyframe_log import DEFAULT_MAX_BYTES, KeyframeLog
+from monovoc_ros.core.map_follow import FollowConfig, follow_map
+from monovoc_ros.core.map_motion import MapMotion
 from monovoc_ros.core.objects import ObjectGeometry, object_geometry
 from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
 from monovoc_ros.core.pixel_labels import mask_labels
 from monovoc_ros.core.quantize import METRICS, Quantization, confidence, quantize
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS, accumulate, accumulate_votes
 from monovoc_ros.core.segment_labels import LabelHistogram
-from monovoc_ros.core.state import GaussianEvidence, SemanticState, reindex_by_position
+from monovoc_ros.core.state import GaussianEvidence, SemanticState
 from monovoc_ros.core.votes import DEFAULT_SLOTS, VoteState
 
 VOID_POLICIES = ("skip", "include")
+# Metres around a logged camera whose Gaussians define how the map moved there (its pose follows them).
+_POSE_SUPPORT_M = 4.0
 SEMANTIC_MODES = ("vote", "scd")
 # Per semantic mode, the MapperConfig fields that change what a keyframe adds to the evidence.
 _EVIDENCE_SETTINGS = {
@@ -56,9 +61,9 @@ class MapperConfig:
     # Void (pure white) mask pixels: "skip" adds no evidence from them (they are "don't know", not an
     # object); "include" treats white like a color, pulling partly-void Gaussians toward white.
     void_policy: str = "skip"
-    # Map updates without stable ids: evidence follows a Gaussian to its new position only when old and
-    # new positions are mutual nearest neighbours within this distance (metres).
-    reassociation_tolerance: float = 0.01
+    # Map updates: a new Gaussian without an old id takes the evidence of the nearest old Gaussian (moved
+    # by the map's estimated motion) within this distance plus its own largest scale (metres; core.map_follow).
+    reassociation_tolerance: float = 0.03
     # Exponent k of the evidence weights w_ip^k (core.raster.WEIGHT_POWERS): 1 is the paper's SCD; 4 cut
     # the labelling errors at object boundaries most (README, "Choices").
     weight_power: int = 4
@@ -78,6 +83,11 @@ class MapperConfig:
     mask_ids: str = "global"
     # per_frame: overlaps are counted on the map rendered at 1/association_scale of the mask resolution.
     association_scale: int = 2
+    # Bytes the keyframe log (core.keyframe_log: masks, poses, segments for re-integration) may hold.
+    keyframe_log_bytes: int = DEFAULT_MAX_BYTES
+    # A map update that carries the evidence of less than this share of the labelled Gaussians is
+    # followed by a re-integration of the logged keyframes (poses moved with the map); 0 never.
+    reintegrate_below: float = 0.9
 
     def __post_init__(self) -> None:
         if self.impl not in IMPLEMENTATIONS:
@@ -102,10 +112,18 @@ class MapperConfig:
             raise ValueError(f"mask_ids must be one of {MASK_ID_MODES}, got {self.mask_ids!r}")
         if self.mask_ids == "per_frame" and self.semantic_mode != "vote":
             raise ValueError("mask_ids 'per_frame' needs semantic_mode 'vote' (association merges per-object votes)")
+        if not 0.0 <= float(self.reintegrate_below) <= 1.0:
+            raise ValueError(f"reintegrate_below must be in [0, 1], got {self.reintegrate_below!r}")
+        if isinstance(self.keyframe_log_bytes, bool) or int(self.keyframe_log_bytes) < 0:
+            raise ValueError(f"keyframe_log_bytes must be >= 0, got {self.keyframe_log_bytes!r}")
         if isinstance(self.association_scale, bool) or self.association_scale not in (1, 2, 3, 4):
             raise ValueError(f"association_scale must be 1, 2, 3 or 4, got {self.association_scale!r}")
         if self.mask_ids == "per_frame" and self.object_colors:
             raise ValueError("mask_ids 'per_frame' cannot take object_colors: per-frame mask colors name no object")
+
+    def follow(self) -> FollowConfig:
+        """How map updates carry evidence over (core.map_follow)."""
+        return FollowConfig(radius=self.reassociation_tolerance)
 
     def evidence_settings(self) -> dict:
         """The settings that shape accumulated evidence: maps whose evidence settings differ can be
@@ -161,12 +179,35 @@ class SemanticResult:
         return rgb
 
 
+class MapMotionError(ValueError):
+    """A map update whose motion is not believable (core.map_follow): refused, the map in use is kept."""
+
+
 @dataclass
 class MapUpdateReport:
-    carried: int  # observed Gaussians whose evidence carried over to the new map
-    dropped: int  # observed Gaussians whose evidence was dropped (removed, or moved beyond the tolerance)
+    carried: int  # observed old Gaussians whose evidence went to at least one new Gaussian
+    dropped: int  # observed old Gaussians whose evidence went nowhere (pruned, or nothing near their new place)
     gaussians: int  # size of the new map
-    by: str  # "ids" or "position"
+    by_id: int  # new Gaussians that took their evidence by id
+    by_position: int  # new Gaussians that took it by the moved position
+    inherited: int  # new Gaussians with evidence
+    motion: MapMotion  # how the map moved (core.map_motion)
+    seconds: float = 0.0
+
+    @property
+    def carried_share(self) -> float:
+        """Share of the labelled (observed) old Gaussians whose evidence was carried over."""
+        total = self.carried + self.dropped
+        return self.carried / total if total else 1.0
+
+    def describe(self) -> str:
+        m = self.motion
+        return (
+            f"{self.gaussians} Gaussians; evidence of {self.carried} of {self.carried + self.dropped} labelled "
+            f"Gaussians carried ({self.carried_share:.1%}), {self.by_id} new by id, {self.by_position} by position; "
+            f"motion by {m.by}: {m.rotation_deg:.2f} deg, {np.linalg.norm(m.translation):.3f} m rigid, "
+            f"residual {1e3 * m.rms:.1f} mm"
+        )
 
 
 def label_gaussians(state: SemanticState, palette: Palette, metric: str) -> SemanticResult:
@@ -205,6 +246,7 @@ class SemanticMapper:
         if self.config.mask_ids == "per_frame":
             self.associator = Associator(AssociationConfig(render_scale=self.config.association_scale))
         self.segment_labels = LabelHistogram()  # per object, the class names its segments were given
+        self.keyframe_log = KeyframeLog(self.config.keyframe_log_bytes)  # what re-integration replays
 
     @property
     def n_keyframes(self) -> int:
@@ -215,7 +257,7 @@ class SemanticMapper:
         if self.state.has_stamp(keyframe.stamp_ns):
             raise DuplicateKeyframeError(f"keyframe stamp {keyframe.stamp_ns} was already integrated")
         start = time.perf_counter()
-        association = None
+        given, association = keyframe, None
         if self.associator is not None:
             keyframe, association = self._associate(keyframe)
         if self.config.semantic_mode == "vote":
@@ -225,6 +267,7 @@ class SemanticMapper:
         report.association, report.keyframe = association, keyframe
         if keyframe.segments:  # a segment's id is now its object's id
             self.segment_labels.add_keyframe(keyframe.segments, {s.id: s.id for s in keyframe.segments})
+        self.keyframe_log.add(given)
         self._result = None
         report.seconds = time.perf_counter() - start
         return report
@@ -352,23 +395,53 @@ class SemanticMapper:
         return out
 
     def update_gaussians(self, gaussians: GaussianMap) -> MapUpdateReport:
-        """Swaps in a new map from the SLAM front-end, carrying accumulated evidence over.
-
-        With stable ids on both maps, evidence follows the id (moved Gaussians keep theirs). Without,
-        it follows position (mutual nearest neighbours within `reassociation_tolerance`).
-        """
-        old_observed = int(self.state.observed.sum())
-        if gaussians.ids is not None and self.gaussians.ids is not None:
-            state = self.state.reindexed_by_ids(gaussians.ids)
-            by = "ids"
-        else:
-            tol = self.config.reassociation_tolerance
-            state = reindex_by_position(self.state, self.gaussians.means, gaussians.means, tol, new_ids=gaussians.ids)
-            by = "position"
-        carried = int(state.observed.sum())
+        """Swaps in a new map from the SLAM front-end, carrying accumulated evidence over (core.map_follow:
+        by id where the maps share ids, else by the map's estimated motion). Raises MapMotionError, with
+        nothing changed, when the motion is not believable."""
+        start = time.perf_counter()
+        follow = follow_map(self.gaussians, gaussians, self.config.follow())
+        if follow.refusal:
+            raise MapMotionError(follow.refusal)
+        old_observed = self.state.observed
+        state = self.state.carried_over(follow.sources, gaussians.ids)
+        self._move_logged_poses(follow.motion)
+        used = np.zeros(len(old_observed), bool)
+        used[follow.sources[follow.sources >= 0]] = True
+        carried = int(np.count_nonzero(used & old_observed))
+        total = int(np.count_nonzero(old_observed))
         self.gaussians = gaussians
         self.state = state
         self.map_version += 1
         self._result = None
         self._labels, self._dirty = None, []
-        return MapUpdateReport(carried=carried, dropped=old_observed - carried, gaussians=len(gaussians), by=by)
+        return MapUpdateReport(
+            carried=carried,
+            dropped=total - carried,
+            gaussians=len(gaussians),
+            by_id=follow.by_id,
+            by_position=follow.by_position,
+            inherited=int(np.count_nonzero(state.observed)),
+            motion=follow.motion,
+            seconds=time.perf_counter() - start,
+        )
+
+    def _move_logged_poses(self, motion: MapMotion) -> None:
+        """Moves the logged keyframe poses with the map (each by the motion's rigid fit around its camera)."""
+        if motion.by == "identity":
+            self.keyframe_log.move_poses(lambda T: T)
+            return
+        means = self.gaussians.means
+        support = means[:: max(1, len(means) // 20000)].astype(np.float64)
+
+        def move(T: np.ndarray) -> np.ndarray:
+            near = support[np.linalg.norm(support - T[:3, 3], axis=1) < _POSE_SUPPORT_M]
+            return motion.move_pose(T, near)
+
+        self.keyframe_log.move_poses(move)
+
+    def rebuilt(self) -> SemanticMapper:
+        """A mapper of the same map and configuration whose evidence is the logged keyframes integrated
+        again, with their current poses (what a re-integration swaps in when done)."""
+        out = SemanticMapper(self.gaussians, self.config)
+        out.map_version = self.map_version
+        return out

@@ -21,16 +21,27 @@ mapping (monovoc_ros.offline) a loop around one: the same events give the same e
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
+
+from monovoc_ros.core.camera import validate_pose
 from monovoc_ros.core.gaussians import GaussianMap, removed_gaussians, same_geometry
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.keyframe_log import KeyframePoses
 from monovoc_ros.core.map_store import SnapshotInfo, load_snapshot, save_snapshot
-from monovoc_ros.core.mapping import DuplicateKeyframeError, IntegrationReport, MapperConfig, SemanticMapper
+from monovoc_ros.core.mapping import (
+    DuplicateKeyframeError,
+    IntegrationReport,
+    MapMotionError,
+    MapperConfig,
+    SemanticMapper,
+)
 from monovoc_ros.core.ply import load_ply
 
 # A map update removing a larger share of the Gaussians is refused; 1.0 allows every update.
@@ -40,7 +51,13 @@ DEFAULT_MAX_SHRINK = 0.5
 #   integration_error   the rasterizer refused a keyframe (state untouched)
 #   empty_gaussians     a Gaussian map without a single Gaussian (the map in use is kept)
 #   map_shrink          a map update that would remove more than max_shrink of the Gaussians
-SESSION_REASONS = ("duplicate_stamp", "integration_error", "empty_gaussians", "map_shrink")
+#   map_motion          a map update whose estimated motion is not believable (core.map_follow)
+#   bad_keyframe_poses  corrected keyframe poses that are not rigid, not finite, or move a keyframe > 10 m
+SESSION_REASONS = (
+    "duplicate_stamp", "integration_error", "empty_gaussians", "map_shrink", "map_motion", "bad_keyframe_poses",
+)  # fmt: skip
+# Corrected keyframe poses moving any keyframe farther than this (metres) are refused.
+MAX_POSE_CORRECTION_M = 10.0
 
 KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
 LoadCheck = Callable[[str, SemanticMapper], "Callable[[], None] | None"]
@@ -67,6 +84,14 @@ class SessionStats:
     map_version: int = 0
     map_updates: int = 0  # maps applied with update_gaussians
     maps_unchanged: int = 0  # maps identical to the current one (skipped)
+    map_update_carried_share: float = 1.0  # last map update: share of labelled Gaussians whose evidence was carried
+    ms_map_update_last: float = 0.0  # the last map update's time (registration, transfer)
+    reintegrations: int = 0  # re-integrations swapped in
+    keyframes_reintegrated: int = 0
+    ms_reintegration_total: float = 0.0  # summed over the re-integrations swapped in
+    reintegrating: bool = False  # one is in progress (the old labels are served meanwhile)
+    keyframe_log_bytes: int = 0
+    keyframe_log_keyframes: int = 0
     snapshots_saved: int = 0
     last_stamp_ns: int = 0  # newest integrated keyframe
     rejected: Counter = field(default_factory=Counter)  # reason -> count
@@ -113,6 +138,41 @@ def map_update_refusal(old: GaussianMap | None, new: GaussianMap, max_shrink: fl
     return None
 
 
+class Reintegration:
+    """A re-integration in progress: a fresh mapper of the current map into which the logged keyframes
+    are integrated again, one per `step`, with their current poses. Keyframes integrated into the live
+    mapper meanwhile are logged there and integrated here too, in the same order, so the result is the
+    fresh mapper of every logged keyframe; it is swapped in when it has caught up."""
+
+    def __init__(self, live: SemanticMapper, reason: str) -> None:
+        self.reason = reason
+        self.mapper = live.rebuilt()
+        self.log = live.keyframe_log
+        self._done = 0  # entries of `log` integrated (counting ones the log dropped since for room)
+        self._dropped_at_start = self.log.dropped
+        self.refused = 0
+        self.seconds = 0.0
+
+    @property
+    def caught_up(self) -> bool:
+        return self._position >= len(self.log)
+
+    @property
+    def _position(self) -> int:
+        return max(0, self._done - (self.log.dropped - self._dropped_at_start))
+
+    def step(self) -> None:
+        """Integrates the next logged keyframe (a refused one is counted and skipped)."""
+        start = time.perf_counter()
+        entry = self.log.entries[self._position]
+        self._done += 1
+        try:
+            self.mapper.integrate(entry.keyframe())
+        except ValueError:
+            self.refused += 1
+        self.seconds += time.perf_counter() - start
+
+
 class MappingSession:
     """Owns the SemanticMapper; see the module docstring. Not thread-safe: one caller applies everything.
 
@@ -146,6 +206,7 @@ class MappingSession:
         self._reset_listeners: list[Callable[[], None]] = []
         self._save_listeners: list[SaveListener] = []
         self._load_checks: list[LoadCheck] = []
+        self._job: Reintegration | None = None
         self._refresh_map_stats()
 
     # ------------------------------------------------------------------ state
@@ -224,6 +285,8 @@ class MappingSession:
             self.stats.ms_per_keyframe_last = ms
             self.stats.ms_per_keyframe_total += ms
             self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, keyframe.stamp_ns)
+            self.stats.keyframe_log_bytes = mapper.keyframe_log.nbytes
+            self.stats.keyframe_log_keyframes = len(mapper.keyframe_log)
         integrated = report.keyframe or keyframe
         for fn in self._keyframe_listeners:
             self._notify(fn, integrated, mapper)
@@ -249,19 +312,96 @@ class MappingSession:
             self.stats.add(maps_unchanged=1)
             return False
         else:
-            report = self._mapper.update_gaussians(gaussians)
+            try:
+                report = self._mapper.update_gaussians(gaussians)
+            except MapMotionError as exc:
+                self.stats.reject("map_motion")
+                self.log.warning(f"Gaussian map {name} refused: {exc} (the map in use is kept)")
+                return False
             self.stats.add(map_updates=1)
-            self.log.info(
-                f"map update {name}: {report.gaussians} Gaussians; evidence by {report.by}: "
-                f"{report.carried} carried, {report.dropped} dropped"
-            )
+            self.stats.update(map_update_carried_share=report.carried_share, ms_map_update_last=1e3 * report.seconds)
+            self.log.info(f"map update {name}: {report.describe()}")
+            if self._job is not None:
+                self._start_reintegration(f"{self._job.reason}, restarted on the new map")
+            elif report.carried_share < self.config.reintegrate_below and self._mapper.n_keyframes:
+                self._start_reintegration(
+                    f"map update carried {report.carried_share:.0%} of the labelled evidence "
+                    f"(< reintegrate_below {self.config.reintegrate_below:g})"
+                )
         self._refresh_map_stats()
         return True
+
+    # ------------------------------------------------------------------ corrected poses, re-integration
+
+    def add_keyframe_poses(self, poses: KeyframePoses, name: str = "") -> int:
+        """Corrected poses of logged keyframes (the SLAM's keyframe path); returns how many moved. Any moved
+        keyframe starts a re-integration of the log against the current map. Refused (bad_keyframe_poses,
+        nothing changed) when a pose is not a finite rigid transform or moves a keyframe absurdly far."""
+        mapper = self._mapper
+        if mapper is None or not poses.poses:
+            return 0
+        logged = {e.stamp_ns: e.cam_to_world for e in mapper.keyframe_log.entries}
+        try:
+            for stamp, T in poses.poses:
+                old = logged.get(int(stamp))
+                T = validate_pose(T, what=f"keyframe pose {stamp}")
+                if old is not None and np.linalg.norm(old[:3, 3] - T[:3, 3]) > MAX_POSE_CORRECTION_M:
+                    raise ValueError(f"keyframe {stamp} would move {np.linalg.norm(old[:3, 3] - T[:3, 3]):.1f} m")
+        except ValueError as exc:
+            self.stats.reject("bad_keyframe_poses")
+            self.log.warning(f"keyframe poses {name} refused: {exc}")
+            return 0
+        changed = mapper.keyframe_log.set_poses(poses)
+        if changed:
+            self._start_reintegration(f"{changed} corrected keyframe poses")
+        return changed
+
+    @property
+    def reintegrating(self) -> bool:
+        return self._job is not None
+
+    def reintegration_step(self) -> bool:
+        """Advances the re-integration in progress by one keyframe, swapping its mapper in once it has caught
+        up with the log; returns whether one is still in progress."""
+        job = self._job
+        if job is None:
+            return False
+        if not job.caught_up:
+            job.step()
+        if job.caught_up:
+            self._job = None
+            self._mapper = job.mapper
+            with self.stats.lock:
+                self.stats.reintegrations += 1
+                self.stats.keyframes_reintegrated += job.mapper.n_keyframes
+                self.stats.ms_reintegration_total += 1e3 * job.seconds
+                self.stats.reintegrating = False
+            self._refresh_map_stats()
+            self.log.info(
+                f"re-integration ({job.reason}) done: {job.mapper.n_keyframes} keyframes in {job.seconds:.1f} s"
+                + (f", {job.refused} refused" if job.refused else "")
+            )
+        return self._job is not None
+
+    def _start_reintegration(self, reason: str) -> None:
+        assert self._mapper is not None
+        self._job = Reintegration(self._mapper, reason)
+        self.stats.update(reintegrating=True)
+        log = self._mapper.keyframe_log
+        partial = "" if log.complete else f" ({log.dropped} oldest keyframes no longer logged: keyframe_log_bytes)"
+        self.log.info(f"re-integrating {len(log)} logged keyframes: {reason}{partial}")
+
+    def _cancel_reintegration(self) -> None:
+        if self._job is not None:
+            self.log.info(f"re-integration ({self._job.reason}) cancelled")
+        self._job = None
+        self.stats.update(reintegrating=False)
 
     # ------------------------------------------------------------------ reset, save, load
 
     def reset(self, keep_gaussians: bool) -> None:
         """Clears the semantic state (keep_gaussians) or the whole map; queued keyframes stay queued."""
+        self._cancel_reintegration()
         if keep_gaussians and self._mapper is not None:
             self._mapper = SemanticMapper(self._mapper.gaussians, self.config)
         else:
@@ -298,6 +438,7 @@ class MappingSession:
         else:
             raise ValueError(f"{path}: neither a map directory nor a .ply file")
         commits = [fn(path, mapper) for fn in self._load_checks]  # may raise: nothing swapped yet
+        self._cancel_reintegration()
         self._mapper = mapper
         for commit in commits:
             if commit is not None:
@@ -315,6 +456,8 @@ class MappingSession:
             gaussians=len(m.gaussians) if m else 0,
             map_version=m.map_version if m else 0,
             last_stamp_ns=int(m.state.stamps_ns.max()) if m is not None and m.n_keyframes else 0,
+            keyframe_log_bytes=m.keyframe_log.nbytes if m else 0,
+            keyframe_log_keyframes=len(m.keyframe_log) if m else 0,
         )
 
     def _notify(self, fn: Callable[..., Any], *args: Any) -> None:

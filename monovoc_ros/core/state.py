@@ -9,17 +9,8 @@ float64 addition order (differences of a few ulp).
 Keyframes are identified by their stamp: adding a stamp twice would count its evidence twice, so it
 raises, and merging two states that share a stamp raises for the same reason.
 
-When the SLAM front-end publishes a new map, the evidence is carried over to it:
-
-* With stable per-Gaussian ids (`reindexed_by_ids`), evidence follows the id: a Gaussian that moved
-  (loop closure, re-anchoring) keeps its evidence, new ids start at zero, and the evidence of removed
-  ids is dropped. Order does not matter.
-* Without ids (`reindex_by_position`), a new Gaussian inherits the evidence of an old one only when
-  the two are *mutual* nearest neighbours within `tolerance` metres; every other new Gaussian starts
-  at zero. Mutuality keeps one old Gaussian from seeding several new ones after densification (where
-  the evidence would be double counted), and the small tolerance keeps a re-anchored region from
-  inheriting the evidence of whatever happens to lie near its old place. Gaussians that move further
-  than the tolerance lose their evidence and are re-observed by later keyframes.
+When the SLAM front-end publishes a new map, `carried_over` gives the new map's Gaussians the rows
+of the old evidence that core.map_follow chose for them (by id, else by the map's estimated motion).
 
 Evidence is kept even for keyframes that are later re-posed: SCD weights depend on the pose used at
 integration time, and re-rendering old keyframes is the caller's choice, not this store's.
@@ -35,7 +26,6 @@ from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 # Written into every saved file (beside the store's FORMAT) so that a foreign .npz is recognised as such.
 _FORMAT_VERSION = 1
@@ -58,7 +48,7 @@ def _as_ids(ids: np.ndarray | None, n: int, what: str) -> np.ndarray | None:
 class GaussianEvidence:
     """What every per-Gaussian evidence store shares: per-Gaussian arrays (`ARRAYS`, first axis N),
     optional stable Gaussian ids, the stamps of the integrated keyframes, atomic .npz files, and
-    carrying the evidence over to a new map (by id or by position)."""
+    carrying the evidence over to a new map."""
 
     FORMAT: ClassVar[str]
     WHAT: ClassVar[str]
@@ -188,23 +178,6 @@ class GaussianEvidence:
             getattr(out, name)[hit] = getattr(self, name)[source_rows[hit]]
         return out
 
-    def reindexed_by_ids(self, new_ids: np.ndarray) -> GaussianEvidence:
-        """This evidence carried over to a map with Gaussian ids `new_ids` (see the module docstring)."""
-        if self.ids is None:
-            raise ValueError("reindexed_by_ids: this state has no Gaussian ids (use reindex_by_position)")
-        new_ids = np.asarray(new_ids)
-        if new_ids.ndim != 1:
-            raise ValueError(f"new_ids: expected shape (N,), got {new_ids.shape}")
-        new_ids = _as_ids(new_ids, new_ids.shape[0], "new_ids")
-        source = np.full(new_ids.size, -1, np.int64)
-        if len(self) and new_ids.size:
-            order = np.argsort(self.ids)
-            pos = np.searchsorted(self.ids, new_ids, sorter=order).clip(0, len(self) - 1)
-            old = order[pos]
-            hit = self.ids[old] == new_ids
-            source[hit] = old[hit]
-        return self.carried_over(source, new_ids)
-
 
 @dataclass(eq=False)
 class SemanticState(GaussianEvidence):
@@ -306,52 +279,3 @@ def _fsync_dir(directory: Path) -> None:
         pass
     finally:
         os.close(fd)
-
-
-def _as_means(means: np.ndarray, what: str) -> np.ndarray:
-    means = np.asarray(means, dtype=np.float64)
-    if means.ndim != 2 or means.shape[1] != 3:
-        raise ValueError(f"{what}: expected shape (N, 3), got {means.shape}")
-    if not np.isfinite(means).all():
-        raise ValueError(f"{what}: contains NaN or infinite values")
-    return means
-
-
-def mutual_nearest(old_means: np.ndarray, new_means: np.ndarray, tolerance: float) -> np.ndarray:
-    """(M,) int64: for each new point the old point that is its mutual nearest neighbour within
-    `tolerance`, or -1."""
-    old_means = _as_means(old_means, "old_means")
-    new_means = _as_means(new_means, "new_means")
-    match = np.full(new_means.shape[0], -1, np.int64)
-    if old_means.shape[0] == 0 or new_means.shape[0] == 0:
-        return match
-    # Query radius slightly above the tolerance so ties at exactly `tolerance` count as inside.
-    bound = float(tolerance) * (1 + 1e-12) + 1e-15
-    d_new, nn_new = cKDTree(old_means).query(new_means, k=1, distance_upper_bound=bound)
-    _, nn_old = cKDTree(new_means).query(old_means, k=1, distance_upper_bound=bound)
-    close = np.isfinite(d_new) & (d_new <= tolerance)
-    cand = np.flatnonzero(close)
-    mutual = nn_old[nn_new[cand]] == cand
-    match[cand[mutual]] = nn_new[cand[mutual]]
-    return match
-
-
-def reindex_by_position(
-    state: GaussianEvidence,
-    old_means: np.ndarray,
-    new_means: np.ndarray,
-    tolerance: float = 0.01,
-    *,
-    new_ids: np.ndarray | None = None,
-) -> GaussianEvidence:
-    """`state` (of the map with Gaussian centres `old_means`) carried over to a map with centres
-    `new_means` by mutual nearest neighbours within `tolerance` metres; the rest start at zero.
-
-    `new_ids`, when given, become the result's ids (the new map's ids, for later id-based updates).
-    """
-    if not (np.isfinite(tolerance) and tolerance >= 0):
-        raise ValueError(f"tolerance must be a finite distance >= 0, got {tolerance}")
-    old_means = _as_means(old_means, "old_means")
-    if old_means.shape[0] != len(state):
-        raise ValueError(f"old_means has {old_means.shape[0]} points but the state has {len(state)} Gaussians")
-    return state.carried_over(mutual_nearest(old_means, new_means, tolerance), new_ids)

@@ -57,7 +57,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("min_snap_margin", _MAPPER.min_snap_margin, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence", low=0, high=1),
     Param("association_scale", _MAPPER.association_scale, "per_frame: the map is rendered at 1/this of the mask resolution to associate segments (1 = full: slower, more exact under noisy segments)", low=1, high=4),
     Param("mask_ids", _MAPPER.mask_ids, "mask ids: 'global' (a color names the same object in every mask) or 'per_frame' (segmenter ids per image, associated with the map's objects; vote mode)", choices=MASK_ID_MODES),
-    Param("reassociation_tolerance", _MAPPER.reassociation_tolerance, "map updates without ids: max distance (m) for evidence to follow a Gaussian", low=0),
+    Param("reassociation_tolerance", _MAPPER.reassociation_tolerance, "map updates: a new Gaussian takes the evidence of the nearest old one (moved with the map) within this (m) plus its own largest scale", low=0),
     Param("map_update_max_shrink", _WORKER.map_update_max_shrink, "map updates removing a larger share of the Gaussians are refused (counted); 1 = allow all", low=0, high=1),
     Param("queue_size", _WORKER.queue_size, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)", low=1),
     # Outputs

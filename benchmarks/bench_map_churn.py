@@ -1,0 +1,120 @@
+"""The semantic map under SLAM map churn (issue 15): prints one JSON object.
+
+For each source and churn: the first half of the keyframes is integrated, then the SLAM's map update
+arrives (monovoc_ros.synthetic.churn, seeded; re-ordered, with or without ids; optionally followed by
+the corrected keyframe poses as a `KeyframePoses` event), then the second half with the corrected poses.
+Scores (splats protocol, every 3rd keyframe, poses as corrected): the first half right before the update,
+right after it, and the final map, against the same events without churn. Then the cost of a map update
+against one keyframe's integration at 200k / 1M / 2M Gaussians (office_0 tiled).
+
+    python benchmarks/bench_map_churn.py                       # everything (README tables)
+    python benchmarks/bench_map_churn.py --sources synthetic --churns loop --no-scale
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from monovoc_ros import offline  # noqa: E402
+from monovoc_ros.commands.eval import score  # noqa: E402
+from monovoc_ros.core.keyframe_log import KeyframePoses  # noqa: E402
+from monovoc_ros.synthetic import churn  # noqa: E402
+
+REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
+CHURNS = {
+    "densify": lambda g, ids: churn.densify(g, keep_ids=ids),
+    "loop": lambda g, ids: churn.loop_closure(g, keep_ids=ids),
+    "bend": lambda g, ids: churn.drift_correction(g, keep_ids=ids),
+    "densify+loop": lambda g, ids: churn.then(churn.densify(g, keep_ids=ids), churn.loop_closure, keep_ids=ids),
+}
+
+
+def _frames(keyframes, every: int = 3):
+    return [(kf.intrinsics, kf.cam_to_world, kf.mask) for kf in keyframes[::every]]
+
+
+def _miou(mapper, keyframes) -> float:
+    result, _ = score(mapper.gaussians, mapper.result().object_ids, _frames(keyframes), "splats", 0.05)
+    return round(100 * float(result["miou"]), 2)
+
+
+def run_case(gmap, keyframes, name: str, ids: bool, poses: bool) -> dict:
+    half = len(keyframes) // 2
+    first, second = keyframes[:half], keyframes[half:]
+    if not ids:
+        gmap = replace(gmap, ids=None)
+    elif gmap.ids is None:
+        gmap = replace(gmap, ids=np.arange(len(gmap), dtype=np.int64))
+    churned = CHURNS[name](gmap, ids)
+    moved_first = [replace(kf, cam_to_world=churned.move_pose(kf.cam_to_world)) for kf in first]
+    moved_second = [replace(kf, cam_to_world=churned.move_pose(kf.cam_to_world)) for kf in second]
+    before, _ = offline.map_events([gmap, *first])
+    start = time.perf_counter()
+    events = [gmap, *first, churned.gaussians]
+    after, stats = offline.map_events(events)
+    row = {
+        "churn": name,
+        "ids": ids,
+        "keyframe_poses": poses,
+        "first_half_before": _miou(before, first),
+        "first_half_after_update": _miou(after, moved_first),
+        "carried_share": round(stats.map_update_carried_share, 4),
+        "rejected": dict(stats.rejected),
+    }
+    if poses:
+        corrected = KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in moved_first))
+        events.append(corrected)
+        rebuilt, stats = offline.map_events(events)
+        row["first_half_after_reintegration"] = _miou(rebuilt, moved_first)
+        row["reintegration_s"] = round(stats.ms_reintegration_total / 1e3, 2)
+    final, _ = offline.map_events([*events, *moved_second])
+    row["final"] = _miou(final, moved_first + moved_second)
+    row["wall_s"] = round(time.perf_counter() - start, 1)
+    return row
+
+
+def load(source: str):
+    seq = offline.open_source(str(REPLICA) if source == "replica" else source)
+    return seq.load_gaussians(), [seq.keyframe(i) for i in range(len(seq))]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sources", default="replica,synthetic")
+    parser.add_argument("--churns", default=",".join(CHURNS))
+    parser.add_argument("--ids", default="no,yes")
+    parser.add_argument("--poses", default="no,yes")
+    args = parser.parse_args()
+    out = {"cases": []}
+    for source in args.sources.split(","):
+        if source == "replica" and not (REPLICA / "traj.txt").exists():
+            print(f"skipping replica: {REPLICA} not present", file=sys.stderr)
+            continue
+        gmap, keyframes = load(source)
+        baseline, _ = offline.map_events([gmap, *keyframes])
+        half_base, _ = offline.map_events([gmap, *keyframes[: len(keyframes) // 2]])
+        base = {"source": source, "first_half": _miou(half_base, keyframes[: len(keyframes) // 2])}
+        base["final"] = _miou(baseline, keyframes)
+        out.setdefault("no_churn", []).append(base)
+        print(json.dumps(base), file=sys.stderr)
+        for name in args.churns.split(","):
+            for ids in args.ids.split(","):
+                for poses in args.poses.split(","):
+                    row = {"source": source, **run_case(gmap, keyframes, name, ids == "yes", poses == "yes")}
+                    out["cases"].append(row)
+                    print(json.dumps(row), file=sys.stderr)
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,201 @@
+"""The keyframe log: what each integrated keyframe's evidence came from, kept to re-integrate it
+(METHOD section 10: re-integration against a corrected map, as BundleFusion and OVO-SLAM do).
+
+Per keyframe: stamp, pose, intrinsics, the mask as given (lossless PNG; per-frame mask ids keep the
+segmenter's own colors, so re-integration associates them again) and its segments. RGB is not kept:
+the object views keep the crops they need. The log is bounded by `max_bytes`: beyond it the oldest
+entries are dropped and the log is no longer complete (re-integration then starts from the kept ones,
+and says so). It is saved in the snapshot (`keyframe_log.npz`) and restored on resume.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from monovoc_ros.core.camera import Intrinsics, validate_pose
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.segment_labels import SegmentLabel
+
+FORMAT = "monovoc_keyframe_log"
+DEFAULT_MAX_BYTES = 256 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class KeyframePoses:
+    """Corrected keyframe poses from the SLAM front-end (nav_msgs/Path: one stamped pose per keyframe)."""
+
+    poses: tuple[tuple[int, np.ndarray], ...]  # (stamp_ns, (4, 4) float64 cam_to_world), in the path's order
+
+
+@dataclass(frozen=True)
+class LoggedKeyframe:
+    index: int
+    stamp_ns: int
+    cam_to_world: np.ndarray  # (4, 4) float64, corrected when the SLAM corrected it
+    intrinsics: Intrinsics
+    mask_png: bytes
+    segments: tuple | None = None
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.mask_png) + 16 * 8 + 64 + 48 * len(self.segments or ())
+
+    def keyframe(self) -> Keyframe:
+        bgr = cv2.imdecode(np.frombuffer(self.mask_png, np.uint8), cv2.IMREAD_COLOR)
+        mask = np.ascontiguousarray(bgr[:, :, ::-1])
+        return Keyframe(self.index, self.stamp_ns, self.cam_to_world.copy(), self.intrinsics, mask, None, self.segments)
+
+
+def encode_mask(mask: np.ndarray) -> bytes:
+    """Lossless PNG of an (H, W, 3) uint8 RGB mask (fast setting: flat masks compress well anyway)."""
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(mask[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise ValueError("mask could not be PNG-encoded")
+    return buf.tobytes()
+
+
+class KeyframeLog:
+    """The logged keyframes, in order of integration; see the module docstring."""
+
+    def __init__(self, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
+        if max_bytes < 0:
+            raise ValueError(f"max_bytes must be >= 0, got {max_bytes}")
+        self.max_bytes = int(max_bytes)
+        self.entries: list[LoggedKeyframe] = []
+        self.nbytes = 0
+        self.dropped = 0  # entries dropped for room: re-integration cannot be exact any more
+        # The SLAM corrected poses since the last map update: they are in the frame of the next map
+        # already, so that update must not move them again.
+        self.poses_given = False
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    @property
+    def complete(self) -> bool:
+        return self.dropped == 0
+
+    def add(self, keyframe: Keyframe) -> None:
+        entry = LoggedKeyframe(
+            keyframe.index,
+            int(keyframe.stamp_ns),
+            np.array(keyframe.cam_to_world, np.float64),
+            keyframe.intrinsics,
+            encode_mask(keyframe.mask),
+            tuple(keyframe.segments) if keyframe.segments else None,
+        )
+        self._append(entry)
+
+    def _append(self, entry: LoggedKeyframe) -> None:
+        self.entries.append(entry)
+        self.nbytes += entry.nbytes
+        while self.nbytes > self.max_bytes and self.entries:
+            self.nbytes -= self.entries.pop(0).nbytes
+            self.dropped += 1
+
+    def set_poses(self, poses: KeyframePoses, tolerance: tuple[float, float] = (1e-3, 1e-3)) -> int:
+        """Takes the corrected poses of logged keyframes (by stamp; others ignored); returns how many
+        moved by more than `tolerance` (metres, radians)."""
+        given = {int(s): validate_pose(T, what=f"keyframe pose {s}") for s, T in poses.poses}
+        changed = 0
+        for k, entry in enumerate(self.entries):
+            T = given.get(entry.stamp_ns)
+            if T is None:
+                continue
+            changed += _pose_changed(entry.cam_to_world, T, tolerance)
+            self.entries[k] = replace(entry, cam_to_world=np.array(T, np.float64))
+        self.poses_given = self.poses_given or changed > 0
+        return changed
+
+    def move_poses(self, move) -> None:
+        """A map update: every pose moved by `move` ((4, 4) -> (4, 4)), unless the SLAM gave corrected
+        poses since the last update (see `poses_given`)."""
+        if not self.poses_given:
+            for k, entry in enumerate(self.entries):
+                self.entries[k] = replace(entry, cam_to_world=move(entry.cam_to_world))
+        self.poses_given = False
+
+    # ---------------------------------------------------------------- files
+
+    def save(self, path: str | os.PathLike) -> None:
+        arrays = {
+            "format": np.array(FORMAT),
+            "stamps_ns": np.array([e.stamp_ns for e in self.entries], np.int64),
+            "index": np.array([e.index for e in self.entries], np.int64),
+            "poses": np.array([e.cam_to_world for e in self.entries], np.float64).reshape(-1, 4, 4),
+            "intrinsics": np.array([_intrinsics_row(e.intrinsics) for e in self.entries], np.float64).reshape(-1, 6),
+            "mask_sizes": np.array([len(e.mask_png) for e in self.entries], np.int64),
+            "masks": np.frombuffer(b"".join(e.mask_png for e in self.entries), np.uint8),
+            "segments": np.array(json.dumps([_segments_json(e.segments) for e in self.entries])),
+            "meta": np.array(
+                json.dumps({"max_bytes": self.max_bytes, "dropped": self.dropped, "poses_given": self.poses_given})
+            ),
+        }
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        Path(path).write_bytes(buf.getvalue())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> KeyframeLog:
+        """Reads a file written by `save`; raises ValueError naming the file when it is not one."""
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                if str(data["format"]) != FORMAT:
+                    raise ValueError(f"not a keyframe log (format {str(data['format'])!r})")
+                meta = json.loads(str(data["meta"]))
+                log = cls(int(meta["max_bytes"]))
+                log.dropped = int(meta["dropped"])
+                log.poses_given = bool(meta["poses_given"])
+                segments = json.loads(str(data["segments"]))
+                ends = np.cumsum(data["mask_sizes"])
+                masks = data["masks"].tobytes()
+                n = len(data["stamps_ns"])
+                if not (len(ends) == len(segments) == len(data["poses"]) == n and (not n or ends[-1] == len(masks))):
+                    raise ValueError("inconsistent array lengths")
+                for k in range(n):
+                    start = int(ends[k - 1]) if k else 0
+                    log._append(
+                        LoggedKeyframe(
+                            int(data["index"][k]),
+                            int(data["stamps_ns"][k]),
+                            validate_pose(data["poses"][k], what="logged pose"),
+                            _intrinsics(data["intrinsics"][k]),
+                            masks[start : int(ends[k])],
+                            _segments(segments[k]),
+                        )
+                    )
+        except FileNotFoundError:
+            raise
+        except (ValueError, KeyError, OSError, TypeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path}: unreadable keyframe log ({exc})") from exc
+        return log
+
+
+def _pose_changed(a: np.ndarray, b: np.ndarray, tolerance: tuple[float, float]) -> bool:
+    moved = np.linalg.norm(a[:3, 3] - b[:3, 3])
+    cos = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1.0, 1.0)
+    return bool(moved > tolerance[0] or np.arccos(cos) > tolerance[1])
+
+
+def _intrinsics_row(k: Intrinsics) -> list[float]:
+    return [k.fx, k.fy, k.cx, k.cy, k.width, k.height]
+
+
+def _intrinsics(row: np.ndarray) -> Intrinsics:
+    fx, fy, cx, cy, w, h = (float(v) for v in row)
+    return Intrinsics(fx, fy, cx, cy, int(w), int(h))
+
+
+def _segments_json(segments: tuple | None):
+    return None if segments is None else [[int(s.id), s.class_name, float(s.score)] for s in segments]
+
+
+def _segments(rows) -> tuple | None:
+    return None if rows is None else tuple(SegmentLabel(int(i), str(c), float(s)) for i, c, s in rows)

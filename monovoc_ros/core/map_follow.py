@@ -1,0 +1,114 @@
+"""Which old Gaussian's evidence each Gaussian of a new SLAM map takes (METHOD section 10).
+
+`follow_map(old, new)` decides it in two steps:
+
+1. Ids win: a new Gaussian whose id is in the old map takes that Gaussian's evidence.
+2. Every other new Gaussian (all of them when a map has no ids) takes the evidence of the old Gaussian
+   nearest to it *after moving the old map by its estimated motion* (core.map_motion: from the id
+   pairs when there are any, else by registering the two maps), provided that one lies within
+   ``radius + scale_factor * (its largest scale)`` (capped at max_radius). Nearest, not mutual: both
+   children of a split (0.8 of their own sigma from the parent's centre) and every clone inherit their
+   parent; a pruned Gaussian is nobody's nearest; a Gaussian that lands in empty space starts at zero,
+   and the small radius keeps evidence from leaking onto a neighbouring object.
+
+A motion that is not believable (the registration did not converge, too few inliers, or some part of
+the map moves farther than `max_displacement`) is refused (`FollowResult.refusal`), so one absurd map
+never wipes the semantics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map_motion import MapMotion, MotionConfig, estimate_motion
+
+# Rows moved by the motion per chunk (bounds the trilinear interpolation's temporaries).
+_CHUNK = 131072
+
+
+@dataclass(frozen=True)
+class FollowConfig:
+    radius: float = 0.03  # metres: base transfer radius
+    scale_factor: float = 1.0  # plus this many times the new Gaussian's largest scale
+    max_radius: float = 0.15  # metres
+    max_displacement: float = 10.0  # metres: a motion moving any part of the map farther is refused
+    min_inliers: float = 0.3  # share of the old sample that must find a partner in the new map
+    motion: MotionConfig = field(default_factory=MotionConfig)
+
+
+@dataclass
+class FollowResult:
+    sources: np.ndarray  # (M,) int64 row of the old map whose evidence each new Gaussian takes; -1: none
+    motion: MapMotion
+    by_id: int = 0  # new Gaussians matched by id
+    by_position: int = 0  # new Gaussians matched by the moved position
+    refusal: str = ""  # why the update must not be applied; "" when it may
+
+
+def nearest_within(points: np.ndarray, queries: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(Q,) int64: per query (Q, 3) the row of its nearest point (N, 3) within its own radius (Q,), or -1."""
+    out = np.full(len(queries), -1, np.int64)
+    if not len(points) or not len(queries):
+        return out
+    bound = float(radius.max()) * (1 + 1e-9)
+    d, i = cKDTree(points).query(queries, k=1, distance_upper_bound=bound, workers=2)
+    hit = np.isfinite(d) & (d <= radius)
+    out[hit] = i[hit]
+    return out
+
+
+def moved_means(motion: MapMotion, means: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 `means` moved by `motion`, in chunks."""
+    out = np.empty((len(means), 3))
+    for start in range(0, len(means), _CHUNK):
+        out[start : start + _CHUNK] = motion.apply(means[start : start + _CHUNK])
+    return out
+
+
+def transfer_radius(new: GaussianMap, rows: np.ndarray, config: FollowConfig) -> np.ndarray:
+    """(len(rows),) float64 transfer radius of the new Gaussians `rows`."""
+    largest = new.scales[rows].max(axis=1).astype(np.float64) if len(rows) else np.zeros(0)
+    return np.minimum(config.radius + config.scale_factor * largest, config.max_radius)
+
+
+def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None = None) -> FollowResult:
+    """Source rows of the new map's evidence, and the map's motion (see the module docstring)."""
+    config = config or FollowConfig()
+    sources = np.full(len(new), -1, np.int64)
+    old_rows = new_rows = None
+    if old.ids is not None and new.ids is not None and len(old) and len(new):
+        order = np.argsort(old.ids)
+        pos = np.searchsorted(old.ids, new.ids, sorter=order).clip(0, len(old) - 1)
+        cand = order[pos]
+        hit = old.ids[cand] == new.ids
+        sources[hit] = cand[hit]
+        new_rows = np.flatnonzero(hit)
+        old_rows = cand[hit]
+    motion = estimate_motion(old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows)
+    by_id = int(np.count_nonzero(sources >= 0))
+    refusal = _refusal(motion, old, config)
+    if refusal:
+        return FollowResult(sources, motion, by_id, 0, refusal)
+    rest = np.flatnonzero(sources < 0)
+    if rest.size:
+        moved = old.means if motion.by == "identity" else moved_means(motion, old.means)
+        sources[rest] = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config))
+    return FollowResult(sources, motion, by_id, int(np.count_nonzero(sources >= 0)) - by_id)
+
+
+def _refusal(motion: MapMotion, old: GaussianMap, config: FollowConfig) -> str:
+    if motion.by == "ids":
+        pass  # correspondences are given: the fit converges by construction
+    elif not motion.converged:
+        return "the registration of the old map to the new one did not converge"
+    if motion.inliers < config.min_inliers:
+        return f"only {motion.inliers:.0%} of the old map found a partner in the new one (min {config.min_inliers:.0%})"
+    step = max(1, len(old) // 4096)
+    moved = motion.max_displacement(old.means[::step])
+    if moved > config.max_displacement:
+        return f"it moves part of the map by {moved:.1f} m (max {config.max_displacement:g} m)"
+    return ""

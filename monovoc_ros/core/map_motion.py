@@ -1,0 +1,253 @@
+"""How a SLAM map moved between two versions, estimated from the two maps themselves (METHOD section 10).
+
+A 3DGS SLAM front-end rarely keeps per-Gaussian ids, yet on a loop closure it moves its whole map
+rigidly or bends it smoothly (HI-SLAM2 moves each Gaussian with its anchor keyframe). `estimate_motion`
+recovers that motion as a `MapMotion`: a rigid part (trimmed point-to-point ICP of a sample of the old
+Gaussian centres against the new ones) followed by a smooth translation field on a coarse grid
+(`spacing` metres; trilinear between nodes, fitted to the same nearest-neighbour residuals, with nodes
+that see few points pulled towards their neighbours). When correspondences are known (Gaussian ids
+shared by the two maps) they replace the nearest-neighbour search and the fit is direct.
+
+The motion moves points (`apply`: old centres to where they are in the new map) and camera poses
+(`move_pose`: the best rigid fit of the motion around the camera, so a keyframe integrated against the
+old map can be re-integrated against the new one).
+
+Absurd motions are refused by the caller (`MotionCheck`): a registration that did not converge, too
+few inliers, or a displacement beyond `max_displacement` metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from monovoc_ros.core.camera import validate_pose
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    sample: int = 12000  # old centres the registration uses (seeded random sample)
+    target_sample: int = 250_000  # new centres searched (sampled beyond this many)
+    spacing: float = 1.0  # metres between the nodes of the smooth field
+    rigid_iterations: int = 30
+    field_iterations: int = 20
+    start_trim: float = 0.5  # metres: pairs farther apart are outliers in the first ICP iteration
+    min_trim: float = 0.02  # metres: the trim distance never shrinks below this
+    still_distance: float = 0.005  # metres: 90th percentile nearest-neighbour distance of a map that did not move
+    max_rms: float = 0.03  # metres: a fit leaving a larger inlier residual did not converge
+    smoothing: float = 10.0  # pseudo-points pulling each field node towards its neighbours' mean
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class MapMotion:
+    """p -> R p + t + field(R p + t): a rigid motion then a smooth translation field (zero outside its grid)."""
+
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3, 3) float64
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) float64
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) float64 grid node (0, 0, 0)
+    spacing: float = 1.0
+    offsets: np.ndarray = field(default_factory=lambda: np.zeros((1, 1, 1, 3)))  # (GX, GY, GZ, 3) float64
+    rms: float = 0.0  # metres: residual of the inlier pairs after the fit
+    inliers: float = 1.0  # share of sampled old centres with a new centre within the final trim distance
+    converged: bool = True
+    by: str = "identity"  # "identity", "registration" or "ids"
+
+    def field_at(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) float64 field offsets at points already moved by the rigid part (trilinear)."""
+        return _trilinear(self.offsets, self.origin, self.spacing, points)
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) float64: `points` (N, 3) of the old map where the motion puts them in the new one."""
+        q = np.asarray(points, np.float64) @ self.rotation.T + self.translation
+        return q + self.field_at(q)
+
+    def rigid_apply(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points, np.float64) @ self.rotation.T + self.translation
+
+    @property
+    def rotation_deg(self) -> float:
+        return float(np.degrees(np.arccos(np.clip((np.trace(self.rotation) - 1) / 2, -1.0, 1.0))))
+
+    def max_displacement(self, points: np.ndarray) -> float:
+        """Metres: the largest distance the motion moves any of `points` (N, 3)."""
+        points = np.asarray(points, np.float64)
+        if not len(points):
+            return 0.0
+        return float(np.linalg.norm(self.apply(points) - points, axis=1).max())
+
+    def move_pose(self, cam_to_world: np.ndarray, support: np.ndarray) -> np.ndarray:
+        """(4, 4) float64: the camera pose moved with the map: the rigid fit of the motion over `support`
+        (M, 3), old centres around the camera (all of the map's when empty)."""
+        T = validate_pose(cam_to_world, what="cam_to_world")
+        support = np.asarray(support, np.float64)
+        if len(support) < 3:
+            support = T[None, :3, 3]
+            R, t = self.rotation, self.apply(support)[0] - self.rotation @ support[0]
+        else:
+            R, t = kabsch(support, self.apply(support))
+        out = np.eye(4)
+        out[:3, :3] = R @ T[:3, :3]
+        out[:3, 3] = R @ T[:3, 3] + t
+        return out
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(R (3, 3), t (3,)) minimizing sum w |R src + t - dst|^2 for paired points src, dst (N, 3)."""
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64)
+    w = w / w.sum()
+    cs, cd = w @ src, w @ dst
+    H = (src - cs).T @ ((dst - cd) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cd - R @ cs
+
+
+def _trilinear_weights(origin: np.ndarray, spacing: float, shape: tuple, points: np.ndarray):
+    """Per point the 8 surrounding node indices (N, 8, 3) int64 and weights (N, 8) float64; points
+    outside the grid are clamped to its border."""
+    g = (points - origin) / spacing
+    hi = np.array(shape, np.float64) - 1
+    g = np.clip(g, 0.0, hi)
+    base = np.minimum(np.floor(g), np.maximum(hi - 1, 0)).astype(np.int64)
+    frac = g - base
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.int64)  # (8, 3)
+    idx = np.minimum(base[:, None, :] + corners[None], np.array(shape, np.int64) - 1)
+    w = np.prod(np.where(corners[None] == 1, frac[:, None, :], 1.0 - frac[:, None, :]), axis=2)
+    return idx, w
+
+
+def _trilinear(offsets: np.ndarray, origin: np.ndarray, spacing: float, points: np.ndarray) -> np.ndarray:
+    if not np.any(offsets):
+        return np.zeros((len(points), 3))
+    idx, w = _trilinear_weights(origin, spacing, offsets.shape[:3], points)
+    return np.einsum("nk,nkc->nc", w, offsets[idx[..., 0], idx[..., 1], idx[..., 2]])
+
+
+class _Targets:
+    """Where each sampled old centre is in the new map: its nearest new centre (registration) or its
+    known partner (ids)."""
+
+    def __init__(self, new: np.ndarray, known: np.ndarray | None, config: MotionConfig) -> None:
+        self.known = known
+        if known is None:
+            rng = np.random.default_rng(config.seed + 1)
+            if len(new) > config.target_sample:
+                new = new[rng.choice(len(new), config.target_sample, replace=False)]
+            self.points = new
+            self.tree = cKDTree(new)
+
+    def pairs(self, moved: np.ndarray, trim: float) -> tuple[np.ndarray, np.ndarray]:
+        """(inlier mask (S,), target (S, 3)) for the sample at its current positions `moved` (S, 3)."""
+        if self.known is not None:
+            target = self.known
+            inlier = np.linalg.norm(target - moved, axis=1) <= trim
+            return inlier, target
+        d, i = self.tree.query(moved, k=1, distance_upper_bound=trim, workers=2)
+        inlier = np.isfinite(d)
+        target = np.where(inlier[:, None], self.points[np.minimum(i, len(self.points) - 1)], moved)
+        return inlier, target
+
+
+def estimate_motion(
+    old: np.ndarray,
+    new: np.ndarray,
+    config: MotionConfig | None = None,
+    *,
+    old_rows: np.ndarray | None = None,
+    new_rows: np.ndarray | None = None,
+) -> MapMotion:
+    """The motion taking the old map's centres `old` (N, 3) to the new map's `new` (M, 3).
+
+    `old_rows`, `new_rows` (K,) int64: known correspondences (the same Gaussian id in both maps); when
+    given (K >= 3) they are the only pairs used. Otherwise pairs are nearest neighbours (registration).
+    """
+    config = config or MotionConfig()
+    old = np.asarray(old, np.float64)
+    new = np.asarray(new, np.float64)
+    rng = np.random.default_rng(config.seed)
+    known = old_rows is not None and new_rows is not None and len(old_rows) >= 3
+    if known:
+        src_all, dst_all = old[old_rows], new[new_rows]
+        pick = rng.choice(len(src_all), min(config.sample, len(src_all)), replace=False)
+        src, targets = src_all[pick], _Targets(new, dst_all[pick], config)
+        by = "ids"
+    else:
+        if len(old) < 3 or len(new) < 3:
+            return MapMotion(converged=False, inliers=0.0)
+        src = old[rng.choice(len(old), min(config.sample, len(old)), replace=False)]
+        targets = _Targets(new, None, config)
+        by = "registration"
+        inlier, target = targets.pairs(src, config.start_trim)
+        dist = np.linalg.norm(target - src, axis=1)[inlier]
+        if inlier.mean() > 0.9 and np.percentile(dist, 90) <= config.still_distance:
+            return MapMotion(rms=float(np.sqrt(np.mean(dist**2))), inliers=float(inlier.mean()))
+
+    R, t = np.eye(3), np.zeros(3)
+    trim = config.start_trim if not known else np.inf
+    converged = False
+    for _ in range(config.rigid_iterations):
+        moved = src @ R.T + t
+        inlier, target = targets.pairs(moved, trim)
+        if inlier.sum() < 3:
+            return MapMotion(converged=False, inliers=float(inlier.mean()), by=by)
+        R_new, t_new = kabsch(src[inlier], target[inlier])
+        step = np.linalg.norm(R_new - R) + np.linalg.norm(t_new - t)
+        R, t = R_new, t_new
+        res = np.linalg.norm(src[inlier] @ R.T + t - target[inlier], axis=1)
+        if not known:
+            trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01)
+        if step < 1e-6:
+            converged = True
+            break
+    rigid_moved = src @ R.T + t
+    lo, hi = rigid_moved.min(axis=0), rigid_moved.max(axis=0)
+    shape = tuple(int(v) for v in np.maximum(np.ceil((hi - lo) / config.spacing).astype(int) + 1, 2))
+    offsets = np.zeros((*shape, 3))
+    idx, w = _trilinear_weights(lo, config.spacing, shape, rigid_moved)
+    flat = np.ravel_multi_index((idx[..., 0], idx[..., 1], idx[..., 2]), shape)  # (S, 8)
+    n_nodes = int(np.prod(shape))
+    for _ in range(config.field_iterations):
+        field_now = np.einsum("nk,nkc->nc", w, offsets.reshape(-1, 3)[flat])
+        moved = rigid_moved + field_now
+        inlier, target = targets.pairs(moved, trim)
+        r = np.where(inlier[:, None], target - moved, 0.0)
+        wi = w * inlier[:, None]
+        num = np.stack([np.bincount(flat.ravel(), (wi * r[:, c, None]).ravel(), n_nodes) for c in range(3)], axis=1)
+        den = np.bincount(flat.ravel(), wi.ravel(), n_nodes)
+        cur = offsets.reshape(-1, 3)
+        neighbour = _neighbour_mean(offsets).reshape(-1, 3)
+        # Least squares per node with a pull towards the neighbours' mean: smooth, and defined where no point is.
+        updated = (num + den[:, None] * cur + config.smoothing * neighbour) / (den + config.smoothing)[:, None]
+        offsets = updated.reshape(offsets.shape)
+        if not known:
+            res = np.linalg.norm(r[inlier], axis=1)
+            trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01) if res.size else trim
+    field_now = np.einsum("nk,nkc->nc", w, offsets.reshape(-1, 3)[flat])
+    inlier, target = targets.pairs(rigid_moved + field_now, trim if not known else np.inf)
+    res = np.linalg.norm(target - rigid_moved - field_now, axis=1)[inlier]
+    rms = float(np.sqrt(np.mean(res**2))) if res.size else float("inf")
+    # A bent map never settles on one rigid motion: what counts is how well the whole motion fits.
+    converged = known or (converged or rms <= config.max_rms)
+    return MapMotion(R, t, lo, config.spacing, offsets, rms, float(inlier.mean()), converged, by)
+
+
+def _neighbour_mean(offsets: np.ndarray) -> np.ndarray:
+    """(GX, GY, GZ, 3): per node the mean of its 6-neighbours' offsets (border nodes: the ones they have)."""
+    total = np.zeros_like(offsets)
+    count = np.zeros(offsets.shape[:3] + (1,))
+    for axis in range(3):
+        n = offsets.shape[axis]
+        if n < 2:
+            continue
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[axis], hi[axis] = slice(0, n - 1), slice(1, n)
+        total[tuple(lo)] += offsets[tuple(hi)]
+        count[tuple(lo)] += 1
+        total[tuple(hi)] += offsets[tuple(lo)]
+        count[tuple(hi)] += 1
+    return total / np.maximum(count, 1)

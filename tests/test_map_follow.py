@@ -1,0 +1,156 @@
+"""Registration of two map versions (core.map_motion) and the per-Gaussian transfer (core.map_follow)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map_follow import FollowConfig, follow_map, nearest_within
+from monovoc_ros.core.map_motion import MapMotion, estimate_motion, kabsch
+from monovoc_ros.core.mapping import MapMotionError, SemanticMapper
+from monovoc_ros.core.session import MappingSession
+from monovoc_ros.synthetic import churn
+from tests.node_scene import assemble, scene_messages, small_scene
+
+
+def _line_map(means, scales=None) -> GaussianMap:
+    means = np.asarray(means, np.float32)
+    n = len(means)
+    scales = np.full((n, 3), 0.001, np.float32) if scales is None else np.asarray(scales, np.float32)
+    quats = np.tile(np.float32([1, 0, 0, 0]), (n, 1))
+    return GaussianMap(means, scales, quats, np.full(n, 0.9, np.float32))
+
+
+def _with_ids(gmap: GaussianMap) -> GaussianMap:
+    return replace(gmap, ids=np.arange(len(gmap), dtype=np.int64))
+
+
+def _truth_rows(old: GaussianMap, new: GaussianMap) -> np.ndarray:
+    """Per new Gaussian its old row (the churn generators keep ids when asked)."""
+    index = {int(i): k for k, i in enumerate(old.ids)}
+    return np.array([index.get(int(i), -1) for i in new.ids])
+
+
+def test_kabsch_recovers_a_rigid_motion():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(50, 3))
+    R = churn._rot_z(30.0)
+    R, t = kabsch(src, src @ R.T + [1.0, -2.0, 0.5])
+    np.testing.assert_allclose(R, churn._rot_z(30.0), atol=1e-12)
+    np.testing.assert_allclose(t, [1.0, -2.0, 0.5], atol=1e-12)
+
+
+def test_transfer_split_children_inherit_pruned_drop_empty_space_starts_at_zero():
+    old = _line_map([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], scales=[[0.05, 0.01, 0.01]] + [[0.001] * 3] * 3)
+    new = _line_map(
+        [
+            [3.0, 0, 0],  # Gaussian 3, re-ordered first
+            [0.025, 0, 0],  # Gaussian 0 split along its major axis: both children inherit it
+            [-0.025, 0, 0],
+            [1.004, 0, 0],  # Gaussian 1 nudged by 4 mm
+            [5.0, 0, 0],  # a new Gaussian in empty space
+        ],  # Gaussian 2 was pruned
+        scales=[[0.001] * 3, [0.05 / 1.6, 0.01, 0.01], [0.05 / 1.6, 0.01, 0.01], [0.001] * 3, [0.001] * 3],
+    )
+    follow = follow_map(old, new)
+    assert follow.refusal == ""
+    np.testing.assert_array_equal(follow.sources, [3, 0, 0, 1, -1])
+    assert follow.by_position == 4 and follow.by_id == 0
+
+
+def test_ids_win_and_the_rest_follow_the_moved_position():
+    scene = small_scene()
+    old = _with_ids(scene.gaussians)
+    moved = churn.then(churn.densify(old, keep_ids=True, seed=1), churn.loop_closure, keep_ids=True, seed=2)
+    new = moved.gaussians
+    follow = follow_map(old, new)
+    truth = _truth_rows(old, new)
+    by_id = truth >= 0
+    np.testing.assert_array_equal(follow.sources[by_id], truth[by_id])
+    assert follow.motion.by == "ids" and follow.by_id == int(by_id.sum())
+    # New ids (the second child of each split) inherit by position, after the motion the id pairs give.
+    children = np.flatnonzero(~by_id)
+    assert follow.by_position >= 0.95 * len(children)
+    assert follow.motion.rotation_deg == pytest.approx(2.0, abs=0.01)
+
+
+@pytest.mark.parametrize("kind", ["loop", "bend"])
+def test_registration_follows_rigid_and_bent_maps_without_ids(kind):
+    scene = small_scene()
+    old = _with_ids(scene.gaussians)
+    make = churn.loop_closure if kind == "loop" else churn.drift_correction
+    new_with_ids = make(old, keep_ids=True, seed=3).gaussians
+    truth = _truth_rows(old, new_with_ids)
+    new = replace(new_with_ids, ids=None)
+    follow = follow_map(replace(old, ids=None), new)
+    assert follow.refusal == "" and follow.motion.by == "registration"
+    where = np.empty((len(old), 3))
+    where[truth] = new.means
+    err = np.linalg.norm(follow.motion.apply(old.means) - where, axis=1)
+    if kind == "loop":
+        assert follow.motion.rotation_deg == pytest.approx(2.0, abs=0.05)
+        assert np.percentile(err, 99) < 0.003
+        assert np.mean(follow.sources == truth) > 0.9
+    else:
+        assert np.median(err) < 0.01
+    # Nothing crosses objects: the object of the source is the object of the new Gaussian.
+    obj = scene.gaussian_object
+    hit = follow.sources >= 0
+    assert hit.mean() > (0.95 if kind == "loop" else 0.85)
+    same = obj[follow.sources[hit]] == obj[truth[hit]]
+    assert same.mean() > (0.995 if kind == "loop" else 0.97)
+
+
+def test_absurd_motions_are_refused():
+    scene = small_scene()
+    old = scene.gaussians
+    far = churn.loop_closure(old, degrees=0.0, translation=(25.0, 0.0, 0.0)).gaussians
+    assert "moves part of the map" in follow_map(old, far, FollowConfig(motion=replace_motion(start_trim=50.0))).refusal
+    noise = np.random.default_rng(0).uniform(-50, 50, (len(old), 3))
+    unrelated = replace(old, means=noise.astype(np.float32))
+    assert follow_map(old, unrelated).refusal != ""
+    assert follow_map(old, far).refusal != ""  # beyond the first trim distance: nothing pairs up
+
+
+def replace_motion(**changes):
+    from monovoc_ros.core.map_motion import MotionConfig
+
+    return replace(MotionConfig(), **changes)
+
+
+def test_nearest_within_uses_each_query_radius():
+    pts = np.array([[0.0, 0, 0], [1, 0, 0]])
+    q = np.array([[0.05, 0, 0], [0.05, 0, 0], [0.9, 0, 0]])
+    np.testing.assert_array_equal(nearest_within(pts, q, np.array([0.1, 0.01, 0.2])), [0, -1, 1])
+    np.testing.assert_array_equal(nearest_within(np.zeros((0, 3)), q, np.ones(3)), [-1, -1, -1])
+
+
+def test_identity_motion_moves_nothing_and_poses_follow_a_loop_closure():
+    pts = np.random.default_rng(1).normal(size=(100, 3))
+    np.testing.assert_array_equal(MapMotion().apply(pts), pts)
+    scene = small_scene()
+    closure = churn.loop_closure(scene.gaussians, seed=4)
+    motion = estimate_motion(scene.gaussians.means, closure.gaussians.means)
+    pose = scene.keyframe(0).cam_to_world
+    np.testing.assert_allclose(motion.move_pose(pose, scene.gaussians.means), closure.move_pose(pose), atol=2e-3)
+
+
+def test_mapper_refuses_an_absurd_update_and_keeps_its_state():
+    scene = small_scene()
+    keyframes = assemble(scene_messages()[:3])
+    mapper = SemanticMapper(scene.gaussians)
+    for kf in keyframes:
+        mapper.integrate(kf)
+    before = mapper.state.total_weight.copy()
+    far = churn.loop_closure(scene.gaussians, degrees=0.0, translation=(30.0, 0, 0)).gaussians
+    with pytest.raises(MapMotionError):
+        mapper.update_gaussians(far)
+    assert mapper.gaussians is scene.gaussians and np.array_equal(mapper.state.total_weight, before)
+    session = MappingSession(mapper=mapper)
+    assert not session.add_map(far) and session.stats.rejected["map_motion"] == 1
+    # A real loop closure is applied and the labelled evidence carried over.
+    assert session.add_map(churn.loop_closure(scene.gaussians).gaussians)
+    assert session.stats.map_update_carried_share > 0.99

@@ -1,0 +1,146 @@
+"""The keyframe log (core.keyframe_log) and re-integration (core.session): exact, interleavable, persistent."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from monovoc_ros import offline
+from monovoc_ros.core.keyframe_log import KeyframeLog, KeyframePoses
+from monovoc_ros.core.map_store import load_snapshot, save_snapshot
+from monovoc_ros.core.segment_labels import SegmentLabel
+from monovoc_ros.core.session import MappingSession
+from monovoc_ros.synthetic import churn
+from tests.node_scene import assemble, scene_messages, small_scene
+
+
+def _keyframes(n: int = 8):
+    return assemble(scene_messages()[:n])
+
+
+def _shifted(kf, dx: float = 0.02):
+    T = kf.cam_to_world.copy()
+    T[0, 3] += dx
+    return replace(kf, cam_to_world=T)
+
+
+def _same_state(a, b) -> None:
+    for name in a.state.ARRAYS:
+        np.testing.assert_array_equal(getattr(a.state, name), getattr(b.state, name))
+    np.testing.assert_array_equal(a.state.stamps_ns, b.state.stamps_ns)
+
+
+def test_log_round_trip_keeps_masks_poses_segments(tmp_path):
+    kfs = _keyframes(3)
+    kfs[1] = replace(kfs[1], segments=(SegmentLabel(0x112233, "chair", 0.5),))
+    log = KeyframeLog()
+    for kf in kfs:
+        log.add(kf)
+    assert 0 < log.nbytes < 3 * 40_000  # masks compress to a few KB each
+    log.save(tmp_path / "log.npz")
+    back = KeyframeLog.load(tmp_path / "log.npz")
+    assert len(back) == 3 and back.nbytes == log.nbytes and back.complete
+    for kf, entry in zip(kfs, back.entries, strict=True):
+        again = entry.keyframe()
+        np.testing.assert_array_equal(again.mask, kf.mask)
+        np.testing.assert_array_equal(again.cam_to_world, kf.cam_to_world)
+        assert again.stamp_ns == kf.stamp_ns and again.intrinsics == kf.intrinsics and again.rgb is None
+    assert back.entries[1].segments == (SegmentLabel(0x112233, "chair", 0.5),)
+    (tmp_path / "bad.npz").write_bytes(b"not a log")
+    with pytest.raises(ValueError, match="unreadable keyframe log"):
+        KeyframeLog.load(tmp_path / "bad.npz")
+
+
+def test_log_is_bounded_oldest_first():
+    kfs = _keyframes(4)
+    log = KeyframeLog()
+    log.add(kfs[0])
+    one = log.nbytes
+    small = KeyframeLog(max_bytes=int(2.5 * one))
+    for kf in kfs:
+        small.add(kf)
+    assert len(small) == 2 and small.dropped == 2 and not small.complete
+    assert [e.stamp_ns for e in small.entries] == [kfs[2].stamp_ns, kfs[3].stamp_ns]
+
+
+def test_snapshot_keeps_the_log(tmp_path):
+    scene, kfs = small_scene(), _keyframes(3)
+    mapper, _ = offline.map_events([scene.gaussians, *kfs])
+    save_snapshot(mapper, tmp_path / "map", export_cloud=False)
+    back = load_snapshot(tmp_path / "map")
+    assert [e.stamp_ns for e in back.keyframe_log.entries] == [kf.stamp_ns for kf in kfs]
+    np.testing.assert_array_equal(back.keyframe_log.entries[2].keyframe().mask, kfs[2].mask)
+
+
+def test_corrected_poses_reintegrate_to_the_fresh_map_of_the_corrected_keyframes():
+    scene, kfs = small_scene(), _keyframes(8)
+    corrected = [_shifted(kf) for kf in kfs[:5]]
+    poses = KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in corrected))
+    rebuilt, stats = offline.map_events([scene.gaussians, *kfs[:5], poses, *kfs[5:]])
+    fresh, _ = offline.map_events([scene.gaussians, *corrected, *kfs[5:]])
+    _same_state(rebuilt, fresh)
+    assert stats.reintegrations == 1 and stats.keyframes_reintegrated == 5 and not stats.reintegrating
+    np.testing.assert_array_equal(rebuilt.result().object_ids, fresh.result().object_ids)
+    # The same poses again change nothing: no second re-integration.
+    _, again = offline.map_events([scene.gaussians, *kfs[:5], poses, poses])
+    assert again.reintegrations == 1
+
+
+def test_interleaved_reintegration_serves_old_labels_and_ends_as_offline():
+    """As the live worker runs it: keyframes keep arriving between re-integration steps."""
+    scene, kfs = small_scene(), _keyframes(8)
+    corrected = [_shifted(kf) for kf in kfs[:5]]
+    session = MappingSession()
+    session.add_map(scene.gaussians)
+    for kf in kfs[:5]:
+        session.add_keyframe(kf)
+        session.integrate_next()
+    old = session.mapper
+    session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in corrected)))
+    assert session.reintegrating and session.mapper is old  # the old labels meanwhile
+    for kf in kfs[5:]:
+        session.reintegration_step()
+        session.add_keyframe(kf)
+        session.integrate_next()
+        assert session.mapper is old
+    while session.reintegration_step():
+        pass
+    assert session.mapper is not old and session.stats.keyframes_reintegrated == 8
+    fresh, _ = offline.map_events([scene.gaussians, *corrected, *kfs[5:]])
+    _same_state(session.mapper, fresh)
+
+
+def test_bad_keyframe_poses_are_refused_and_change_nothing():
+    scene, kfs = small_scene(), _keyframes(3)
+    session = MappingSession()
+    session.add_map(scene.gaussians)
+    for kf in kfs:
+        session.add_keyframe(kf)
+        session.integrate_next()
+    nan = kfs[0].cam_to_world.copy()
+    nan[0, 3] = np.nan
+    far = _shifted(kfs[1], 25.0).cam_to_world
+    skew = kfs[2].cam_to_world.copy()
+    skew[:3, :3] *= 2.0
+    for T, stamp in ((nan, kfs[0].stamp_ns), (far, kfs[1].stamp_ns), (skew, kfs[2].stamp_ns)):
+        assert session.add_keyframe_poses(KeyframePoses(((stamp, T),))) == 0
+    assert session.stats.rejected["bad_keyframe_poses"] == 3 and not session.reintegrating
+    np.testing.assert_array_equal(session.mapper.keyframe_log.entries[0].cam_to_world, kfs[0].cam_to_world)
+    # Poses of keyframes the log never saw are ignored.
+    assert session.add_keyframe_poses(KeyframePoses(((123, kfs[0].cam_to_world),))) == 0
+
+
+def test_poor_transfer_reintegrates_with_poses_moved_by_the_map():
+    scene, kfs = small_scene(), _keyframes(6)
+    closure = churn.then(churn.densify(scene.gaussians, prune=0.1), churn.loop_closure, degrees=1.0)
+    config = replace(offline.MapperConfig(), reintegrate_below=0.99)  # 10% pruned: the transfer counts as poor
+    mapper, stats = offline.map_events([scene.gaussians, *kfs, closure.gaussians], config)
+    assert stats.reintegrations == 1 and stats.keyframes_reintegrated == 6
+    moved = [replace(kf, cam_to_world=closure.move_pose(kf.cam_to_world)) for kf in kfs]
+    for entry, kf in zip(mapper.keyframe_log.entries, moved, strict=True):
+        np.testing.assert_allclose(entry.cam_to_world, kf.cam_to_world, atol=2e-3)
+    fresh, _ = offline.map_events([closure.gaussians, *moved], config)
+    agree = np.mean(mapper.result().object_ids == fresh.result().object_ids)
+    assert agree > 0.99
