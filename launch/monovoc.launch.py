@@ -1,7 +1,7 @@
 """ros2 launch monovoc_ros monovoc.launch.py [ARG:=VALUE ...]
 
 Starts the semantic_mapper node (or mapping_node: mapping only, no objects, no models) with both parameter files,
-in a namespace, with the six inputs remapped by launch arguments; optionally replays a bag into it
+in a namespace, with the seven inputs remapped by launch arguments; optionally replays a bag into it
 (`monovoc replay`, publishing /clock) and opens RViz with rviz/monovoc.rviz.
 
     ros2 launch monovoc_ros monovoc.launch.py image:=/camera/color/image_raw/compressed \\
@@ -53,6 +53,9 @@ def generate_launch_description() -> LaunchDescription:
             "segments", default_value="segments", description="input topic: segment class names (use_segments)"
         ),
         DeclareLaunchArgument("gaussians", default_value="gaussians", description="input topic: Gaussian map"),
+        DeclareLaunchArgument(
+            "keyframe_poses", default_value="keyframe_poses", description="input topic: corrected keyframe poses (Path)"
+        ),
         DeclareLaunchArgument("map_directory", default_value="", description="snapshot directory ('' = none)"),
         DeclareLaunchArgument("use_sim_time", default_value="false", description="stamp by /clock (bag replay)"),
         DeclareLaunchArgument("bag", default_value="", description="MCAP bag to replay into the node ('' = none)"),
@@ -83,6 +86,7 @@ def generate_launch_description() -> LaunchDescription:
             ("pose", LaunchConfiguration("pose")),
             ("segments", LaunchConfiguration("segments")),
             ("gaussians", LaunchConfiguration("gaussians")),
+            ("keyframe_poses", LaunchConfiguration("keyframe_poses")),
         ],
     )
     # `monovoc replay` is an argparse command, not a node taking --ros-args: run it as a plain process.

@@ -21,7 +21,11 @@ KEYFRAME_ROLES = ("image", "mask", "camera_info", "pose")
 # one SegmentArray per mask with the mask's stamp (empty when it named nothing).
 SEGMENTS_ROLE = "segments"
 MAP_ROLE = "gaussians"
-ROLES = (*KEYFRAME_ROLES, SEGMENTS_ROLE, MAP_ROLE)
+# Optional input: the SLAM's corrected keyframe trajectory (nav_msgs/Path, each pose stamped with its
+# keyframe's stamp); a moved keyframe starts a re-integration of the keyframe log (core.session).
+KEYFRAME_POSES_ROLE = "keyframe_poses"
+KEYFRAME_POSES_TYPE = "nav_msgs/msg/Path"
+ROLES = (*KEYFRAME_ROLES, SEGMENTS_ROLE, MAP_ROLE, KEYFRAME_POSES_ROLE)
 # Message types ("package/msg/Type"): the image and the mask in either transport (node parameters
 # image_transport / mask_transport), the pose in one of three forms (pose_type).
 IMAGE_MESSAGE_TYPES = {"compressed": "sensor_msgs/msg/CompressedImage", "raw": "sensor_msgs/msg/Image"}
@@ -40,6 +44,7 @@ BAD_MESSAGE = {
     "camera_info": "bad_camera_info",
     "pose": "bad_pose",
     SEGMENTS_ROLE: "bad_segments",
+    KEYFRAME_POSES_ROLE: "bad_keyframe_poses",
 }
 REJECTION_REASONS = (
     *BAD_MESSAGE.values(),

@@ -16,9 +16,11 @@ from msg_adapters.image import image_to_numpy, numpy_to_image
 from msg_adapters.markers import object_markers
 from msg_adapters.pose import (
     R_BODY_OPTICAL,
+    keyframe_poses_to_path,
     matrix_to_pose_stamped,
     matrix_to_transform_stamped,
     odometry_to_matrix,
+    path_to_keyframe_poses,
     pose_stamped_to_matrix,
     pose_to_matrix,
     transform_stamped_to_matrix,
@@ -29,6 +31,8 @@ from msg_adapters.semantic_objects import semantic_object, semantic_object_to_di
 from msg_adapters.stamps import header_stamp_ns, make_header, ns_to_time, time_to_ns
 
 __all__ = [
+    "keyframe_poses_to_path",
+    "path_to_keyframe_poses",
     "R_BODY_OPTICAL",
     "AdapterError",
     "SemanticCloud",

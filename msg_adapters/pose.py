@@ -21,8 +21,9 @@ import numpy as np
 
 from monovoc_ros.contract import CAMERA_FRAME, MAP_FRAME
 from monovoc_ros.core.camera import matrix_to_quat_wxyz, quat_wxyz_to_matrix, validate_pose
+from monovoc_ros.core.keyframe_log import KeyframePoses
 from msg_adapters.errors import AdapterError
-from msg_adapters.stamps import make_header
+from msg_adapters.stamps import make_header, time_to_ns
 
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 _T_BODY_OPTICAL = np.eye(4)
@@ -130,3 +131,27 @@ def matrix_to_transform_stamped(
         rotation=Quaternion(w=float(q[0]), x=float(q[1]), y=float(q[2]), z=float(q[3])),
     )
     return TransformStamped(header=make_header(frame_id, stamp), child_frame_id=child_frame_id, transform=tf)
+
+
+def path_to_keyframe_poses(
+    msg: Any, frame_convention: str = "optical", *, quat_tolerance: float = DEFAULT_QUAT_TOLERANCE
+) -> KeyframePoses:
+    """The corrected keyframe poses of a ``nav_msgs/Path`` (each pose stamped with its keyframe's stamp)."""
+    poses = []
+    for k, stamped in enumerate(msg.poses):
+        try:
+            T = pose_stamped_to_matrix(stamped, frame_convention, quat_tolerance=quat_tolerance)
+        except AdapterError as exc:
+            raise AdapterError(f"Path pose {k}: {exc}") from None
+        poses.append((time_to_ns(stamped.header.stamp), T))
+    return KeyframePoses(tuple(poses))
+
+
+def keyframe_poses_to_path(poses: KeyframePoses, *, frame_id: str = MAP_FRAME, stamp: Any = 0):
+    """A ``nav_msgs.msg.Path`` of corrected keyframe poses (what a SLAM publishes after a loop closure)."""
+    from nav_msgs.msg import Path
+
+    return Path(
+        header=make_header(frame_id, stamp),
+        poses=[matrix_to_pose_stamped(T, frame_id=frame_id, stamp=int(s)) for s, T in poses.poses],
+    )

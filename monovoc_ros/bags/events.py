@@ -12,13 +12,22 @@ from collections.abc import Iterator, Mapping
 
 import msg_adapters as ma
 from monovoc_ros.bags.reader import bag_info, iter_messages
-from monovoc_ros.contract import BAD_MESSAGE, DEFAULT_NAMESPACE, MAP_ROLE, SEGMENTS_ROLE, topic_names
+from monovoc_ros.contract import (
+    BAD_MESSAGE,
+    DEFAULT_NAMESPACE,
+    KEYFRAME_POSES_ROLE,
+    MAP_ROLE,
+    SEGMENTS_ROLE,
+    topic_names,
+)
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.keyframe_log import KeyframePoses
 from monovoc_ros.ingest import IngestConfig, KeyframeAssembler, Rejection
 
 BAD_GAUSSIANS = "bad_gaussians"  # as the live node counts an unreadable map
-BagEvent = GaussianMap | Keyframe | Rejection
+BagEvent = GaussianMap | Keyframe | KeyframePoses | Rejection
+_OWN_ROLES = (MAP_ROLE, KEYFRAME_POSES_ROLE)  # not keyframe inputs: converted here, not by the assembler
 
 
 def bag_events(
@@ -48,7 +57,7 @@ def bag_events(
         if config is None:  # read what the bag holds: its segments as a node with use_segments: true
             config = IngestConfig(use_segments=names[SEGMENTS_ROLE] in bag_info(path).topics)
         assembler = KeyframeAssembler(config)
-    role_of = {topic: role for role, topic in names.items() if role == MAP_ROLE or role in assembler.roles}
+    role_of = {topic: role for role, topic in names.items() if role in _OWN_ROLES or role in assembler.roles}
     for message in iter_messages(path, topics=list(role_of)):
         role = role_of[message.topic]
         try:
@@ -61,6 +70,12 @@ def bag_events(
                 yield ma.cloud_to_gaussian_map(decoded)
             except ValueError as exc:
                 yield Rejection(BAD_GAUSSIANS, MAP_ROLE, _stamp_or_none(decoded), str(exc))
+            continue
+        if role == KEYFRAME_POSES_ROLE:
+            try:
+                yield ma.path_to_keyframe_poses(decoded, assembler.config.frame_convention)
+            except ValueError as exc:
+                yield Rejection(BAD_MESSAGE[role], role, _stamp_or_none(decoded), str(exc))
             continue
         keyframes, rejections = assembler.push(role, decoded)
         yield from rejections
@@ -78,6 +93,9 @@ def _undecodable(assembler: KeyframeAssembler, role: str, log_time_ns: int, exc:
     detail = f"undecodable CDR ({type(exc).__name__}: {exc})"
     if role == MAP_ROLE:
         yield Rejection(BAD_GAUSSIANS, MAP_ROLE, log_time_ns, detail)
+        return
+    if role == KEYFRAME_POSES_ROLE:
+        yield Rejection(BAD_MESSAGE[role], role, log_time_ns, detail)
         return
     # Counted like any other bad message of that role, as the live node would (its rmw drops it).
     reason = BAD_MESSAGE[role]

@@ -36,7 +36,14 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
 import msg_adapters as ma
-from monovoc_ros.contract import BAD_MESSAGE, DEFAULT_NAMESPACE, keyframe_types, message_class
+from monovoc_ros.contract import (
+    BAD_MESSAGE,
+    DEFAULT_NAMESPACE,
+    KEYFRAME_POSES_ROLE,
+    KEYFRAME_POSES_TYPE,
+    keyframe_types,
+    message_class,
+)
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.ply import load_ply
@@ -213,6 +220,14 @@ class MappingNode(Node):
         self.create_subscription(
             PointCloud2, "gaussians", self._on_gaussians, latched_qos(), callback_group=self.callback_groups["map"]
         )
+        # Volatile, so that a SLAM publishing its path either way (latched or not) matches.
+        self.create_subscription(
+            message_class(KEYFRAME_POSES_TYPE),
+            KEYFRAME_POSES_ROLE,
+            self._on_keyframe_poses,
+            input_qos(5),
+            callback_group=self.callback_groups["map"],
+        )
 
     def _create_services(self) -> None:
         from std_srvs.srv import Trigger
@@ -282,6 +297,15 @@ class MappingNode(Node):
             self._warned_frame.add(frame)
             self.get_logger().warning(f"Gaussian map frame {frame!r} differs from frame_id {self.params.frame_id!r}")
         self.worker.submit_map(gaussians, f"stamp {ma.header_stamp_ns(msg)}")
+
+    def _on_keyframe_poses(self, msg: Any) -> None:
+        try:
+            poses = ma.path_to_keyframe_poses(msg, self.params.ingest.frame_convention)
+        except ValueError as exc:
+            self.stats.reject("bad_keyframe_poses")
+            self._reject_log("bad_keyframe_poses", f"keyframe poses ignored: {exc}")
+            return
+        self.worker.submit_keyframe_poses(poses, f"stamp {ma.header_stamp_ns(msg)}")
 
     def _reset_ingest(self) -> None:
         # A reset forgets the stamps seen so far, so the same sequence can be sent again.

@@ -39,6 +39,7 @@ from typing import Any, Protocol
 
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.keyframe_log import KeyframePoses
 from monovoc_ros.core.map_store import SnapshotInfo
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
 from monovoc_ros.core.session import (
@@ -253,6 +254,10 @@ class MapWorker:
         if self.queue.put_map(gaussians, name):
             self.stats.add(maps_coalesced=1)
 
+    def submit_keyframe_poses(self, poses: KeyframePoses, name: str = "") -> Future:
+        """Corrected keyframe poses, applied in order with keyframes and maps (core.session)."""
+        return self.queue.put_call(lambda: self.session.add_keyframe_poses(poses, name), name)
+
     def submit(self, fn: Callable[[SemanticMapper | None], Any], name: str = "") -> Future:
         """Runs fn(mapper) on the worker thread, in order with keyframes and maps; its result in a Future."""
         return self.queue.put_call(lambda: fn(self.session.mapper), name)
@@ -330,7 +335,8 @@ class MapWorker:
         while not self.queue.closed:
             # Keyframes the session holds are older than anything queued: they go first.
             ready = self.session.keyframes_ready
-            task = None if ready else self.queue.take(self._wait_time())
+            # A re-integration in progress advances between tasks: the queue is only polled meanwhile.
+            task = None if ready else self.queue.take(0.0 if self.session.reintegrating else self._wait_time())
             if task is None and self.queue.closed:
                 return
             try:
@@ -339,6 +345,8 @@ class MapWorker:
                         self._changed()
                 elif task is not None:
                     self._execute(task)
+                if self.session.reintegrating and not self.session.reintegration_step():
+                    self._changed()  # the re-integrated state was swapped in
                 self.stats.update(queue_length=self.keyframes_waiting)
                 self._maybe_publish()
                 self._maybe_save()
