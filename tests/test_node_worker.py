@@ -180,7 +180,7 @@ def test_map_update_by_ids_and_unchanged_maps_are_skipped():
         worker.stop()
     assert worker.stats.maps_unchanged == 1 and worker.stats.map_updates == 1
     np.testing.assert_array_equal(after, before[::-1])  # evidence followed the ids
-    assert any("evidence by ids" in msg for _, msg in log.lines)
+    assert any(f"{len(old)} new by id, 0 by position; motion by ids" in msg for _, msg in log.lines)
 
 
 def test_same_geometry():
