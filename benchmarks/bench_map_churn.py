@@ -83,6 +83,50 @@ def run_case(gmap, keyframes, name: str, ids: bool, poses: bool) -> dict:
     return row
 
 
+def tiled(gmap, n: int):
+    """office_0 repeated side by side (x) until it holds n Gaussians: a larger map, the same keyframes."""
+    reps = -(-n // len(gmap))
+    width = float(np.ptp(gmap.means[:, 0])) + 1.0
+    idx = np.arange(n) % len(gmap)
+    shift = np.zeros((n, 3), np.float32)
+    shift[:, 0] = (np.arange(n) // len(gmap)) * width
+    out = gmap.subset(idx)
+    return replace(out, means=out.means + shift, ids=np.arange(n, dtype=np.int64)), reps
+
+
+def update_cost(gmap, keyframes, n: int, repeats: int = 3) -> dict:
+    """Seconds of a map update (session.add_map: checks, registration, transfer) and of the object geometry,
+    as ratios to one keyframe's integration, at n Gaussians."""
+    from monovoc_ros.core.session import MappingSession
+
+    big, _ = tiled(gmap, n)
+    row = {"gaussians": n}
+    for ids in (True, False):
+        base = big if ids else replace(big, ids=None)
+        session = MappingSession()
+        session.add_map(base)
+        kf_s = []
+        for kf in keyframes[:8]:
+            session.add_keyframe(kf)
+            kf_s.append(session.integrate_next().seconds)
+        keyframe_s = float(np.median(kf_s[3:]))
+        update_s = []
+        for r in range(repeats):
+            new = churn.densify(session.mapper.gaussians, split=0.02, prune=0.01, seed=r, keep_ids=ids).gaussians
+            start = time.perf_counter()
+            assert session.add_map(new)
+            update_s.append(time.perf_counter() - start)
+        key = "with_ids" if ids else "without_ids"
+        row[f"keyframe_ms_{key}"] = round(1e3 * keyframe_s, 1)
+        row[f"update_ms_{key}"] = round(1e3 * float(np.median(update_s)), 1)
+        row[f"ratio_{key}"] = round(float(np.median(update_s)) / keyframe_s, 1)
+        result = session.mapper.result()
+        start = time.perf_counter()
+        result.objects(session.mapper.gaussians)
+        row[f"object_geometry_ms_{key}"] = round(1e3 * (time.perf_counter() - start), 1)
+    return row
+
+
 def load(source: str):
     seq = offline.open_source(str(REPLICA) if source == "replica" else source)
     return seq.load_gaussians(), [seq.keyframe(i) for i in range(len(seq))]
@@ -94,8 +138,14 @@ def main() -> None:
     parser.add_argument("--churns", default=",".join(CHURNS))
     parser.add_argument("--ids", default="no,yes")
     parser.add_argument("--poses", default="no,yes")
+    parser.add_argument("--scales", default="200000,1000000,2000000", help="map update cost at these sizes ('' = none)")
     args = parser.parse_args()
-    out = {"cases": []}
+    out = {"cases": [], "update_cost": []}
+    if args.scales and (REPLICA / "traj.txt").exists():
+        gmap, keyframes = load("replica")
+        for n in args.scales.split(","):
+            out["update_cost"].append(update_cost(gmap, keyframes, int(n)))
+            print(json.dumps(out["update_cost"][-1]), file=sys.stderr)
     for source in args.sources.split(","):
         if source == "replica" and not (REPLICA / "traj.txt").exists():
             print(f"skipping replica: {REPLICA} not present", file=sys.stderr)

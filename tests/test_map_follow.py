@@ -154,3 +154,36 @@ def test_mapper_refuses_an_absurd_update_and_keeps_its_state():
     # A real loop closure is applied and the labelled evidence carried over.
     assert session.add_map(churn.loop_closure(scene.gaussians).gaussians)
     assert session.stats.map_update_carried_share > 0.99
+
+
+def test_kernels_equal_their_plain_twins():
+    from monovoc_ros.core.gaussians import covariances_reference
+    from monovoc_ros.core.map_follow import nearest_within_reference
+
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-1, 1, (20000, 3))
+    queries = np.concatenate([pts[:3000] + rng.normal(0, 0.01, (3000, 3)), rng.uniform(-1.5, 1.5, (3000, 3))])
+    radius = rng.uniform(0.0, 0.12, len(queries))
+    fast = nearest_within(pts, queries, radius, cell=0.03)
+    plain = nearest_within_reference(pts, queries, radius)
+    np.testing.assert_array_equal(fast >= 0, plain >= 0)
+    hit = fast >= 0
+    d_fast = np.linalg.norm(pts[fast[hit]] - queries[hit], axis=1)
+    d_plain = np.linalg.norm(pts[plain[hit]] - queries[hit], axis=1)
+    np.testing.assert_array_equal(d_fast, d_plain)  # the same nearest (ties may name another row)
+    assert hit.sum() > 2000
+    # A radius many cells wide still finds the nearest point (the ring search runs farther out).
+    far = np.array([[5.0, 5.0, 5.0]])
+    assert (
+        nearest_within(pts, far, np.array([20.0]), cell=0.03)[0]
+        == nearest_within_reference(pts, far, np.array([20.0]))[0]
+    )
+
+    scene = small_scene()
+    motion = estimate_motion(scene.gaussians.means, churn.drift_correction(scene.gaussians).gaussians.means)
+    assert np.any(motion.offsets)
+    np.testing.assert_allclose(motion.apply(pts), motion.apply_reference(pts), rtol=0, atol=1e-12)
+
+    g = scene.gaussians
+    plain_cov = covariances_reference(g.quats, g.scales)
+    np.testing.assert_allclose(g.covariances, plain_cov, rtol=0, atol=1e-6 * np.abs(plain_cov).max())  # float32 ulps

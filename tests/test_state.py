@@ -193,5 +193,3 @@ def test_carried_over_takes_the_chosen_rows():
     np.testing.assert_array_equal(new.color_sum, [[9, 10, 11], [0, 0, 0], [3, 4, 5], [3, 4, 5]])
     np.testing.assert_array_equal(new.stamps_ns, [7])
     assert len(state.carried_over(np.zeros(0, np.int64), None)) == 0
-    with pytest.raises(ValueError, match="unique"):
-        state.carried_over(np.array([0, 1]), np.array([1, 1]))

@@ -13,6 +13,7 @@ from functools import cached_property
 import numpy as np
 
 from monovoc_ros.core.camera import quat_wxyz_to_matrix
+from monovoc_ros.core.map_follow_kernels import covariances as kernel_covariances
 
 
 def _frozen(a: np.ndarray | None, dtype, shape_tail: tuple, name: str, n: int | None) -> np.ndarray | None:
@@ -87,14 +88,10 @@ class GaussianMap:
     def covariances(self) -> np.ndarray:
         """World-frame 3D covariances as (N, 6) float32: xx, xy, xz, yy, yz, zz.
 
-        Computed once per map (not per keyframe): Sigma = R S S^T R^T with S = diag(scales).
+        Computed once per map (not per keyframe): Sigma = R S S^T R^T with S = diag(scales), by a numba
+        kernel (core.map_follow_kernels; plain twin `covariances_reference`).
         """
-        R = quat_wxyz_to_matrix(self.quats)
-        M = R * self.scales.astype(np.float64)[:, None, :]
-        cov = M @ np.swapaxes(M, 1, 2)
-        out = np.stack(
-            [cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1
-        ).astype(np.float32)
+        out = kernel_covariances(self.quats, self.scales) if len(self) else np.zeros((0, 6), np.float32)
         out.setflags(write=False)
         return out
 
@@ -102,6 +99,16 @@ class GaussianMap:
     def nbytes(self) -> int:
         arrays = [self.means, self.scales, self.quats, self.opacities, self.colors, self.ids, self.semantics]
         return sum(a.nbytes for a in arrays if a is not None) + sum(v.nbytes for v in self.extra.values())
+
+
+def covariances_reference(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """Plain twin of `GaussianMap.covariances`: (N, 6) float32 from quats (N, 4) and scales (N, 3)."""
+    R = quat_wxyz_to_matrix(quats)
+    M = R * np.asarray(scales, np.float64)[:, None, :]
+    cov = M @ np.swapaxes(M, 1, 2)
+    return np.stack(
+        [cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1
+    ).astype(np.float32)
 
 
 def same_geometry(a: GaussianMap, b: GaussianMap) -> bool:

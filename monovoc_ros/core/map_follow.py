@@ -24,10 +24,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map_follow_kernels import grid_nearest
 from monovoc_ros.core.map_motion import MapMotion, MotionConfig, estimate_motion
 
-# Rows moved by the motion per chunk (bounds the trilinear interpolation's temporaries).
-_CHUNK = 131072
+# Ids up to this many times the map's size are looked up in a table (SLAM ids are counters), others sorted.
+_ID_TABLE_FACTOR = 8
 
 
 @dataclass(frozen=True)
@@ -49,8 +50,14 @@ class FollowResult:
     refusal: str = ""  # why the update must not be applied; "" when it may
 
 
-def nearest_within(points: np.ndarray, queries: np.ndarray, radius: np.ndarray) -> np.ndarray:
-    """(Q,) int64: per query (Q, 3) the row of its nearest point (N, 3) within its own radius (Q,), or -1."""
+def nearest_within(points: np.ndarray, queries: np.ndarray, radius: np.ndarray, cell: float = 0.03) -> np.ndarray:
+    """(Q,) int64: per query (Q, 3) the row of its nearest point (N, 3) within its own radius (Q,), or -1
+    (numba grid search; `cell` metres about the typical radius)."""
+    return grid_nearest(points, queries, radius, cell)
+
+
+def nearest_within_reference(points: np.ndarray, queries: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Plain twin of `nearest_within` (scipy's cKDTree)."""
     out = np.full(len(queries), -1, np.int64)
     if not len(points) or not len(queries):
         return out
@@ -61,17 +68,28 @@ def nearest_within(points: np.ndarray, queries: np.ndarray, radius: np.ndarray) 
     return out
 
 
-def moved_means(motion: MapMotion, means: np.ndarray) -> np.ndarray:
-    """(N, 3) float64 `means` moved by `motion`, in chunks."""
-    out = np.empty((len(means), 3))
-    for start in range(0, len(means), _CHUNK):
-        out[start : start + _CHUNK] = motion.apply(means[start : start + _CHUNK])
+def id_partners(old_ids: np.ndarray, new_ids: np.ndarray) -> np.ndarray:
+    """(M,) int64: per new id the row of the same id in old_ids (N,), or -1 (both unique)."""
+    out = np.full(len(new_ids), -1, np.int64)
+    if not len(old_ids) or not len(new_ids):
+        return out
+    lo = int(min(old_ids.min(), new_ids.min()))
+    span = int(max(old_ids.max(), new_ids.max())) - lo + 1
+    if span <= _ID_TABLE_FACTOR * (len(old_ids) + len(new_ids)):
+        table = np.full(span, -1, np.int64)
+        table[old_ids - lo] = np.arange(len(old_ids))
+        return table[new_ids - lo]
+    order = np.argsort(old_ids)
+    pos = np.searchsorted(old_ids, new_ids, sorter=order).clip(0, len(old_ids) - 1)
+    cand = order[pos]
+    hit = old_ids[cand] == new_ids
+    out[hit] = cand[hit]
     return out
 
 
 def transfer_radius(new: GaussianMap, rows: np.ndarray, config: FollowConfig) -> np.ndarray:
     """(len(rows),) float64 transfer radius of the new Gaussians `rows`."""
-    largest = new.scales[rows].max(axis=1).astype(np.float64) if len(rows) else np.zeros(0)
+    largest = new.scales.max(axis=1)[rows].astype(np.float64) if len(rows) else np.zeros(0)
     return np.minimum(config.radius + config.scale_factor * largest, config.max_radius)
 
 
@@ -80,14 +98,10 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
     config = config or FollowConfig()
     sources = np.full(len(new), -1, np.int64)
     old_rows = new_rows = None
-    if old.ids is not None and new.ids is not None and len(old) and len(new):
-        order = np.argsort(old.ids)
-        pos = np.searchsorted(old.ids, new.ids, sorter=order).clip(0, len(old) - 1)
-        cand = order[pos]
-        hit = old.ids[cand] == new.ids
-        sources[hit] = cand[hit]
-        new_rows = np.flatnonzero(hit)
-        old_rows = cand[hit]
+    if old.ids is not None and new.ids is not None:
+        sources = id_partners(old.ids, new.ids)
+        new_rows = np.flatnonzero(sources >= 0)
+        old_rows = sources[new_rows]
     motion = estimate_motion(old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows)
     by_id = int(np.count_nonzero(sources >= 0))
     refusal = _refusal(motion, old, config)
@@ -95,8 +109,8 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
         return FollowResult(sources, motion, by_id, 0, refusal)
     rest = np.flatnonzero(sources < 0)
     if rest.size:
-        moved = old.means if motion.by == "identity" else moved_means(motion, old.means)
-        sources[rest] = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config))
+        moved = old.means if motion.by == "identity" else motion.apply(old.means)
+        sources[rest] = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config), config.radius)
     return FollowResult(sources, motion, by_id, int(np.count_nonzero(sources >= 0)) - by_id)
 
 

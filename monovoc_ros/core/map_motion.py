@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from monovoc_ros.core.camera import validate_pose
+from monovoc_ros.core.map_follow_kernels import move_points
 
 
 @dataclass(frozen=True)
@@ -33,9 +34,11 @@ class MotionConfig:
     spacing: float = 1.0  # metres between the nodes of the smooth field
     rigid_iterations: int = 30
     field_iterations: int = 20
+    rigid_tolerance: float = 1e-4  # ICP stops when an iteration changes R and t by less (rad + m)
+    # Metres: the field is settled when 90% of its supported nodes move less than this in an iteration.
+    field_tolerance: float = 5e-4
     start_trim: float = 0.5  # metres: pairs farther apart are outliers in the first ICP iteration
     min_trim: float = 0.02  # metres: the trim distance never shrinks below this
-    still_distance: float = 0.005  # metres: 90th percentile nearest-neighbour distance of a map that did not move
     max_rms: float = 0.03  # metres: a fit leaving a larger inlier residual did not converge
     smoothing: float = 10.0  # pseudo-points pulling each field node towards its neighbours' mean
     seed: int = 0
@@ -61,6 +64,17 @@ class MapMotion:
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """(N, 3) float64: `points` (N, 3) of the old map where the motion puts them in the new one."""
+
+        def c(a: np.ndarray) -> np.ndarray:  # one compiled signature: C-contiguous float64 everywhere
+            return np.ascontiguousarray(a, np.float64)
+
+        points = c(points).reshape(-1, 3)
+        return move_points(
+            points, c(self.rotation), c(self.translation), c(self.offsets), c(self.origin), float(self.spacing)
+        )
+
+    def apply_reference(self, points: np.ndarray) -> np.ndarray:
+        """Plain twin of `apply` (numpy; tests hold them equal)."""
         q = np.asarray(points, np.float64) @ self.rotation.T + self.translation
         return q + self.field_at(q)
 
@@ -135,8 +149,9 @@ class _Targets:
         self.known = known
         if known is None:
             rng = np.random.default_rng(config.seed + 1)
-            if len(new) > config.target_sample:
-                new = new[rng.choice(len(new), config.target_sample, replace=False)]
+            if len(new) > config.target_sample:  # every k-th after a random start: a permutation costs more
+                step = len(new) / config.target_sample
+                new = new[(rng.random() * step + step * np.arange(config.target_sample)).astype(np.int64)]
             self.points = new
             self.tree = cKDTree(new)
 
@@ -146,7 +161,7 @@ class _Targets:
             target = self.known
             inlier = np.linalg.norm(target - moved, axis=1) <= trim
             return inlier, target
-        d, i = self.tree.query(moved, k=1, distance_upper_bound=trim, workers=2)
+        d, i = self.tree.query(moved, k=1, distance_upper_bound=trim)  # one thread: ~12k small queries
         inlier = np.isfinite(d)
         target = np.where(inlier[:, None], self.points[np.minimum(i, len(self.points) - 1)], moved)
         return inlier, target
@@ -181,10 +196,6 @@ def estimate_motion(
         src = old[rng.choice(len(old), min(config.sample, len(old)), replace=False)]
         targets = _Targets(new, None, config)
         by = "registration"
-        inlier, target = targets.pairs(src, config.start_trim)
-        dist = np.linalg.norm(target - src, axis=1)[inlier]
-        if inlier.mean() > 0.9 and np.percentile(dist, 90) <= config.still_distance:
-            return MapMotion(rms=float(np.sqrt(np.mean(dist**2))), inliers=float(inlier.mean()))
 
     R, t = np.eye(3), np.zeros(3)
     trim = config.start_trim if not known else np.inf
@@ -200,7 +211,7 @@ def estimate_motion(
         res = np.linalg.norm(src[inlier] @ R.T + t - target[inlier], axis=1)
         if not known:
             trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01)
-        if step < 1e-6:
+        if step < config.rigid_tolerance:
             converged = True
             break
     rigid_moved = src @ R.T + t
@@ -222,7 +233,12 @@ def estimate_motion(
         neighbour = _neighbour_mean(offsets).reshape(-1, 3)
         # Least squares per node with a pull towards the neighbours' mean: smooth, and defined where no point is.
         updated = (num + den[:, None] * cur + config.smoothing * neighbour) / (den + config.smoothing)[:, None]
+        supported = den > 0
+        moved_by = np.linalg.norm(updated - cur, axis=1)[supported]
+        change = float(np.percentile(moved_by, 90)) if moved_by.size else 0.0
         offsets = updated.reshape(offsets.shape)
+        if change < config.field_tolerance:
+            break
         if not known:
             res = np.linalg.norm(r[inlier], axis=1)
             trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01) if res.size else trim
