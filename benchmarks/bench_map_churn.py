@@ -4,8 +4,9 @@ For each source and churn: the first half of the keyframes is integrated, then t
 arrives (monovoc_ros.synthetic.churn, seeded; re-ordered, with or without ids; optionally followed by
 the corrected keyframe poses as a `KeyframePoses` event), then the second half with the corrected poses.
 Scores (splats protocol, every 3rd keyframe, poses as corrected): the first half right before the update,
-right after it, and the final map, against the same events without churn. Then the cost of a map update
-against one keyframe's integration at 200k / 1M / 2M Gaussians (office_0 tiled).
+right after it (the transfer alone), after the re-integration that follows (when the corrected poses, a
+poor transfer or a bent map start one), and the final map, against the same events without churn. Then the
+cost of a map update against one keyframe's integration at 200k / 1M / 2M Gaussians (office_0 tiled).
 
     python benchmarks/bench_map_churn.py                       # everything (README tables)
     python benchmarks/bench_map_churn.py --sources synthetic --churns loop --no-scale
@@ -28,6 +29,7 @@ sys.path.insert(0, str(REPO))
 from monovoc_ros import offline  # noqa: E402
 from monovoc_ros.commands.eval import score  # noqa: E402
 from monovoc_ros.core.keyframe_log import KeyframePoses  # noqa: E402
+from monovoc_ros.core.mapping import MapperConfig  # noqa: E402
 from monovoc_ros.synthetic import churn  # noqa: E402
 
 REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
@@ -61,7 +63,8 @@ def run_case(gmap, keyframes, name: str, ids: bool, poses: bool) -> dict:
     before, _ = offline.map_events([gmap, *first])
     start = time.perf_counter()
     events = [gmap, *first, churned.gaussians]
-    after, stats = offline.map_events(events)
+    # The transfer alone: no re-integration of the map's own accord (keyframe poses still re-integrate).
+    after, stats = offline.map_events(events, MapperConfig(reintegrate_below=0.0))
     row = {
         "churn": name,
         "ids": ids,
@@ -69,14 +72,17 @@ def run_case(gmap, keyframes, name: str, ids: bool, poses: bool) -> dict:
         "first_half_before": _miou(before, first),
         "first_half_after_update": _miou(after, moved_first),
         "carried_share": round(stats.map_update_carried_share, 4),
+        "update_ms": round(stats.ms_map_update_last, 1),
         "rejected": dict(stats.rejected),
     }
     if poses:
-        corrected = KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in moved_first))
-        events.append(corrected)
-        rebuilt, stats = offline.map_events(events)
+        events.append(KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in moved_first)))
+    rebuilt, stats = offline.map_events(events)
+    if stats.reintegrations:
         row["first_half_after_reintegration"] = _miou(rebuilt, moved_first)
         row["reintegration_s"] = round(stats.ms_reintegration_total / 1e3, 2)
+        row["reintegrated_keyframes"] = stats.keyframes_reintegrated
+        row["reintegration_kf_per_s"] = round(stats.keyframes_reintegrated / (stats.ms_reintegration_total / 1e3), 1)
     final, _ = offline.map_events([*events, *moved_second])
     row["final"] = _miou(final, moved_first + moved_second)
     row["wall_s"] = round(time.perf_counter() - start, 1)
@@ -146,7 +152,7 @@ def main() -> None:
         for n in args.scales.split(","):
             out["update_cost"].append(update_cost(gmap, keyframes, int(n)))
             print(json.dumps(out["update_cost"][-1]), file=sys.stderr)
-    for source in args.sources.split(","):
+    for source in filter(None, args.sources.split(",")):
         if source == "replica" and not (REPLICA / "traj.txt").exists():
             print(f"skipping replica: {REPLICA} not present", file=sys.stderr)
             continue

@@ -144,3 +144,16 @@ def test_poor_transfer_reintegrates_with_poses_moved_by_the_map():
     fresh, _ = offline.map_events([closure.gaussians, *moved], config)
     agree = np.mean(mapper.result().object_ids == fresh.result().object_ids)
     assert agree > 0.99
+
+
+def test_poses_of_keyframes_not_integrated_yet_apply_when_they_are():
+    """Live, a keyframe can still be in the synchronizer when the SLAM's path arrives: it takes its corrected
+    pose when integrated, and the map ends as the offline one that saw the path after it."""
+    scene, kfs = small_scene(), _keyframes(6)
+    corrected = [_shifted(kf) for kf in kfs]
+    poses = KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in corrected))
+    live, live_stats = offline.map_events([scene.gaussians, *kfs[:4], poses, *kfs[4:]])
+    after, _ = offline.map_events([scene.gaussians, *kfs, poses])
+    _same_state(live, after)
+    assert live_stats.reintegrations == 1
+    np.testing.assert_array_equal(live.keyframe_log.entries[5].cam_to_world, corrected[5].cam_to_world)

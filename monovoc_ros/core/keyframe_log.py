@@ -91,9 +91,10 @@ class KeyframeLog:
             encode_mask(keyframe.mask),
             tuple(keyframe.segments) if keyframe.segments else None,
         )
-        self._append(entry)
+        self.append(entry)
 
-    def _append(self, entry: LoggedKeyframe) -> None:
+    def append(self, entry: LoggedKeyframe) -> None:
+        """Logs an entry as it is (re-integration: the entry it integrated, its mask not encoded again)."""
         self.entries.append(entry)
         self.nbytes += entry.nbytes
         while self.nbytes > self.max_bytes and self.entries:
@@ -161,7 +162,7 @@ class KeyframeLog:
                     raise ValueError("inconsistent array lengths")
                 for k in range(n):
                     start = int(ends[k - 1]) if k else 0
-                    log._append(
+                    log.append(
                         LoggedKeyframe(
                             int(data["index"][k]),
                             int(data["stamps_ns"][k]),

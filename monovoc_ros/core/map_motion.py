@@ -18,6 +18,7 @@ few inliers, or a displacement beyond `max_displacement` metres.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,7 +30,8 @@ from monovoc_ros.core.map_follow_kernels import move_points
 
 @dataclass(frozen=True)
 class MotionConfig:
-    sample: int = 12000  # old centres the registration uses (seeded random sample)
+    sample: int = 12000  # old centres the smooth field is fitted to (seeded random sample)
+    rigid_sample: int = 4000  # of which the rigid ICP uses the first this many
     target_sample: int = 250_000  # new centres searched (sampled beyond this many)
     spacing: float = 1.0  # metres between the nodes of the smooth field
     rigid_iterations: int = 30
@@ -80,6 +82,11 @@ class MapMotion:
 
     def rigid_apply(self, points: np.ndarray) -> np.ndarray:
         return np.asarray(points, np.float64) @ self.rotation.T + self.translation
+
+    @property
+    def bend(self) -> float:
+        """Metres: the largest offset of the smooth field, how far the map bends beyond one rigid motion."""
+        return float(np.linalg.norm(self.offsets, axis=-1).max()) if self.offsets.size else 0.0
 
     @property
     def rotation_deg(self) -> float:
@@ -155,6 +162,13 @@ class _Targets:
             self.points = new
             self.tree = cKDTree(new)
 
+    def subset(self, rows: slice) -> _Targets:
+        """The targets of the sample's rows `rows` (known partners are per sample row; a tree is shared)."""
+        out = copy.copy(self)
+        if self.known is not None:
+            out.known = self.known[rows]
+        return out
+
     def pairs(self, moved: np.ndarray, trim: float) -> tuple[np.ndarray, np.ndarray]:
         """(inlier mask (S,), target (S, 3)) for the sample at its current positions `moved` (S, 3)."""
         if self.known is not None:
@@ -200,15 +214,17 @@ def estimate_motion(
     R, t = np.eye(3), np.zeros(3)
     trim = config.start_trim if not known else np.inf
     converged = False
+    rigid = slice(0, config.rigid_sample)  # the sample is random: its first rows are a smaller random sample
+    rigid_targets = targets.subset(rigid)
     for _ in range(config.rigid_iterations):
-        moved = src @ R.T + t
-        inlier, target = targets.pairs(moved, trim)
+        moved = src[rigid] @ R.T + t
+        inlier, target = rigid_targets.pairs(moved, trim)
         if inlier.sum() < 3:
             return MapMotion(converged=False, inliers=float(inlier.mean()), by=by)
-        R_new, t_new = kabsch(src[inlier], target[inlier])
+        R_new, t_new = kabsch(src[rigid][inlier], target[inlier])
         step = np.linalg.norm(R_new - R) + np.linalg.norm(t_new - t)
         R, t = R_new, t_new
-        res = np.linalg.norm(src[inlier] @ R.T + t - target[inlier], axis=1)
+        res = np.linalg.norm(src[rigid][inlier] @ R.T + t - target[inlier], axis=1)
         if not known:
             trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01)
         if step < config.rigid_tolerance:

@@ -25,7 +25,7 @@ from monovoc_ros.core.association import (
 )
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.keyframe_log import DEFAULT_MAX_BYTES, KeyframeLog
+from monovoc_ros.core.keyframe_log import DEFAULT_MAX_BYTES, KeyframeLog, LoggedKeyframe
 from monovoc_ros.core.map_follow import FollowConfig, follow_map
 from monovoc_ros.core.map_motion import MapMotion
 from monovoc_ros.core.objects import ObjectGeometry, object_geometry
@@ -38,8 +38,13 @@ from monovoc_ros.core.state import GaussianEvidence, SemanticState
 from monovoc_ros.core.votes import DEFAULT_SLOTS, VoteState
 
 VOID_POLICIES = ("skip", "include")
+# Metres: a map update bending the map this much re-integrates (its evidence was rendered on the unbent map).
+REINTEGRATE_BEND_M = 0.02
 # Metres around a logged camera whose Gaussians define how the map moved there (its pose follows them).
 _POSE_SUPPORT_M = 4.0
+# Logged poses follow a map whose motion moves some part of it at least this far (metres); below it the
+# estimated motion is the noise of a densified map, and moving poses by it would make them random-walk.
+_POSE_MOVE_MIN_M = 0.01
 SEMANTIC_MODES = ("vote", "scd")
 # Per semantic mode, the MapperConfig fields that change what a keyframe adds to the evidence.
 _EVIDENCE_SETTINGS = {
@@ -85,8 +90,9 @@ class MapperConfig:
     association_scale: int = 2
     # Bytes the keyframe log (core.keyframe_log: masks, poses, segments for re-integration) may hold.
     keyframe_log_bytes: int = DEFAULT_MAX_BYTES
-    # A map update that carries the evidence of less than this share of the labelled Gaussians is
-    # followed by a re-integration of the logged keyframes (poses moved with the map); 0 never.
+    # A map update that carries the evidence of less than this share of the labelled Gaussians, or that
+    # bends the map (core.map_motion: a field offset of REINTEGRATE_BEND_M or more), is followed by a
+    # re-integration of the logged keyframes with their poses moved with the map; 0: never.
     reintegrate_below: float = 0.9
 
     def __post_init__(self) -> None:
@@ -200,13 +206,25 @@ class MapUpdateReport:
         total = self.carried + self.dropped
         return self.carried / total if total else 1.0
 
+    def reintegration_reason(self, below: float) -> str:
+        """Why this update's transfer should be followed by a re-integration ("" when it should not)."""
+        if below <= 0:
+            return ""
+        if self.carried_share < below:
+            return (
+                f"map update carried {self.carried_share:.0%} of the labelled evidence (< reintegrate_below {below:g})"
+            )
+        if self.motion.bend >= REINTEGRATE_BEND_M:
+            return f"map update bends the map by {100 * self.motion.bend:.0f} cm"
+        return ""
+
     def describe(self) -> str:
         m = self.motion
         return (
             f"{self.gaussians} Gaussians; evidence of {self.carried} of {self.carried + self.dropped} labelled "
             f"Gaussians carried ({self.carried_share:.1%}), {self.by_id} new by id, {self.by_position} by position; "
             f"motion by {m.by}: {m.rotation_deg:.2f} deg, {np.linalg.norm(m.translation):.3f} m rigid, "
-            f"residual {1e3 * m.rms:.1f} mm"
+            f"bend {1e3 * m.bend:.0f} mm, residual {1e3 * m.rms:.1f} mm"
         )
 
 
@@ -252,8 +270,9 @@ class SemanticMapper:
     def n_keyframes(self) -> int:
         return len(self.state.stamps_ns)
 
-    def integrate(self, keyframe: Keyframe) -> IntegrationReport:
-        """Adds one keyframe's evidence. Raises DuplicateKeyframeError (state untouched) on a repeated stamp."""
+    def integrate(self, keyframe: Keyframe, logged: LoggedKeyframe | None = None) -> IntegrationReport:
+        """Adds one keyframe's evidence. Raises DuplicateKeyframeError (state untouched) on a repeated stamp.
+        `logged`: the keyframe's log entry when it comes from a log (re-integration), kept as it is."""
         if self.state.has_stamp(keyframe.stamp_ns):
             raise DuplicateKeyframeError(f"keyframe stamp {keyframe.stamp_ns} was already integrated")
         start = time.perf_counter()
@@ -267,7 +286,10 @@ class SemanticMapper:
         report.association, report.keyframe = association, keyframe
         if keyframe.segments:  # a segment's id is now its object's id
             self.segment_labels.add_keyframe(keyframe.segments, {s.id: s.id for s in keyframe.segments})
-        self.keyframe_log.add(given)
+        if logged is None:
+            self.keyframe_log.add(given)
+        else:
+            self.keyframe_log.append(logged)
         self._result = None
         report.seconds = time.perf_counter() - start
         return report
@@ -427,11 +449,11 @@ class SemanticMapper:
 
     def _move_logged_poses(self, motion: MapMotion) -> None:
         """Moves the logged keyframe poses with the map (each by the motion's rigid fit around its camera)."""
-        if motion.by == "identity":
-            self.keyframe_log.move_poses(lambda T: T)
-            return
         means = self.gaussians.means
         support = means[:: max(1, len(means) // 20000)].astype(np.float64)
+        if motion.by == "identity" or motion.max_displacement(support) < _POSE_MOVE_MIN_M:
+            self.keyframe_log.move_poses(lambda T: T)  # densify / prune noise: poses stay (no random walk)
+            return
 
         def move(T: np.ndarray) -> np.ndarray:
             near = support[np.linalg.norm(support - T[:3, 3], axis=1) < _POSE_SUPPORT_M]

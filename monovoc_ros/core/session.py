@@ -24,7 +24,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -167,7 +167,7 @@ class Reintegration:
         entry = self.log.entries[self._position]
         self._done += 1
         try:
-            self.mapper.integrate(entry.keyframe())
+            self.mapper.integrate(entry.keyframe(), logged=entry)
         except ValueError:
             self.refused += 1
         self.seconds += time.perf_counter() - start
@@ -207,6 +207,9 @@ class MappingSession:
         self._save_listeners: list[SaveListener] = []
         self._load_checks: list[LoadCheck] = []
         self._job: Reintegration | None = None
+        # Corrected poses of keyframes not integrated yet (live, a keyframe can still be in the synchronizer
+        # when the SLAM's path arrives): applied when that keyframe is integrated. The newest path wins.
+        self._pending_poses: dict[int, np.ndarray] = {}
         self._refresh_map_stats()
 
     # ------------------------------------------------------------------ state
@@ -269,6 +272,9 @@ class MappingSession:
             return None
         mapper, keyframe = self._mapper, self._waiting.popleft()
         assert mapper is not None
+        corrected = self._pending_poses.pop(keyframe.stamp_ns, None)
+        if corrected is not None:
+            keyframe = replace(keyframe, cam_to_world=corrected)
         try:
             report = mapper.integrate(keyframe)
         except DuplicateKeyframeError:
@@ -323,33 +329,36 @@ class MappingSession:
             self.log.info(f"map update {name}: {report.describe()}")
             if self._job is not None:
                 self._start_reintegration(f"{self._job.reason}, restarted on the new map")
-            elif report.carried_share < self.config.reintegrate_below and self._mapper.n_keyframes:
-                self._start_reintegration(
-                    f"map update carried {report.carried_share:.0%} of the labelled evidence "
-                    f"(< reintegrate_below {self.config.reintegrate_below:g})"
-                )
+            elif self._mapper.n_keyframes:
+                reason = report.reintegration_reason(self.config.reintegrate_below)
+                if reason:
+                    self._start_reintegration(reason)
         self._refresh_map_stats()
         return True
 
     # ------------------------------------------------------------------ corrected poses, re-integration
 
     def add_keyframe_poses(self, poses: KeyframePoses, name: str = "") -> int:
-        """Corrected poses of logged keyframes (the SLAM's keyframe path); returns how many moved. Any moved
-        keyframe starts a re-integration of the log against the current map. Refused (bad_keyframe_poses,
-        nothing changed) when a pose is not a finite rigid transform or moves a keyframe absurdly far."""
+        """Corrected keyframe poses (the SLAM's keyframe path); returns how many logged keyframes moved. Any
+        moved keyframe starts a re-integration of the log against the current map; keyframes not integrated
+        yet take their corrected pose when they are. Refused (bad_keyframe_poses, nothing changed) when a
+        pose is not a finite rigid transform or moves a keyframe absurdly far."""
         mapper = self._mapper
-        if mapper is None or not poses.poses:
+        if not poses.poses:
             return 0
-        logged = {e.stamp_ns: e.cam_to_world for e in mapper.keyframe_log.entries}
+        logged = {} if mapper is None else {e.stamp_ns: e.cam_to_world for e in mapper.keyframe_log.entries}
         try:
-            for stamp, T in poses.poses:
-                old = logged.get(int(stamp))
-                T = validate_pose(T, what=f"keyframe pose {stamp}")
+            checked = [(int(stamp), validate_pose(T, what=f"keyframe pose {stamp}")) for stamp, T in poses.poses]
+            for stamp, T in checked:
+                old = logged.get(stamp)
                 if old is not None and np.linalg.norm(old[:3, 3] - T[:3, 3]) > MAX_POSE_CORRECTION_M:
                     raise ValueError(f"keyframe {stamp} would move {np.linalg.norm(old[:3, 3] - T[:3, 3]):.1f} m")
         except ValueError as exc:
             self.stats.reject("bad_keyframe_poses")
             self.log.warning(f"keyframe poses {name} refused: {exc}")
+            return 0
+        self._pending_poses = {stamp: T for stamp, T in checked if stamp not in logged}
+        if mapper is None:
             return 0
         changed = mapper.keyframe_log.set_poses(poses)
         if changed:
@@ -402,6 +411,7 @@ class MappingSession:
     def reset(self, keep_gaussians: bool) -> None:
         """Clears the semantic state (keep_gaussians) or the whole map; queued keyframes stay queued."""
         self._cancel_reintegration()
+        self._pending_poses = {}
         if keep_gaussians and self._mapper is not None:
             self._mapper = SemanticMapper(self._mapper.gaussians, self.config)
         else:

@@ -28,6 +28,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from monovoc_ros.core.map_follow_kernels import gather_rows
+
 # Written into every saved file (beside the store's FORMAT) so that a foreign .npz is recognised as such.
 _FORMAT_VERSION = 1
 
@@ -184,7 +186,7 @@ class GaussianEvidence:
         for name in self.ARRAYS:
             empty_row = getattr(template, name)[0]
             if len(self):
-                values = getattr(self, name)[rows]
+                values = _gathered(getattr(self, name), rows)
                 values[miss] = empty_row
             else:
                 values = np.repeat(getattr(template, name), len(rows), axis=0)
@@ -280,6 +282,12 @@ class SemanticState(GaussianEvidence):
         seen = self.observed
         out[seen] = self.color_sum[seen] / self.weight_sum[seen, None]
         return out
+
+
+def _gathered(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """a[rows] for a 1D or 2D array (the parallel gather of core.map_follow_kernels)."""
+    out = gather_rows(np.ascontiguousarray(a).reshape(len(a), -1), rows)
+    return out.reshape((len(rows), *a.shape[1:]))
 
 
 def _fsync_dir(directory: Path) -> None:

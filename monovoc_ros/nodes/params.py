@@ -58,7 +58,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("association_scale", _MAPPER.association_scale, "per_frame: the map is rendered at 1/this of the mask resolution to associate segments (1 = full: slower, more exact under noisy segments)", low=1, high=4),
     Param("mask_ids", _MAPPER.mask_ids, "mask ids: 'global' (a color names the same object in every mask) or 'per_frame' (segmenter ids per image, associated with the map's objects; vote mode)", choices=MASK_ID_MODES),
     Param("reassociation_tolerance", _MAPPER.reassociation_tolerance, "map updates: a new Gaussian takes the evidence of the nearest old one (moved with the map) within this (m) plus its own largest scale", low=0),
-    Param("reintegrate_below", _MAPPER.reintegrate_below, "a map update carrying the evidence of less than this share of the labelled Gaussians re-integrates the keyframe log (poses moved with the map); 0 = never", low=0, high=1),
+    Param("reintegrate_below", _MAPPER.reintegrate_below, "a map update carrying the evidence of less than this share of the labelled Gaussians, or bending the map by 2 cm or more, re-integrates the keyframe log (poses moved with the map); 0 = never", low=0, high=1),
     Param("keyframe_log_bytes", _MAPPER.keyframe_log_bytes, "bytes the keyframe log (masks, poses, segments kept for re-integration) may hold; the oldest are dropped beyond", low=0),
     Param("map_update_max_shrink", _WORKER.map_update_max_shrink, "map updates removing a larger share of the Gaussians are refused (counted); 1 = allow all", low=0, high=1),
     Param("queue_size", _WORKER.queue_size, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)", low=1),
