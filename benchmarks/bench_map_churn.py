@@ -33,11 +33,36 @@ from monovoc_ros.core.mapping import MapperConfig  # noqa: E402
 from monovoc_ros.synthetic import churn  # noqa: E402
 
 REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
+
+
+def _identity(T):
+    return np.array(T, np.float64)
+
+
+def _then_update(make):
+    def case(g, ids):
+        out = make(g, ids)
+        return g, _identity, out.gaussians, out.move_pose
+
+    return case
+
+
+def _drift_corrected(g, ids):
+    """Drift correction: the SLAM's map was bent (drifted) while the first half was integrated, with the
+    poses drifted alike; the update brings the true map back (re-ordered) and the true poses."""
+    drifted = churn.drift_correction(g, keep_ids=True)
+    old = drifted.gaussians if ids else replace(drifted.gaussians, ids=None)
+    return old, drifted.move_pose, churn.shuffled(g, keep_ids=ids).gaussians, _identity
+
+
+# name -> (gmap, ids) -> (map before, pose before (true -> SLAM's), map after, pose after)
 CHURNS = {
-    "densify": lambda g, ids: churn.densify(g, keep_ids=ids),
-    "loop": lambda g, ids: churn.loop_closure(g, keep_ids=ids),
-    "bend": lambda g, ids: churn.drift_correction(g, keep_ids=ids),
-    "densify+loop": lambda g, ids: churn.then(churn.densify(g, keep_ids=ids), churn.loop_closure, keep_ids=ids),
+    "densify": _then_update(lambda g, ids: churn.densify(g, keep_ids=ids)),
+    "loop": _then_update(lambda g, ids: churn.loop_closure(g, keep_ids=ids)),
+    "bend": _drift_corrected,
+    "densify+loop": _then_update(
+        lambda g, ids: churn.then(churn.densify(g, keep_ids=ids), churn.loop_closure, keep_ids=ids)
+    ),
 }
 
 
@@ -57,19 +82,20 @@ def run_case(gmap, keyframes, name: str, ids: bool, poses: bool) -> dict:
         gmap = replace(gmap, ids=None)
     elif gmap.ids is None:
         gmap = replace(gmap, ids=np.arange(len(gmap), dtype=np.int64))
-    churned = CHURNS[name](gmap, ids)
-    moved_first = [replace(kf, cam_to_world=churned.move_pose(kf.cam_to_world)) for kf in first]
-    moved_second = [replace(kf, cam_to_world=churned.move_pose(kf.cam_to_world)) for kf in second]
-    before, _ = offline.map_events([gmap, *first])
+    old_map, old_pose, new_map, new_pose = CHURNS[name](gmap, ids)
+    old_first = [replace(kf, cam_to_world=old_pose(kf.cam_to_world)) for kf in first]
+    moved_first = [replace(kf, cam_to_world=new_pose(kf.cam_to_world)) for kf in first]
+    moved_second = [replace(kf, cam_to_world=new_pose(kf.cam_to_world)) for kf in second]
+    before, _ = offline.map_events([old_map, *old_first])
     start = time.perf_counter()
-    events = [gmap, *first, churned.gaussians]
+    events = [old_map, *old_first, new_map]
     # The transfer alone: no re-integration of the map's own accord (keyframe poses still re-integrate).
     after, stats = offline.map_events(events, MapperConfig(reintegrate_below=0.0))
     row = {
         "churn": name,
         "ids": ids,
         "keyframe_poses": poses,
-        "first_half_before": _miou(before, first),
+        "first_half_before": _miou(before, old_first),
         "first_half_after_update": _miou(after, moved_first),
         "carried_share": round(stats.map_update_carried_share, 4),
         "update_ms": round(stats.ms_map_update_last, 1),

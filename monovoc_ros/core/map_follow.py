@@ -102,7 +102,9 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
         sources = id_partners(old.ids, new.ids)
         new_rows = np.flatnonzero(sources >= 0)
         old_rows = sources[new_rows]
-    motion = estimate_motion(old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows)
+    motion = estimate_motion(
+        old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows, new_frames=(new.quats, new.scales)
+    )
     by_id = int(np.count_nonzero(sources >= 0))
     refusal = _refusal(motion, old, config)
     if refusal:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from monovoc_ros.core.camera import validate_pose
+from monovoc_ros.core.camera import quat_wxyz_to_matrix, validate_pose
 from monovoc_ros.core.map_follow_kernels import move_points
 
 
@@ -33,16 +33,18 @@ class MotionConfig:
     sample: int = 12000  # old centres the smooth field is fitted to (seeded random sample)
     rigid_sample: int = 4000  # of which the rigid ICP uses the first this many
     target_sample: int = 250_000  # new centres searched (sampled beyond this many)
-    spacing: float = 1.0  # metres between the nodes of the smooth field
+    spacing: float = 1.5  # metres between the nodes of the smooth field
     rigid_iterations: int = 30
-    field_iterations: int = 20
+    field_iterations: int = 40
     rigid_tolerance: float = 1e-4  # ICP stops when an iteration changes R and t by less (rad + m)
     # Metres: the field is settled when 90% of its supported nodes move less than this in an iteration.
     field_tolerance: float = 5e-4
     start_trim: float = 0.5  # metres: pairs farther apart are outliers in the first ICP iteration
+    field_start_trim: float = 0.3  # metres: the same for the field's first iteration, then times field_trim_decay
+    field_trim_decay: float = 0.75
     min_trim: float = 0.02  # metres: the trim distance never shrinks below this
     max_rms: float = 0.03  # metres: a fit leaving a larger inlier residual did not converge
-    smoothing: float = 10.0  # pseudo-points pulling each field node towards its neighbours' mean
+    smoothing: float = 3.0  # pseudo-points pulling each field node towards its neighbours' mean
     seed: int = 0
 
 
@@ -148,19 +150,29 @@ def _trilinear(offsets: np.ndarray, origin: np.ndarray, spacing: float, points: 
     return np.einsum("nk,nkc->nc", w, offsets[idx[..., 0], idx[..., 1], idx[..., 2]])
 
 
+# Weight of the point-to-point part on flat targets: keeps a node defined where all its surfaces are parallel.
+_SLIDE = 0.05
+
+
 class _Targets:
     """Where each sampled old centre is in the new map: its nearest new centre (registration) or its
     known partner (ids)."""
 
-    def __init__(self, new: np.ndarray, known: np.ndarray | None, config: MotionConfig) -> None:
+    def __init__(
+        self, new: np.ndarray, known: np.ndarray | None, config: MotionConfig, frames: tuple | None = None
+    ) -> None:
         self.known = known
+        self.normals: np.ndarray | None = None  # (T, 3) surface normal per target; zero where not flat
         if known is None:
             rng = np.random.default_rng(config.seed + 1)
+            rows = np.arange(len(new))
             if len(new) > config.target_sample:  # every k-th after a random start: a permutation costs more
                 step = len(new) / config.target_sample
-                new = new[(rng.random() * step + step * np.arange(config.target_sample)).astype(np.int64)]
-            self.points = new
-            self.tree = cKDTree(new)
+                rows = (rng.random() * step + step * np.arange(config.target_sample)).astype(np.int64)
+            self.points = new[rows]
+            self.tree = cKDTree(self.points)
+            if frames is not None:
+                self.normals = surface_normals(frames[0][rows], frames[1][rows])
 
     def subset(self, rows: slice) -> _Targets:
         """The targets of the sample's rows `rows` (known partners are per sample row; a tree is shared)."""
@@ -169,16 +181,29 @@ class _Targets:
             out.known = self.known[rows]
         return out
 
-    def pairs(self, moved: np.ndarray, trim: float) -> tuple[np.ndarray, np.ndarray]:
-        """(inlier mask (S,), target (S, 3)) for the sample at its current positions `moved` (S, 3)."""
+    def pairs(self, moved: np.ndarray, trim: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(inlier mask (S,), target (S, 3), target normal (S, 3) or None) for the sample at its current
+        positions `moved` (S, 3)."""
         if self.known is not None:
             target = self.known
             inlier = np.linalg.norm(target - moved, axis=1) <= trim
-            return inlier, target
+            return inlier, target, None
         d, i = self.tree.query(moved, k=1, distance_upper_bound=trim)  # one thread: ~12k small queries
         inlier = np.isfinite(d)
-        target = np.where(inlier[:, None], self.points[np.minimum(i, len(self.points) - 1)], moved)
-        return inlier, target
+        i = np.minimum(i, len(self.points) - 1)
+        target = np.where(inlier[:, None], self.points[i], moved)
+        return inlier, target, None if self.normals is None else self.normals[i]
+
+
+def surface_normals(quats: np.ndarray, scales: np.ndarray, flat: float = 0.3) -> np.ndarray:
+    """(N, 3) float64 unit normal (the axis of the smallest scale) of each flat Gaussian (smallest scale under
+    `flat` times the middle one), zero for the others. quats (N, 4) wxyz, scales (N, 3)."""
+    order = np.argsort(scales, axis=1)
+    smallest = order[:, 0]
+    R = quat_wxyz_to_matrix(np.asarray(quats, np.float64))
+    normals = R[np.arange(len(R)), :, smallest]
+    s = np.take_along_axis(np.asarray(scales, np.float64), order, axis=1)
+    return np.where((s[:, 0] < flat * s[:, 1])[:, None], normals, 0.0)
 
 
 def estimate_motion(
@@ -188,11 +213,14 @@ def estimate_motion(
     *,
     old_rows: np.ndarray | None = None,
     new_rows: np.ndarray | None = None,
+    new_frames: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> MapMotion:
     """The motion taking the old map's centres `old` (N, 3) to the new map's `new` (M, 3).
 
     `old_rows`, `new_rows` (K,) int64: known correspondences (the same Gaussian id in both maps); when
-    given (K >= 3) they are the only pairs used. Otherwise pairs are nearest neighbours (registration).
+    given (K >= 3) they are the only pairs used. Otherwise pairs are nearest neighbours (registration),
+    and `new_frames` (the new Gaussians' quats (M, 4) and scales (M, 3)) lets the field weigh residuals
+    along the surface normals of flat Gaussians (point-to-plane: sliding along a wall is not evidence).
     """
     config = config or MotionConfig()
     old = np.asarray(old, np.float64)
@@ -208,7 +236,7 @@ def estimate_motion(
         if len(old) < 3 or len(new) < 3:
             return MapMotion(converged=False, inliers=0.0)
         src = old[rng.choice(len(old), min(config.sample, len(old)), replace=False)]
-        targets = _Targets(new, None, config)
+        targets = _Targets(new, None, config, new_frames)
         by = "registration"
 
     R, t = np.eye(3), np.zeros(3)
@@ -218,7 +246,7 @@ def estimate_motion(
     rigid_targets = targets.subset(rigid)
     for _ in range(config.rigid_iterations):
         moved = src[rigid] @ R.T + t
-        inlier, target = rigid_targets.pairs(moved, trim)
+        inlier, target, _ = rigid_targets.pairs(moved, trim)
         if inlier.sum() < 3:
             return MapMotion(converged=False, inliers=float(inlier.mean()), by=by)
         R_new, t_new = kabsch(src[rigid][inlier], target[inlier])
@@ -237,29 +265,46 @@ def estimate_motion(
     idx, w = _trilinear_weights(lo, config.spacing, shape, rigid_moved)
     flat = np.ravel_multi_index((idx[..., 0], idx[..., 1], idx[..., 2]), shape)  # (S, 8)
     n_nodes = int(np.prod(shape))
+    # The field starts from a wide trim again: where the map bends, the rigid fit left residuals that the
+    # rigid phase's final trim (set by the well-fitting part) rejects as outliers.
+    field_trim = np.inf if known else config.field_start_trim
     for _ in range(config.field_iterations):
         field_now = np.einsum("nk,nkc->nc", w, offsets.reshape(-1, 3)[flat])
         moved = rigid_moved + field_now
-        inlier, target = targets.pairs(moved, trim)
+        inlier, target, normals = targets.pairs(moved, max(trim, field_trim))
         r = np.where(inlier[:, None], target - moved, 0.0)
         wi = w * inlier[:, None]
-        num = np.stack([np.bincount(flat.ravel(), (wi * r[:, c, None]).ravel(), n_nodes) for c in range(3)], axis=1)
-        den = np.bincount(flat.ravel(), wi.ravel(), n_nodes)
+        # Per point a 3x3 metric: n n^T (+ a little of I) on flat targets, I elsewhere (point-to-point).
+        A = np.broadcast_to(np.eye(3), (len(r), 3, 3)).copy()
+        if normals is not None:
+            flat_target = np.any(normals != 0, axis=1)
+            A[flat_target] = np.einsum("ni,nj->nij", normals[flat_target], normals[flat_target]) + _SLIDE * np.eye(3)
+        Ar = np.einsum("nij,nj->ni", A, r)
+        keys = flat.ravel()
+        num = np.stack([np.bincount(keys, (wi * Ar[:, c, None]).ravel(), n_nodes) for c in range(3)], axis=1)
+        M = np.stack(
+            [np.bincount(keys, (wi * A[:, a, b, None]).ravel(), n_nodes) for a in range(3) for b in range(3)], axis=1
+        ).reshape(n_nodes, 3, 3)
+        den = np.bincount(keys, wi.ravel(), n_nodes)
         cur = offsets.reshape(-1, 3)
         neighbour = _neighbour_mean(offsets).reshape(-1, 3)
-        # Least squares per node with a pull towards the neighbours' mean: smooth, and defined where no point is.
-        updated = (num + den[:, None] * cur + config.smoothing * neighbour) / (den + config.smoothing)[:, None]
+        # Least squares per node with a pull towards the neighbours' mean: smooth, and defined where no point
+        # is: (M + s I) o = M cur + num + s neighbour.
+        lhs = M + config.smoothing * np.eye(3)
+        rhs = np.einsum("nij,nj->ni", M, cur) + num + config.smoothing * neighbour
+        updated = np.linalg.solve(lhs, rhs[..., None])[..., 0]
         supported = den > 0
         moved_by = np.linalg.norm(updated - cur, axis=1)[supported]
         change = float(np.percentile(moved_by, 90)) if moved_by.size else 0.0
         offsets = updated.reshape(offsets.shape)
-        if change < config.field_tolerance:
+        if change < config.field_tolerance and field_trim <= trim:
             break
+        field_trim *= config.field_trim_decay
         if not known:
             res = np.linalg.norm(r[inlier], axis=1)
             trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01) if res.size else trim
     field_now = np.einsum("nk,nkc->nc", w, offsets.reshape(-1, 3)[flat])
-    inlier, target = targets.pairs(rigid_moved + field_now, trim if not known else np.inf)
+    inlier, target, _ = targets.pairs(rigid_moved + field_now, trim if not known else np.inf)
     res = np.linalg.norm(target - rigid_moved - field_now, axis=1)[inlier]
     rms = float(np.sqrt(np.mean(res**2))) if res.size else float("inf")
     # A bent map never settles on one rigid motion: what counts is how well the whole motion fits.

@@ -9,7 +9,9 @@ moves a camera pose the way the SLAM would correct it (identity for densify/prun
   translation).
 * `drift_correction`: a smooth bend: the rotation and translation grow linearly along the map's longest
   horizontal axis, from zero at one end to the given values at the other (HI-SLAM2 moves Gaussians with
-  their anchor keyframes, so the correction varies smoothly through the map).
+  their anchor keyframes, so the correction varies smoothly through the map). Applied to the true map
+  it gives the drifted map a SLAM holds before the correction (benchmarks/bench_map_churn.py).
+* `shuffled`: the same map re-ordered.
 
 Children of a split get fresh ids (one keeps the parent's) when ids are kept, as SLAM systems with ids do.
 """
@@ -55,6 +57,14 @@ def _build(gmap: GaussianMap, rows, means, scales, quats, ids, keep_ids: bool, r
 
 def _ids(gmap: GaussianMap) -> np.ndarray:
     return gmap.ids if gmap.ids is not None else np.arange(len(gmap), dtype=np.int64)
+
+
+def shuffled(gmap: GaussianMap, *, seed: int = 0, keep_ids: bool = False) -> Churned:
+    """The same Gaussians re-ordered (what every SLAM map update also does)."""
+    rng = np.random.default_rng(seed)
+    rows = np.arange(len(gmap))
+    out = _build(gmap, rows, gmap.means, gmap.scales, gmap.quats, _ids(gmap), keep_ids, rng)
+    return Churned(out, lambda T: np.array(T, np.float64))
 
 
 def densify(
