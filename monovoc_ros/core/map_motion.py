@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -43,6 +44,10 @@ class MotionConfig:
     field_start_trim: float = 0.3  # metres: the same for the field's first iteration, then times field_trim_decay
     field_trim_decay: float = 0.75
     min_trim: float = 0.02  # metres: the trim distance never shrinks below this
+    # The rigid motion alone is kept when this share of the sample pairs up with a median residual under
+    # rigid_residual metres (the noise of a re-sampled surface); otherwise a field follows the bend.
+    rigid_inliers: float = 0.95
+    rigid_residual: float = 0.005
     max_rms: float = 0.03  # metres: a fit leaving a larger inlier residual did not converge
     smoothing: float = 3.0  # pseudo-points pulling each field node towards its neighbours' mean
     seed: int = 0
@@ -162,7 +167,7 @@ class _Targets:
         self, new: np.ndarray, known: np.ndarray | None, config: MotionConfig, frames: tuple | None = None
     ) -> None:
         self.known = known
-        self.normals: np.ndarray | None = None  # (T, 3) surface normal per target; zero where not flat
+        self._frames: tuple | None = None
         if known is None:
             rng = np.random.default_rng(config.seed + 1)
             rows = np.arange(len(new))
@@ -171,8 +176,12 @@ class _Targets:
                 rows = (rng.random() * step + step * np.arange(config.target_sample)).astype(np.int64)
             self.points = new[rows]
             self.tree = cKDTree(self.points)
-            if frames is not None:
-                self.normals = surface_normals(frames[0][rows], frames[1][rows])
+            self._frames = None if frames is None else (frames[0][rows], frames[1][rows])
+
+    @cached_property
+    def normals(self) -> np.ndarray | None:
+        """(T, 3) surface normal per target (zero where not flat); only the field needs them."""
+        return None if self._frames is None else surface_normals(*self._frames)
 
     def subset(self, rows: slice) -> _Targets:
         """The targets of the sample's rows `rows` (known partners are per sample row; a tree is shared)."""
@@ -259,6 +268,15 @@ def estimate_motion(
             converged = True
             break
     rigid_moved = src @ R.T + t
+    if not known:
+        # A rigid motion that explains the map (densified, pruned, moved as a whole) needs no field.
+        inlier, target, _ = targets.pairs(rigid_moved, trim)
+        res = np.linalg.norm(target - rigid_moved, axis=1)[inlier]
+        if inlier.mean() >= config.rigid_inliers and res.size and np.median(res) <= config.rigid_residual:
+            rms = float(np.sqrt(np.mean(res**2)))
+            return MapMotion(
+                R, t, rms=rms, inliers=float(inlier.mean()), converged=converged or rms <= config.max_rms, by=by
+            )
     lo, hi = rigid_moved.min(axis=0), rigid_moved.max(axis=0)
     shape = tuple(int(v) for v in np.maximum(np.ceil((hi - lo) / config.spacing).astype(int) + 1, 2))
     offsets = np.zeros((*shape, 3))

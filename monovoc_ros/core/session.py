@@ -379,6 +379,9 @@ class MappingSession:
             job.step()
         if job.caught_up:
             self._job = None
+            # The rebuilt log holds the live log's entries: it is as complete as that one.
+            job.mapper.keyframe_log.dropped = job.log.dropped
+            job.mapper.keyframe_log.poses_given = job.log.poses_given
             self._mapper = job.mapper
             with self.stats.lock:
                 self.stats.reintegrations += 1
