@@ -2,18 +2,21 @@
 
 A 3DGS SLAM front-end rarely keeps per-Gaussian ids, yet on a loop closure it moves its whole map
 rigidly or bends it smoothly (HI-SLAM2 moves each Gaussian with its anchor keyframe). `estimate_motion`
-recovers that motion as a `MapMotion`: a rigid part (trimmed point-to-point ICP of a sample of the old
-Gaussian centres against the new ones) followed by a smooth translation field on a coarse grid
-(`spacing` metres; trilinear between nodes, fitted to the same nearest-neighbour residuals, with nodes
-that see few points pulled towards their neighbours). When correspondences are known (Gaussian ids
-shared by the two maps) they replace the nearest-neighbour search and the fit is direct.
+recovers that motion as a `MapMotion`:
+
+1. a rigid part: trimmed point-to-point ICP of a sample of the old Gaussian centres against the new ones;
+2. when the rigid part leaves the map unexplained (a bent map), a smooth translation field on a coarse grid
+   (`spacing` metres, trilinear between nodes), fitted to nearest-neighbour residuals measured along the
+   surface normals of flat Gaussians (point-to-plane: sliding along a wall is no evidence), starting from a
+   wide trim again (the bent part was the rigid fit's outliers), with every node pulled towards its
+   neighbours (smooth, and defined where no point is).
+
+When correspondences are known (Gaussian ids shared by the two maps) they replace the nearest-neighbour
+search and both fits are direct.
 
 The motion moves points (`apply`: old centres to where they are in the new map) and camera poses
 (`move_pose`: the best rigid fit of the motion around the camera, so a keyframe integrated against the
-old map can be re-integrated against the new one).
-
-Absurd motions are refused by the caller (`MotionCheck`): a registration that did not converge, too
-few inliers, or a displacement beyond `max_displacement` metres.
+old map can be re-integrated against the new one). Unbelievable motions are refused by core.map_follow.
 """
 
 from __future__ import annotations
@@ -87,9 +90,6 @@ class MapMotion:
         q = np.asarray(points, np.float64) @ self.rotation.T + self.translation
         return q + self.field_at(q)
 
-    def rigid_apply(self, points: np.ndarray) -> np.ndarray:
-        return np.asarray(points, np.float64) @ self.rotation.T + self.translation
-
     @property
     def bend(self) -> float:
         """Metres: the largest offset of the smooth field, how far the map bends beyond one rigid motion."""
@@ -122,12 +122,10 @@ class MapMotion:
         return out
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(R (3, 3), t (3,)) minimizing sum w |R src + t - dst|^2 for paired points src, dst (N, 3)."""
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64)
-    w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    H = (src - cs).T @ ((dst - cd) * w[:, None])
+def kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R (3, 3), t (3,)) minimizing sum |R src + t - dst|^2 for paired points src, dst (N, 3)."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    H = (src - cs).T @ (dst - cd)
     U, _, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
