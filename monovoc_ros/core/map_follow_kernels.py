@@ -101,11 +101,11 @@ def _find(keys, values, bits, key):
         h = (h + 1) & mask
 
 
-@numba.njit(cache=True, nogil=True)
-def _cell_keys(points, cell):
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _cell_keys(points, cell):  # pragma: no cover - numba
     n = points.shape[0]
     keys = np.empty(n, np.int64)
-    for i in range(n):
+    for i in numba.prange(n):
         ix = int(np.floor(points[i, 0] / cell))
         iy = int(np.floor(points[i, 1] / cell))
         iz = int(np.floor(points[i, 2] / cell))
