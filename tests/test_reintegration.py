@@ -157,3 +157,76 @@ def test_poses_of_keyframes_not_integrated_yet_apply_when_they_are():
     _same_state(live, after)
     assert live_stats.reintegrations == 1
     np.testing.assert_array_equal(live.keyframe_log.entries[5].cam_to_world, corrected[5].cam_to_world)
+
+
+def test_an_incomplete_log_never_replaces_the_evidence():
+    """A bounded log that dropped keyframes (or a snapshot from before the log) cannot rebuild the state:
+    the re-integration is skipped and counted, the evidence kept."""
+    scene, kfs = small_scene(), _keyframes(4)
+    config = replace(offline.MapperConfig(), keyframe_log_bytes=0)
+    poses = KeyframePoses(tuple((kf.stamp_ns, _shifted(kf).cam_to_world) for kf in kfs))
+    mapper, stats = offline.map_events([scene.gaussians, *kfs, poses], config)
+    assert stats.reintegrations == 0 and stats.rejected["reintegration_incomplete_log"] == 0  # nothing logged moved
+    assert mapper.n_keyframes == 4 and len(mapper.keyframe_log) == 0 and not mapper.keyframe_log.complete
+    closure = churn.loop_closure(scene.gaussians, degrees=1.0)
+    bent = replace(offline.MapperConfig(), keyframe_log_bytes=0, reintegrate_below=1.0)
+    mapper, stats = offline.map_events(
+        [scene.gaussians, *kfs, churn.densify(closure.gaussians, prune=0.2).gaussians], bent
+    )
+    assert stats.rejected["reintegration_incomplete_log"] == 1 and stats.reintegrations == 0
+    assert mapper.n_keyframes == 4 and mapper.state.observed.sum() > 0.5 * len(mapper.gaussians)
+
+
+def test_a_snapshot_without_a_log_is_marked_incomplete(tmp_path):
+    scene, kfs = small_scene(), _keyframes(2)
+    mapper, _ = offline.map_events([scene.gaussians, *kfs])
+    info = save_snapshot(mapper, tmp_path / "map", export_cloud=False)
+    (info.path / "keyframe_log.npz").unlink()  # as written before the log existed
+    back = load_snapshot(tmp_path / "map")
+    assert len(back.keyframe_log) == 0 and back.keyframe_log.dropped == 2 and not back.keyframe_log.complete
+
+
+def test_a_job_skips_entries_the_log_dropped_before_it_reached_them():
+    from monovoc_ros.core.session import Reintegration
+
+    scene, kfs = small_scene(), _keyframes(6)
+    mapper, _ = offline.map_events([scene.gaussians, *kfs[:5]])
+    job = Reintegration(mapper, "test")
+    mapper.keyframe_log.max_bytes = 3 * mapper.keyframe_log.entries[0].nbytes  # room for about 3
+    mapper.integrate(kfs[5])  # logged: the oldest entries go
+    kept = [e.stamp_ns for e in mapper.keyframe_log.entries]
+    assert mapper.keyframe_log.dropped >= 2
+    while not job.caught_up:
+        job.step()
+    assert job.refused == 0 and list(job.mapper.state.stamps_ns) == kept
+
+
+def test_a_corrupt_logged_mask_is_refused_not_fatal():
+    scene, kfs = small_scene(), _keyframes(3)
+    session = MappingSession()
+    session.add_map(scene.gaussians)
+    for kf in kfs:
+        session.add_keyframe(kf)
+        session.integrate_next()
+    log = session.mapper.keyframe_log
+    log.entries[1] = replace(log.entries[1], mask_png=b"not a png")
+    session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, _shifted(kf).cam_to_world) for kf in kfs)))
+    while session.reintegration_step():
+        pass
+    assert session.mapper.n_keyframes == 2 and session.stats.reintegrations == 1
+
+
+def test_an_empty_path_clears_pending_poses_and_an_unrelated_map_replaces_an_unobserved_one():
+    scene, kfs = small_scene(), _keyframes(2)
+    session = MappingSession()
+    session.add_map(scene.gaussians)
+    session.add_keyframe_poses(KeyframePoses(((kfs[0].stamp_ns, _shifted(kfs[0]).cam_to_world),)))
+    session.add_keyframe_poses(KeyframePoses(()))
+    session.add_keyframe(kfs[0])
+    session.integrate_next()
+    np.testing.assert_array_equal(session.mapper.keyframe_log.entries[0].cam_to_world, kfs[0].cam_to_world)
+    # Before any evidence, a map that does not register (another place) is simply taken.
+    fresh = MappingSession()
+    fresh.add_map(scene.gaussians)
+    far = churn.loop_closure(scene.gaussians, degrees=0.0, translation=(40.0, 0.0, 0.0)).gaussians
+    assert fresh.add_map(far) and fresh.stats.rejected["map_motion"] == 0

@@ -49,6 +49,8 @@ class LoggedKeyframe:
 
     def keyframe(self) -> Keyframe:
         bgr = cv2.imdecode(np.frombuffer(self.mask_png, np.uint8), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ValueError(f"logged keyframe {self.stamp_ns}: its mask does not decode")
         mask = np.ascontiguousarray(bgr[:, :, ::-1])
         return Keyframe(self.index, self.stamp_ns, self.cam_to_world.copy(), self.intrinsics, mask, None, self.segments)
 

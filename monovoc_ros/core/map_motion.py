@@ -58,7 +58,8 @@ class MotionConfig:
 
 @dataclass(frozen=True)
 class MapMotion:
-    """p -> R p + t + field(R p + t): a rigid motion then a smooth translation field (zero outside its grid)."""
+    """p -> R p + t + field(R p + t): a rigid motion then a smooth translation field (trilinear between its
+    nodes, clamped to the grid's border outside it)."""
 
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))  # (3, 3) float64
     translation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) float64
@@ -106,16 +107,17 @@ class MapMotion:
             return 0.0
         return float(np.linalg.norm(self.apply(points) - points, axis=1).max())
 
-    def move_pose(self, cam_to_world: np.ndarray, support: np.ndarray) -> np.ndarray:
+    def move_pose(self, cam_to_world: np.ndarray, support: np.ndarray, moved: np.ndarray | None = None) -> np.ndarray:
         """(4, 4) float64: the camera pose moved with the map: the rigid fit of the motion over `support`
-        (M, 3), old centres around the camera (all of the map's when empty)."""
+        (M, 3), old centres around the camera (`moved`: where the motion puts them, when known); with fewer
+        than 3, the rigid rotation and the motion of the camera centre."""
         T = validate_pose(cam_to_world, what="cam_to_world")
         support = np.asarray(support, np.float64)
         if len(support) < 3:
-            support = T[None, :3, 3]
-            R, t = self.rotation, self.apply(support)[0] - self.rotation @ support[0]
+            centre = T[None, :3, 3]
+            R, t = self.rotation, self.apply(centre)[0] - self.rotation @ centre[0]
         else:
-            R, t = kabsch(support, self.apply(support))
+            R, t = kabsch(support, self.apply(support) if moved is None else moved)
         out = np.eye(4)
         out[:3, :3] = R @ T[:3, :3]
         out[:3, 3] = R @ T[:3, 3] + t
@@ -248,7 +250,6 @@ def estimate_motion(
 
     R, t = np.eye(3), np.zeros(3)
     trim = config.start_trim if not known else np.inf
-    converged = False
     rigid = slice(0, config.rigid_sample)  # the sample is random: its first rows are a smaller random sample
     rigid_targets = targets.subset(rigid)
     for _ in range(config.rigid_iterations):
@@ -263,7 +264,6 @@ def estimate_motion(
         if not known:
             trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01)
         if step < config.rigid_tolerance:
-            converged = True
             break
     rigid_moved = src @ R.T + t
     if not known:
@@ -272,9 +272,7 @@ def estimate_motion(
         res = np.linalg.norm(target - rigid_moved, axis=1)[inlier]
         if inlier.mean() >= config.rigid_inliers and res.size and np.median(res) <= config.rigid_residual:
             rms = float(np.sqrt(np.mean(res**2)))
-            return MapMotion(
-                R, t, rms=rms, inliers=float(inlier.mean()), converged=converged or rms <= config.max_rms, by=by
-            )
+            return MapMotion(R, t, rms=rms, inliers=float(inlier.mean()), converged=rms <= config.max_rms, by=by)
     lo, hi = rigid_moved.min(axis=0), rigid_moved.max(axis=0)
     shape = tuple(int(v) for v in np.maximum(np.ceil((hi - lo) / config.spacing).astype(int) + 1, 2))
     offsets = np.zeros((*shape, 3))
@@ -324,7 +322,7 @@ def estimate_motion(
     res = np.linalg.norm(target - rigid_moved - field_now, axis=1)[inlier]
     rms = float(np.sqrt(np.mean(res**2))) if res.size else float("inf")
     # A bent map never settles on one rigid motion: what counts is how well the whole motion fits.
-    converged = known or (converged or rms <= config.max_rms)
+    converged = known or rms <= config.max_rms
     return MapMotion(R, t, lo, config.spacing, offsets, rms, float(inlier.mean()), converged, by)
 
 

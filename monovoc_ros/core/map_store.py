@@ -239,6 +239,8 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
     if keyframe_log is not None:
         keyframe_log.max_bytes = mapper.config.keyframe_log_bytes
         mapper.keyframe_log = keyframe_log
+    else:  # a snapshot from before the log: none of its keyframes can be re-integrated
+        mapper.keyframe_log.dropped = mapper.n_keyframes
     if mapper.associator is not None and association is not None:
         mapper.associator = association
         association.config.render_scale = mapper.config.association_scale  # a rendering setting only

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from monovoc_ros.core.association import (
     MASK_ID_MODES,
@@ -422,7 +423,7 @@ class SemanticMapper:
         nothing changed, when the motion is not believable."""
         start = time.perf_counter()
         follow = follow_map(self.gaussians, gaussians, self.config.follow())
-        if follow.refusal:
+        if follow.refusal and self.state.observed.any():  # nothing to protect: any new map is taken
             raise MapMotionError(follow.refusal)
         old_observed = self.state.observed
         state = self.state.carried_over(follow.sources, gaussians.ids)
@@ -451,13 +452,22 @@ class SemanticMapper:
         """Moves the logged keyframe poses with the map (each by the motion's rigid fit around its camera)."""
         means = self.gaussians.means
         support = means[:: max(1, len(means) // 20000)].astype(np.float64)
-        if motion.by == "identity" or motion.max_displacement(support) < _POSE_MOVE_MIN_M:
+        moved = motion.apply(support)
+        if (
+            motion.by == "identity"
+            or not len(support)
+            or np.linalg.norm(moved - support, axis=1).max() < _POSE_MOVE_MIN_M
+        ):
             self.keyframe_log.move_poses(lambda T: T)  # densify / prune noise: poses stay (no random walk)
             return
+        if not np.any(motion.offsets):  # one rigid motion: the same for every pose
+            self.keyframe_log.move_poses(lambda T: motion.move_pose(T, ()))
+            return
+        tree = cKDTree(support)  # one index for every logged camera (tens of thousands at the log's bound)
 
         def move(T: np.ndarray) -> np.ndarray:
-            near = support[np.linalg.norm(support - T[:3, 3], axis=1) < _POSE_SUPPORT_M]
-            return motion.move_pose(T, near)
+            near = tree.query_ball_point(T[:3, 3], _POSE_SUPPORT_M)
+            return motion.move_pose(T, support[near], moved[near])
 
         self.keyframe_log.move_poses(move)
 

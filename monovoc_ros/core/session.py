@@ -53,8 +53,10 @@ DEFAULT_MAX_SHRINK = 0.5
 #   map_shrink          a map update that would remove more than max_shrink of the Gaussians
 #   map_motion          a map update whose estimated motion is not believable (core.map_follow)
 #   bad_keyframe_poses  corrected keyframe poses that are not rigid, not finite, or move a keyframe > 10 m
+#   reintegration_incomplete_log  a re-integration skipped: the keyframe log lacks some integrated keyframes
 SESSION_REASONS = (
     "duplicate_stamp", "integration_error", "empty_gaussians", "map_shrink", "map_motion", "bad_keyframe_poses",
+    "reintegration_incomplete_log",
 )  # fmt: skip
 # Corrected keyframe poses moving any keyframe farther than this (metres) are refused.
 MAX_POSE_CORRECTION_M = 10.0
@@ -164,6 +166,8 @@ class Reintegration:
     def step(self) -> None:
         """Integrates the next logged keyframe (a refused one is counted and skipped)."""
         start = time.perf_counter()
+        # Entries the bounded log dropped before this job reached them are gone, not to be re-counted.
+        self._done = max(self._done, self.log.dropped - self._dropped_at_start)
         entry = self.log.entries[self._position]
         self._done += 1
         try:
@@ -345,6 +349,7 @@ class MappingSession:
         pose is not a finite rigid transform or moves a keyframe absurdly far."""
         mapper = self._mapper
         if not poses.poses:
+            self._pending_poses = {}  # the newest path wins, an empty one too
             return 0
         logged = {} if mapper is None else {e.stamp_ns: e.cam_to_world for e in mapper.keyframe_log.entries}
         try:
@@ -357,7 +362,8 @@ class MappingSession:
             self.stats.reject("bad_keyframe_poses")
             self.log.warning(f"keyframe poses {name} refused: {exc}")
             return 0
-        self._pending_poses = {stamp: T for stamp, T in checked if stamp not in logged}
+        integrated = mapper.state.has_stamp if mapper is not None else (lambda stamp: False)
+        self._pending_poses = {stamp: T for stamp, T in checked if not integrated(stamp)}
         if mapper is None:
             return 0
         changed = mapper.keyframe_log.set_poses(poses)
@@ -397,11 +403,20 @@ class MappingSession:
 
     def _start_reintegration(self, reason: str) -> None:
         assert self._mapper is not None
+        log = self._mapper.keyframe_log
+        if not (log.complete and len(log) == self._mapper.n_keyframes):
+            # A rebuild from a partial log would drop the evidence of the keyframes it lacks: keep the
+            # carried-over evidence instead (the log was bounded by keyframe_log_bytes, or the map was
+            # resumed from a snapshot without one).
+            self.stats.reject("reintegration_incomplete_log")
+            self.log.warning(
+                f"not re-integrating ({reason}): the keyframe log holds {len(log)} of the map's "
+                f"{self._mapper.n_keyframes} keyframes (keyframe_log_bytes); the carried-over evidence is kept"
+            )
+            return
         self._job = Reintegration(self._mapper, reason)
         self.stats.update(reintegrating=True)
-        log = self._mapper.keyframe_log
-        partial = "" if log.complete else f" ({log.dropped} oldest keyframes no longer logged: keyframe_log_bytes)"
-        self.log.info(f"re-integrating {len(log)} logged keyframes: {reason}{partial}")
+        self.log.info(f"re-integrating {len(log)} logged keyframes: {reason}")
 
     def _cancel_reintegration(self) -> None:
         if self._job is not None:
