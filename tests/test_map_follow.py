@@ -187,3 +187,23 @@ def test_kernels_equal_their_plain_twins():
     g = scene.gaussians
     plain_cov = covariances_reference(g.quats, g.scales)
     np.testing.assert_allclose(g.covariances, plain_cov, rtol=0, atol=1e-6 * np.abs(plain_cov).max())  # float32 ulps
+
+
+def test_gaussians_with_non_finite_means_neither_take_nor_give_evidence():
+    """The rasterizer culls a Gaussian with a NaN mean; a map update must not crash on one either."""
+    scene = small_scene()
+    means = np.array(scene.gaussians.means)
+    means[5] = np.nan
+    old = replace(scene.gaussians, means=means)
+    moved = churn.loop_closure(scene.gaussians, degrees=1.0, keep_ids=True).gaussians
+    new_means = np.array(moved.means)
+    new_means[0] = np.nan
+    closure_map = replace(moved, means=new_means)
+    new = replace(closure_map, ids=None)
+    follow = follow_map(old, new)
+    assert follow.refusal == ""
+    broken = np.flatnonzero(~np.isfinite(new.means).all(axis=1))
+    assert len(broken) == 1 and follow.sources[broken[0]] == -1
+    assert 5 not in set(follow.sources.tolist()) and np.mean(follow.sources >= 0) > 0.95
+    with_ids = follow_map(_with_ids(old), closure_map)
+    assert with_ids.refusal == "" and with_ids.motion.by == "ids"

@@ -41,8 +41,6 @@ class GaussianMap:
     def __post_init__(self) -> None:
         means = _frozen(self.means, np.float32, (3,), "means", None)
         n = means.shape[0]
-        if not np.isfinite(means).all():
-            raise ValueError("GaussianMap.means: NaN or infinite values")
         quats = np.asarray(self.quats, dtype=np.float32)
         norms = np.linalg.norm(quats, axis=-1, keepdims=True) if quats.ndim == 2 else None
         if norms is not None and np.any(~np.isfinite(norms) | (norms <= 0)):

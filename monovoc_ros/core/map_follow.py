@@ -94,37 +94,45 @@ def transfer_radius(new: GaussianMap, rows: np.ndarray, config: FollowConfig) ->
 
 
 def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None = None) -> FollowResult:
-    """Source rows of the new map's evidence, and the map's motion (see the module docstring)."""
+    """Source rows of the new map's evidence, and the map's motion (see the module docstring). Gaussians
+    with non-finite means (culled by the rasterizer) neither take nor give evidence."""
     config = config or FollowConfig()
+    old_ok = np.isfinite(old.means).all(axis=1)
+    new_ok = np.isfinite(new.means).all(axis=1)
     sources = np.full(len(new), -1, np.int64)
     old_rows = new_rows = None
     if old.ids is not None and new.ids is not None:
         sources = id_partners(old.ids, new.ids)
-        new_rows = np.flatnonzero(sources >= 0)
+        new_rows = np.flatnonzero((sources >= 0) & new_ok)
+        new_rows = new_rows[old_ok[sources[new_rows]]]
         old_rows = sources[new_rows]
-    motion = estimate_motion(
-        old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows, new_frames=(new.quats, new.scales)
-    )
+    if old_rows is not None and len(old_rows) >= 3:
+        motion = estimate_motion(old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows)
+    else:
+        frames = (new.quats[new_ok], new.scales[new_ok])
+        motion = estimate_motion(old.means[old_ok], new.means[new_ok], config.motion, new_frames=frames)
     by_id = int(np.count_nonzero(sources >= 0))
-    refusal = _refusal(motion, old, config)
+    refusal = _refusal(motion, old.means[old_ok], config)
     if refusal:
         return FollowResult(sources, motion, by_id, 0, refusal)
-    rest = np.flatnonzero(sources < 0)
-    if rest.size:
-        moved = old.means if motion.by == "identity" else motion.apply(old.means)
-        sources[rest] = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config), config.radius)
+    rest = np.flatnonzero((sources < 0) & new_ok)
+    if rest.size and old_ok.any():
+        candidates = np.flatnonzero(old_ok)
+        moved = motion.apply(old.means[candidates])
+        found = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config), config.radius)
+        sources[rest] = np.where(found >= 0, candidates[np.maximum(found, 0)], -1)
     return FollowResult(sources, motion, by_id, int(np.count_nonzero(sources >= 0)) - by_id)
 
 
-def _refusal(motion: MapMotion, old: GaussianMap, config: FollowConfig) -> str:
+def _refusal(motion: MapMotion, old_means: np.ndarray, config: FollowConfig) -> str:
     if motion.by == "ids":
         pass  # correspondences are given: the fit converges by construction
     elif not motion.converged:
         return "the registration of the old map to the new one did not converge"
     if motion.inliers < config.min_inliers:
         return f"only {motion.inliers:.0%} of the old map found a partner in the new one (min {config.min_inliers:.0%})"
-    step = max(1, len(old) // 4096)
-    moved = motion.max_displacement(old.means[::step])
+    step = max(1, len(old_means) // 4096)
+    moved = motion.max_displacement(old_means[::step])
     if moved > config.max_displacement:
         return f"it moves part of the map by {moved:.1f} m (max {config.max_displacement:g} m)"
     return ""
