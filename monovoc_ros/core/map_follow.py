@@ -97,31 +97,46 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
     """Source rows of the new map's evidence, and the map's motion (see the module docstring). Gaussians
     with non-finite means (culled by the rasterizer) neither take nor give evidence."""
     config = config or FollowConfig()
-    old_ok = np.isfinite(old.means).all(axis=1)
-    new_ok = np.isfinite(new.means).all(axis=1)
+    old_ok = _finite_rows(old.means)  # None: every row (no copies at 1M Gaussians)
+    new_ok = _finite_rows(new.means)
+    old_means = old.means if old_ok is None else old.means[old_ok]
     sources = np.full(len(new), -1, np.int64)
     old_rows = new_rows = None
     if old.ids is not None and new.ids is not None:
         sources = id_partners(old.ids, new.ids)
-        new_rows = np.flatnonzero((sources >= 0) & new_ok)
-        new_rows = new_rows[old_ok[sources[new_rows]]]
+        new_rows = np.flatnonzero(sources >= 0)
+        if new_ok is not None:
+            new_rows = new_rows[np.isin(new_rows, new_ok)]
+        if old_ok is not None:
+            new_rows = new_rows[np.isin(sources[new_rows], old_ok)]
         old_rows = sources[new_rows]
     if old_rows is not None and len(old_rows) >= 3:
         motion = estimate_motion(old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows)
     else:
-        frames = (new.quats[new_ok], new.scales[new_ok])
-        motion = estimate_motion(old.means[old_ok], new.means[new_ok], config.motion, new_frames=frames)
+        pick = slice(None) if new_ok is None else new_ok
+        frames = (new.quats[pick], new.scales[pick])
+        motion = estimate_motion(old_means, new.means[pick], config.motion, new_frames=frames)
     by_id = int(np.count_nonzero(sources >= 0))
-    refusal = _refusal(motion, old.means[old_ok], config)
+    refusal = _refusal(motion, old_means, config)
     if refusal:
         return FollowResult(sources, motion, by_id, 0, refusal)
-    rest = np.flatnonzero((sources < 0) & new_ok)
-    if rest.size and old_ok.any():
-        candidates = np.flatnonzero(old_ok)
-        moved = motion.apply(old.means[candidates])
-        found = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config), config.radius)
-        sources[rest] = np.where(found >= 0, candidates[np.maximum(found, 0)], -1)
+    rest = np.flatnonzero(sources < 0)
+    if new_ok is not None:
+        rest = rest[np.isin(rest, new_ok)]
+    if rest.size and len(old_means):
+        found = nearest_within(
+            motion.apply(old_means), new.means[rest], transfer_radius(new, rest, config), config.radius
+        )
+        if old_ok is not None:
+            found = np.where(found >= 0, old_ok[np.maximum(found, 0)], -1)
+        sources[rest] = found
     return FollowResult(sources, motion, by_id, int(np.count_nonzero(sources >= 0)) - by_id)
+
+
+def _finite_rows(means: np.ndarray) -> np.ndarray | None:
+    """Rows of finite means, or None when every row is finite (the common case)."""
+    finite = np.isfinite(means).all(axis=1)
+    return None if finite.all() else np.flatnonzero(finite)
 
 
 def _refusal(motion: MapMotion, old_means: np.ndarray, config: FollowConfig) -> str:
