@@ -26,6 +26,16 @@ def _shifted(kf, dx: float = 0.02):
     return replace(kf, cam_to_world=T)
 
 
+def _session(gaussians, keyframes) -> MappingSession:
+    """A session with the map and these keyframes integrated (as the live worker runs them)."""
+    session = MappingSession()
+    session.add_map(gaussians)
+    for kf in keyframes:
+        session.add_keyframe(kf)
+        session.integrate_next()
+    return session
+
+
 def _same_state(a, b) -> None:
     for name in a.state.ARRAYS:
         np.testing.assert_array_equal(getattr(a.state, name), getattr(b.state, name))
@@ -92,11 +102,7 @@ def test_interleaved_reintegration_serves_old_labels_and_ends_as_offline():
     """As the live worker runs it: keyframes keep arriving between re-integration steps."""
     scene, kfs = small_scene(), _keyframes(8)
     corrected = [_shifted(kf) for kf in kfs[:5]]
-    session = MappingSession()
-    session.add_map(scene.gaussians)
-    for kf in kfs[:5]:
-        session.add_keyframe(kf)
-        session.integrate_next()
+    session = _session(scene.gaussians, kfs[:5])
     old = session.mapper
     session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in corrected)))
     assert session.reintegrating and session.mapper is old  # the old labels meanwhile
@@ -114,11 +120,7 @@ def test_interleaved_reintegration_serves_old_labels_and_ends_as_offline():
 
 def test_bad_keyframe_poses_are_refused_and_change_nothing():
     scene, kfs = small_scene(), _keyframes(3)
-    session = MappingSession()
-    session.add_map(scene.gaussians)
-    for kf in kfs:
-        session.add_keyframe(kf)
-        session.integrate_next()
+    session = _session(scene.gaussians, kfs)
     nan = kfs[0].cam_to_world.copy()
     nan[0, 3] = np.nan
     far = _shifted(kfs[1], 25.0).cam_to_world
@@ -203,11 +205,7 @@ def test_a_job_skips_entries_the_log_dropped_before_it_reached_them():
 
 def test_a_corrupt_logged_mask_is_refused_not_fatal():
     scene, kfs = small_scene(), _keyframes(3)
-    session = MappingSession()
-    session.add_map(scene.gaussians)
-    for kf in kfs:
-        session.add_keyframe(kf)
-        session.integrate_next()
+    session = _session(scene.gaussians, kfs)
     log = session.mapper.keyframe_log
     log.entries[1] = replace(log.entries[1], mask_png=b"not a png")
     session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, _shifted(kf).cam_to_world) for kf in kfs)))
