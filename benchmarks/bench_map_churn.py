@@ -35,14 +35,10 @@ from monovoc_ros.synthetic import churn  # noqa: E402
 REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
 
 
-def _identity(T):
-    return np.array(T, np.float64)
-
-
 def _then_update(make):
     def case(g, ids):
         out = make(g, ids)
-        return g, _identity, out.gaussians, out.move_pose
+        return g, churn.unmoved, out.gaussians, out.move_pose
 
     return case
 
@@ -52,7 +48,7 @@ def _drift_corrected(g, ids):
     poses drifted alike; the update brings the true map back (re-ordered) and the true poses."""
     drifted = churn.drift_correction(g, keep_ids=True)
     old = drifted.gaussians if ids else replace(drifted.gaussians, ids=None)
-    return old, drifted.move_pose, churn.shuffled(g, keep_ids=ids).gaussians, _identity
+    return old, drifted.move_pose, churn.shuffled(g, keep_ids=ids).gaussians, churn.unmoved
 
 
 # name -> (gmap, ids) -> (map before, pose before (true -> SLAM's), map after, pose after)

@@ -228,3 +228,27 @@ def test_an_empty_path_clears_pending_poses_and_an_unrelated_map_replaces_an_uno
     fresh.add_map(scene.gaussians)
     far = churn.loop_closure(scene.gaussians, degrees=0.0, translation=(40.0, 0.0, 0.0)).gaussians
     assert fresh.add_map(far) and fresh.stats.rejected["map_motion"] == 0
+
+
+def test_a_rebuild_that_lost_keyframes_to_the_bound_or_to_a_new_map_is_never_swapped_in():
+    scene, kfs = small_scene(), _keyframes(6)
+    corrected = KeyframePoses(tuple((kf.stamp_ns, _shifted(kf).cam_to_world) for kf in kfs[:5]))
+    session = _session(scene.gaussians, kfs[:5])
+    live = session.mapper
+    session.add_keyframe_poses(corrected)
+    assert session.reintegrating
+    live.keyframe_log.max_bytes = 3 * live.keyframe_log.entries[0].nbytes  # the log starts dropping
+    session.add_keyframe(kfs[5])
+    session.integrate_next()
+    while session.reintegration_step():
+        pass
+    assert session.mapper is live and live.n_keyframes == 6  # the evidence of every keyframe is kept
+    assert session.stats.rejected["reintegration_incomplete_log"] == 1 and session.stats.reintegrations == 0
+    # A map update during a rebuild when the log can no longer rebuild: the old rebuild (of the old map)
+    # is dropped too, so the new map stays.
+    session = _session(scene.gaussians, kfs[:5])
+    session.add_keyframe_poses(corrected)
+    session.mapper.keyframe_log.dropped = 1
+    closure = churn.loop_closure(scene.gaussians, degrees=1.0).gaussians
+    assert session.add_map(closure) and not session.reintegrating
+    assert session.mapper.gaussians is closure

@@ -56,6 +56,11 @@ class Intrinsics:
             height,
         )
 
+    @classmethod
+    def from_dict(cls, d: dict) -> Intrinsics:
+        """The reader of `to_dict` (and of intrinsics.json files); raises KeyError, TypeError or ValueError."""
+        return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
+
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("width", "height", "fx", "fy", "cx", "cy")}
 

@@ -378,9 +378,7 @@ def read_intrinsics_json(path: str | os.PathLike) -> Intrinsics:
     path = _require_file(Path(path), "intrinsics file")
     try:
         d = json.loads(path.read_text())
-        return Intrinsics(
-            float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"])
-        )
+        return Intrinsics.from_dict(d)
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise SequenceError(f"{path}: expected {{width, height, fx, fy, cx, cy}}: {exc}") from None
 
@@ -475,7 +473,7 @@ def _as_intrinsics(value: Intrinsics | dict) -> Intrinsics:
     if isinstance(value, Intrinsics):
         return value
     try:
-        return Intrinsics(**{k: value[k] for k in ("fx", "fy", "cx", "cy", "width", "height")})
+        return Intrinsics.from_dict(value)
     except (KeyError, TypeError) as exc:
         raise SequenceError(
             f"intrinsics option: expected Intrinsics or {{width, height, fx, fy, cx, cy}}: {exc}"

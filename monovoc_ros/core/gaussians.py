@@ -111,6 +111,10 @@ def covariances_reference(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
     ).astype(np.float32)
 
 
+# Ids up to this many times the maps' sizes are looked up in a table (SLAM ids are counters), others sorted.
+_ID_TABLE_FACTOR = 8
+
+
 def same_geometry(a: GaussianMap, b: GaussianMap) -> bool:
     """True when two maps are the same Gaussians (SLAM re-publishing an unchanged map, or the map a
     resumed snapshot was built from): applying it as an update would change nothing."""
@@ -132,9 +136,28 @@ def same_geometry(a: GaussianMap, b: GaussianMap) -> bool:
     return a.colors is None or np.allclose(a.colors, b.colors, rtol=0, atol=1e-5)
 
 
+def id_partners(old_ids: np.ndarray, new_ids: np.ndarray) -> np.ndarray:
+    """(M,) int64: per new id the row of the same id in old_ids (N,), or -1 (both unique)."""
+    out = np.full(len(new_ids), -1, np.int64)
+    if not len(old_ids) or not len(new_ids):
+        return out
+    lo = int(min(old_ids.min(), new_ids.min()))
+    span = int(max(old_ids.max(), new_ids.max())) - lo + 1
+    if span <= _ID_TABLE_FACTOR * (len(old_ids) + len(new_ids)):
+        table = np.full(span, -1, np.int64)
+        table[old_ids - lo] = np.arange(len(old_ids))
+        return table[new_ids - lo]
+    order = np.argsort(old_ids)
+    pos = np.searchsorted(old_ids, new_ids, sorter=order).clip(0, len(old_ids) - 1)
+    cand = order[pos]
+    hit = old_ids[cand] == new_ids
+    out[hit] = cand[hit]
+    return out
+
+
 def removed_gaussians(old: GaussianMap, new: GaussianMap) -> tuple[int, int]:
     """(Gaussians of `old` that `new` removes, len(old)): by id when both maps have ids, else by count.
     Moved Gaussians are not removed, with or without ids (a loop closure keeps its map)."""
     if old.ids is not None and new.ids is not None:
-        return int((~np.isin(old.ids, new.ids)).sum()), len(old)
+        return int(np.count_nonzero(id_partners(new.ids, old.ids) < 0)), len(old)
     return max(0, len(old) - len(new)), len(old)

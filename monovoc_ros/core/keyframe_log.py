@@ -4,8 +4,9 @@
 Per keyframe: stamp, pose, intrinsics, the mask as given (lossless PNG; per-frame mask ids keep the
 segmenter's own colors, so re-integration associates them again) and its segments. RGB is not kept:
 the object views keep the crops they need. The log is bounded by `max_bytes`: beyond it the oldest
-entries are dropped and the log is no longer complete (re-integration then starts from the kept ones,
-and says so). It is saved in the snapshot (`keyframe_log.npz`) and restored on resume.
+entries are dropped and the log is no longer complete (core.session then does not re-integrate: a
+rebuild would lose the dropped keyframes' evidence). It is saved in the snapshot (`keyframe_log.npz`)
+and restored on resume.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from monovoc_ros.core.camera import Intrinsics, validate_pose
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.segment_labels import SegmentLabel
+from monovoc_ros.core.segment_labels import segments_from_entries, segments_to_entries
 
 FORMAT = "monovoc_keyframe_log"
 DEFAULT_MAX_BYTES = 256 * 1024 * 1024
@@ -103,10 +104,9 @@ class KeyframeLog:
             self.nbytes -= self.entries.pop(0).nbytes
             self.dropped += 1
 
-    def set_poses(self, poses: KeyframePoses, tolerance: tuple[float, float] = (1e-3, 1e-3)) -> int:
-        """Takes the corrected poses of logged keyframes (by stamp; others ignored); returns how many
-        moved by more than `tolerance` (metres, radians)."""
-        given = {int(s): validate_pose(T, what=f"keyframe pose {s}") for s, T in poses.poses}
+    def set_poses(self, given: dict[int, np.ndarray], tolerance: tuple[float, float] = (1e-3, 1e-3)) -> int:
+        """Takes corrected poses (stamp -> validated (4, 4) cam_to_world) of logged keyframes (others
+        ignored); returns how many moved by more than `tolerance` (metres, radians)."""
         changed = 0
         for k, entry in enumerate(self.entries):
             T = given.get(entry.stamp_ns)
@@ -133,10 +133,12 @@ class KeyframeLog:
             "stamps_ns": np.array([e.stamp_ns for e in self.entries], np.int64),
             "index": np.array([e.index for e in self.entries], np.int64),
             "poses": np.array([e.cam_to_world for e in self.entries], np.float64).reshape(-1, 4, 4),
-            "intrinsics": np.array([_intrinsics_row(e.intrinsics) for e in self.entries], np.float64).reshape(-1, 6),
+            "intrinsics": np.array(json.dumps([e.intrinsics.to_dict() for e in self.entries])),
             "mask_sizes": np.array([len(e.mask_png) for e in self.entries], np.int64),
             "masks": np.frombuffer(b"".join(e.mask_png for e in self.entries), np.uint8),
-            "segments": np.array(json.dumps([_segments_json(e.segments) for e in self.entries])),
+            "segments": np.array(
+                json.dumps([None if e.segments is None else segments_to_entries(e.segments) for e in self.entries])
+            ),
             "meta": np.array(
                 json.dumps({"max_bytes": self.max_bytes, "dropped": self.dropped, "poses_given": self.poses_given})
             ),
@@ -157,10 +159,12 @@ class KeyframeLog:
                 log.dropped = int(meta["dropped"])
                 log.poses_given = bool(meta["poses_given"])
                 segments = json.loads(str(data["segments"]))
+                intrinsics = json.loads(str(data["intrinsics"]))
                 ends = np.cumsum(data["mask_sizes"])
                 masks = data["masks"].tobytes()
                 n = len(data["stamps_ns"])
-                if not (len(ends) == len(segments) == len(data["poses"]) == n and (not n or ends[-1] == len(masks))):
+                lengths = {len(ends), len(segments), len(intrinsics), len(data["poses"]), n}
+                if len(lengths) != 1 or (n and ends[-1] != len(masks)):
                     raise ValueError("inconsistent array lengths")
                 for k in range(n):
                     start = int(ends[k - 1]) if k else 0
@@ -169,9 +173,9 @@ class KeyframeLog:
                             int(data["index"][k]),
                             int(data["stamps_ns"][k]),
                             validate_pose(data["poses"][k], what="logged pose"),
-                            _intrinsics(data["intrinsics"][k]),
+                            Intrinsics.from_dict(intrinsics[k]),
                             masks[start : int(ends[k])],
-                            _segments(segments[k]),
+                            None if segments[k] is None else segments_from_entries(segments[k]),
                         )
                     )
         except FileNotFoundError:
@@ -185,20 +189,3 @@ def _pose_changed(a: np.ndarray, b: np.ndarray, tolerance: tuple[float, float]) 
     moved = np.linalg.norm(a[:3, 3] - b[:3, 3])
     cos = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1.0, 1.0)
     return bool(moved > tolerance[0] or np.arccos(cos) > tolerance[1])
-
-
-def _intrinsics_row(k: Intrinsics) -> list[float]:
-    return [k.fx, k.fy, k.cx, k.cy, k.width, k.height]
-
-
-def _intrinsics(row: np.ndarray) -> Intrinsics:
-    fx, fy, cx, cy, w, h = (float(v) for v in row)
-    return Intrinsics(fx, fy, cx, cy, int(w), int(h))
-
-
-def _segments_json(segments: tuple | None):
-    return None if segments is None else [[int(s.id), s.class_name, float(s.score)] for s in segments]
-
-
-def _segments(rows) -> tuple | None:
-    return None if rows is None else tuple(SegmentLabel(int(i), str(c), float(s)) for i, c, s in rows)

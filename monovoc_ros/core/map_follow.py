@@ -23,12 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.gaussians import GaussianMap, id_partners
 from monovoc_ros.core.map_follow_kernels import grid_nearest
 from monovoc_ros.core.map_motion import MapMotion, MotionConfig, estimate_motion
-
-# Ids up to this many times the map's size are looked up in a table (SLAM ids are counters), others sorted.
-_ID_TABLE_FACTOR = 8
 
 
 @dataclass(frozen=True)
@@ -65,25 +62,6 @@ def nearest_within_reference(points: np.ndarray, queries: np.ndarray, radius: np
     d, i = cKDTree(points).query(queries, k=1, distance_upper_bound=bound, workers=2)
     hit = np.isfinite(d) & (d <= radius)
     out[hit] = i[hit]
-    return out
-
-
-def id_partners(old_ids: np.ndarray, new_ids: np.ndarray) -> np.ndarray:
-    """(M,) int64: per new id the row of the same id in old_ids (N,), or -1 (both unique)."""
-    out = np.full(len(new_ids), -1, np.int64)
-    if not len(old_ids) or not len(new_ids):
-        return out
-    lo = int(min(old_ids.min(), new_ids.min()))
-    span = int(max(old_ids.max(), new_ids.max())) - lo + 1
-    if span <= _ID_TABLE_FACTOR * (len(old_ids) + len(new_ids)):
-        table = np.full(span, -1, np.int64)
-        table[old_ids - lo] = np.arange(len(old_ids))
-        return table[new_ids - lo]
-    order = np.argsort(old_ids)
-    pos = np.searchsorted(old_ids, new_ids, sorter=order).clip(0, len(old_ids) - 1)
-    cand = order[pos]
-    hit = old_ids[cand] == new_ids
-    out[hit] = cand[hit]
     return out
 
 

@@ -197,7 +197,6 @@ class MapUpdateReport:
     gaussians: int  # size of the new map
     by_id: int  # new Gaussians that took their evidence by id
     by_position: int  # new Gaussians that took it by the moved position
-    inherited: int  # new Gaussians with evidence
     motion: MapMotion  # how the map moved (core.map_motion)
     seconds: float = 0.0
 
@@ -443,7 +442,6 @@ class SemanticMapper:
             gaussians=len(gaussians),
             by_id=follow.by_id,
             by_position=follow.by_position,
-            inherited=int(np.count_nonzero(state.observed)),
             motion=follow.motion,
             seconds=time.perf_counter() - start,
         )

@@ -58,9 +58,18 @@ def read_segments(path: str | Path) -> tuple[SegmentLabel, ...]:
     return segments_from_entries(entries)
 
 
+def segments_to_entries(segments: tuple[SegmentLabel, ...], digits: int | None = None) -> list[dict]:
+    """JSON entries ({id, class_name, score}) of segment labels (`segments_from_entries` reads them back);
+    `digits` rounds the scores."""
+
+    def score(s: SegmentLabel) -> float:
+        return float(s.score) if digits is None else round(float(s.score), digits)
+
+    return [{"id": int(s.id), "class_name": s.class_name, "score": score(s)} for s in segments]
+
+
 def write_segments(path: str | Path, segments: tuple[SegmentLabel, ...]) -> None:
-    entries = [{"id": s.id, "class_name": s.class_name, "score": round(float(s.score), 6)} for s in segments]
-    Path(path).write_text(json.dumps(entries))
+    Path(path).write_text(json.dumps(segments_to_entries(segments, digits=6)))
 
 
 class LabelHistogram:

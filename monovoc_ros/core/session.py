@@ -153,6 +153,7 @@ class Reintegration:
         self._done = 0  # entries of `log` integrated (counting ones the log dropped since for room)
         self._dropped_at_start = self.log.dropped
         self.refused = 0
+        self.skipped = 0  # entries the log dropped before this job reached them
         self.seconds = 0.0
 
     @property
@@ -166,8 +167,11 @@ class Reintegration:
     def step(self) -> None:
         """Integrates the next logged keyframe (a refused one is counted and skipped)."""
         start = time.perf_counter()
-        # Entries the bounded log dropped before this job reached them are gone, not to be re-counted.
-        self._done = max(self._done, self.log.dropped - self._dropped_at_start)
+        # Entries the bounded log dropped before this job reached them are gone: skipped, not re-counted.
+        gone = self.log.dropped - self._dropped_at_start
+        if gone > self._done:
+            self.skipped += gone - self._done
+            self._done = gone
         entry = self.log.entries[self._position]
         self._done += 1
         try:
@@ -331,8 +335,8 @@ class MappingSession:
             self.stats.add(map_updates=1)
             self.stats.update(map_update_carried_share=report.carried_share, ms_map_update_last=1e3 * report.seconds)
             self.log.info(f"map update {name}: {report.describe()}")
-            if self._job is not None:
-                self._start_reintegration(f"{self._job.reason}, restarted on the new map")
+            if self._job is not None:  # its rebuild is of the old map: start over on the new one
+                self._start_reintegration(self._job.reason)
             elif self._mapper.n_keyframes:
                 reason = report.reintegration_reason(self.config.reintegrate_below)
                 if reason:
@@ -366,7 +370,7 @@ class MappingSession:
         self._pending_poses = {stamp: T for stamp, T in checked if not integrated(stamp)}
         if mapper is None:
             return 0
-        changed = mapper.keyframe_log.set_poses(poses)
+        changed = mapper.keyframe_log.set_poses(dict(checked))
         if changed:
             self._start_reintegration(f"{changed} corrected keyframe poses")
         return changed
@@ -383,7 +387,15 @@ class MappingSession:
             return False
         if not job.caught_up:
             job.step()
-        if job.caught_up:
+        if job.caught_up and job.skipped:
+            # The bounded log dropped keyframes before the rebuild reached them: their evidence would be lost.
+            self._cancel_reintegration()
+            self.stats.reject("reintegration_incomplete_log")
+            self.log.warning(
+                f"re-integration ({job.reason}) abandoned: the keyframe log dropped {job.skipped} "
+                "keyframes before it reached them (keyframe_log_bytes); the carried-over evidence is kept"
+            )
+        elif job.caught_up:
             self._job = None
             # The rebuilt log holds the live log's entries: it is as complete as that one.
             job.mapper.keyframe_log.dropped = job.log.dropped
@@ -403,6 +415,7 @@ class MappingSession:
 
     def _start_reintegration(self, reason: str) -> None:
         assert self._mapper is not None
+        self._job = None  # a rebuild in progress is of an older map or older poses
         log = self._mapper.keyframe_log
         if not (log.complete and len(log) == self._mapper.n_keyframes):
             # A rebuild from a partial log would drop the evidence of the keyframes it lacks: keep the

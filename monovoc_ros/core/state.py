@@ -28,6 +28,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from monovoc_ros.core.gaussians import id_partners
 from monovoc_ros.core.map_follow_kernels import gather_rows
 
 # Written into every saved file (beside the store's FORMAT) so that a foreign .npz is recognised as such.
@@ -93,10 +94,8 @@ class GaussianEvidence:
             raise ValueError(f"cannot merge: {shared.size} keyframe stamps are in both states (e.g. {shared[0]})")
         take = np.arange(len(self))
         if self.ids is not None and other.ids is not None and len(self):
-            order = np.argsort(other.ids)
-            pos = np.searchsorted(other.ids, self.ids, sorter=order).clip(0, len(self) - 1)
-            take = order[pos]
-            if not np.array_equal(other.ids[take], self.ids):
+            take = id_partners(other.ids, self.ids)
+            if np.any(take < 0):
                 raise ValueError("cannot merge: the states have different Gaussian ids (reindex one first)")
         return take
 

@@ -36,6 +36,11 @@ class Churned:
     move_pose: PoseMover
 
 
+def unmoved(T: np.ndarray) -> np.ndarray:
+    """The pose mover of an update that moves nothing (densify, prune, re-order)."""
+    return np.array(T, np.float64)
+
+
 def _rot_z(deg: float) -> np.ndarray:
     a = np.radians(deg)
     c, s = np.cos(a), np.sin(a)
@@ -64,7 +69,7 @@ def shuffled(gmap: GaussianMap, *, seed: int = 0, keep_ids: bool = False) -> Chu
     rng = np.random.default_rng(seed)
     rows = np.arange(len(gmap))
     out = _build(gmap, rows, gmap.means, gmap.scales, gmap.quats, _ids(gmap), keep_ids, rng)
-    return Churned(out, lambda T: np.array(T, np.float64))
+    return Churned(out, unmoved)
 
 
 def densify(
@@ -90,7 +95,7 @@ def densify(
     next_id = int(ids.max()) + 1 if n else 0
     new_ids = np.concatenate([ids[keep], ids[parents], next_id + np.arange(len(parents), dtype=np.int64)])
     out = _build(gmap, rows, means, scales, gmap.quats[rows], new_ids, keep_ids, rng)
-    return Churned(out, lambda T: np.array(T, np.float64))
+    return Churned(out, unmoved)
 
 
 def _moved(gmap: GaussianMap, R: np.ndarray, t: np.ndarray, keep_ids: bool, seed: int) -> GaussianMap:
