@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase
-from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, ros_args, wait_for_service
+from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, ros_args, wait_for_service, wait_until
 from tests.object_room import copy_directory, room_directory
 from tests.test_query_service import NODE, _environment, _query
 
@@ -145,8 +145,15 @@ def test_resume_keeps_an_unreadable_objects_db_aside(tmp_path):
         service = client.node.create_client(TextQuery, "/monovoc/query")
         for cli in (save, service):
             wait_for_service(cli, 30.0, process=node)
-        kept = sorted(directory.glob(f"{DB_NAME}.unreadable-*"))
-        kept = [p for p in kept if not p.name.endswith(("-wal", "-shm"))]
+
+        # The services are announced when they are created, before the object component restores
+        # objects.db: wait for the file to be kept aside, not for the services alone.
+        def kept_aside():
+            found = sorted(directory.glob(f"{DB_NAME}.unreadable-*"))
+            return [p for p in found if not p.name.endswith(("-wal", "-shm"))]
+
+        wait_until(kept_aside, 30.0, "objects.db kept aside", process=node)
+        kept = kept_aside()
         assert len(kept) == 1 and kept[0].read_bytes() == damaged
         assert call_service(save, SaveMap.Request(), 60.0, process=node).success
         node.check_running()
