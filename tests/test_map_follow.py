@@ -207,3 +207,16 @@ def test_gaussians_with_non_finite_means_neither_take_nor_give_evidence():
     assert 5 not in set(follow.sources.tolist()) and np.mean(follow.sources >= 0) > 0.95
     with_ids = follow_map(_with_ids(old), closure_map)
     assert with_ids.refusal == "" and with_ids.motion.by == "ids"
+
+
+def test_a_sampled_target_map_still_recognises_a_rigid_update():
+    """Beyond target_sample new centres the targets are a sample, farther apart than the map's own centres:
+    a densified, unmoved map is still explained by the rigid fit (no field), a bent one is not."""
+    scene = small_scene()
+    old = scene.gaussians.means
+    config = replace_motion(target_sample=len(old) // 4)
+    densified = churn.densify(scene.gaussians, seed=2).gaussians
+    rigid = estimate_motion(old, densified.means, config)
+    assert rigid.converged and not np.any(rigid.offsets) and rigid.max_displacement(old) < 0.005
+    bent = estimate_motion(old, churn.drift_correction(scene.gaussians).gaussians.means, config)
+    assert bent.converged and np.any(bent.offsets)

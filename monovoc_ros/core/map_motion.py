@@ -167,6 +167,7 @@ class _Targets:
         self, new: np.ndarray, known: np.ndarray | None, config: MotionConfig, frames: tuple | None = None
     ) -> None:
         self.known = known
+        self._others = np.zeros((0, 3))  # new centres that are not targets (when the targets are a sample)
         self._frames: tuple | None = None
         if known is None:
             rng = np.random.default_rng(config.seed + 1)
@@ -177,11 +178,26 @@ class _Targets:
             self.points = new[rows]
             self.tree = cKDTree(self.points)
             self._frames = None if frames is None else (frames[0][rows], frames[1][rows])
+            if len(rows) < len(new):
+                sampled = np.zeros(len(new), bool)
+                sampled[rows] = True
+                others = rng.choice(len(new), config.rigid_sample)
+                self._others = new[others[~sampled[others]]]
 
     @cached_property
     def normals(self) -> np.ndarray | None:
         """(T, 3) surface normal per target (zero where not flat); only the field needs them."""
         return None if self._frames is None else surface_normals(*self._frames)
+
+    def floor(self, trim: float) -> tuple[float, float]:
+        """(share within trim, median distance) of the new map's own centres to their nearest target: what a
+        perfectly registered old centre can reach when the targets are a sample, farther apart than the
+        map's centres ((1, 0) when every new centre is a target)."""
+        if not len(self._others):
+            return 1.0, 0.0
+        d = self.tree.query(self._others, k=1, distance_upper_bound=trim)[0]
+        near = d[np.isfinite(d)]
+        return float(np.isfinite(d).mean()), float(np.median(near)) if near.size else trim
 
     def subset(self, rows: slice) -> _Targets:
         """The targets of the sample's rows `rows` (known partners are per sample row; a tree is shared)."""
@@ -190,9 +206,11 @@ class _Targets:
             out.known = self.known[rows]
         return out
 
-    def pairs(self, moved: np.ndarray, trim: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def pairs(
+        self, moved: np.ndarray, trim: float, normals: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """(inlier mask (S,), target (S, 3), target normal (S, 3) or None) for the sample at its current
-        positions `moved` (S, 3)."""
+        positions `moved` (S, 3); normals only when asked (the rigid fit needs none)."""
         if self.known is not None:
             target = self.known
             inlier = np.linalg.norm(target - moved, axis=1) <= trim
@@ -201,7 +219,7 @@ class _Targets:
         inlier = np.isfinite(d)
         i = np.minimum(i, len(self.points) - 1)
         target = np.where(inlier[:, None], self.points[i], moved)
-        return inlier, target, None if self.normals is None else self.normals[i]
+        return inlier, target, None if not normals or self.normals is None else self.normals[i]
 
 
 def surface_normals(quats: np.ndarray, scales: np.ndarray, flat: float = 0.3) -> np.ndarray:
@@ -270,7 +288,9 @@ def estimate_motion(
         # A rigid motion that explains the map (densified, pruned, moved as a whole) needs no field.
         inlier, target, _ = targets.pairs(rigid_moved, trim)
         res = np.linalg.norm(target - rigid_moved, axis=1)[inlier]
-        if inlier.mean() >= config.rigid_inliers and res.size and np.median(res) <= config.rigid_residual:
+        share, spacing = targets.floor(trim)
+        explained = res.size and np.median(res) <= config.rigid_residual + spacing
+        if inlier.mean() >= config.rigid_inliers * share and explained:
             rms = float(np.sqrt(np.mean(res**2)))
             return MapMotion(R, t, rms=rms, inliers=float(inlier.mean()), converged=rms <= config.max_rms, by=by)
     lo, hi = rigid_moved.min(axis=0), rigid_moved.max(axis=0)
@@ -285,7 +305,7 @@ def estimate_motion(
     for _ in range(config.field_iterations):
         field_now = np.einsum("nk,nkc->nc", w, offsets.reshape(-1, 3)[flat])
         moved = rigid_moved + field_now
-        inlier, target, normals = targets.pairs(moved, max(trim, field_trim))
+        inlier, target, normals = targets.pairs(moved, max(trim, field_trim), normals=True)
         r = np.where(inlier[:, None], target - moved, 0.0)
         wi = w * inlier[:, None]
         # Per point a 3x3 metric: n n^T (+ a little of I) on flat targets, I elsewhere (point-to-point).
