@@ -61,6 +61,40 @@ if [ "$(cat "$venv/.project_stamp" 2>/dev/null)" != "$proj_stamp" ]; then
   echo "$proj_stamp" > "$venv/.project_stamp"
 fi
 
+# The real ROS 2 command line (ros2 run / launch / service / topic / param / node / pkg): on a robot from apt,
+# here the upstream wheels in ../shared/ros2_tools (see its README; --no-deps: they name ROS packages that
+# PyPI spells ros-jazzy-*).
+tools="$root/../shared/ros2_tools"
+if [ -d "$tools" ]; then
+  tools_stamp=$(stamp "$tools"/*.whl)
+  if [ "$(cat "$venv/.tools_stamp" 2>/dev/null)" != "$tools_stamp" ]; then
+    echo "[install] ROS 2 command-line tools from $tools"
+    pip install --quiet psutil osrf-pycommon packaging setuptools 2>&1 | { grep -v "^WARNING: Location" || true; }
+    pip install --quiet --no-deps "$tools"/*.whl 2>&1 | { grep -v "^WARNING: Location" || true; }
+    # launch_ros names ament_index_python, which PyPI spells ros-jazzy-ament-index-python: the one harmless line.
+    problems=$(pip check 2>&1 | grep -v "^launch-ros .* ament-index-python" | grep -v "^No broken requirements" || true)
+    [ -z "$problems" ] || { echo "$problems" >&2; exit 1; }
+    echo "$tools_stamp" > "$venv/.tools_stamp"
+  fi
+else
+  echo "[install] $tools not found: no ros2 command line in the venv (tests that run it will fail)" >&2
+fi
+
+# The development install registered in the venv's ament index, as a colcon install space registers it, so
+# `ros2 run / launch / pkg monovoc_ros ...` find it: links to the repository's files (edits take effect at
+# once) and, in lib/monovoc_ros, the executables ros2 run looks for.
+share="$venv/share/monovoc_ros"
+mkdir -p "$venv/share/ament_index/resource_index/packages" "$share" "$venv/lib/monovoc_ros"
+: > "$venv/share/ament_index/resource_index/packages/monovoc_ros"
+for item in package.xml config rviz; do ln -sfn "$root/$item" "$share/$item"; done
+# ros2 launch finds launch files by walking the share directory, which does not enter linked directories.
+rm -rf "$share/launch" && mkdir -p "$share/launch"
+for file in "$root"/launch/*.py; do ln -sfn "$file" "$share/launch/"; done
+for exe in semantic_mapper mapping_node monovoc; do
+  printf '#!/bin/sh\nexec "%s" "$@"\n' "$venv/bin/$exe" > "$venv/lib/monovoc_ros/$exe"
+  chmod +x "$venv/lib/monovoc_ros/$exe"
+done
+
 # Offline embedding models: exported once to ONNX into the model cache (a no-op when up to date).
 "$venv/bin/python" -m monovoc_ros.embed.export --quiet
 echo "[install] done: $venv"
