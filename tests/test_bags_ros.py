@@ -101,6 +101,25 @@ def test_replay_fast_delivers_every_message_and_remaps(bag: Path, tmp_path: Path
         assert_same_map(got, ma.cloud_to_gaussian_map(ref))
 
 
+def test_replay_fast_waits_by_default_for_subscribers_that_come_late(bag: Path, tmp_path: Path) -> None:
+    """Plain `monovoc replay --fast` started before anything subscribes (a node still starting) waits for
+    one subscriber on each keyframe and map topic, then loses nothing (it sent 0 of 60 to a node before)."""
+    env = ros_environment(tmp_path)
+    counts = {t.name: t.count for t in bag_info(bag).topics.values()}
+    with replay_process(bag, env, "--fast") as p, ClientNode(env) as client:
+        # Each subscription is created while the replay is already waiting: they match one by one.
+        received = {}
+        for role, cls in TYPES.items():
+            assert p.returncode is None and '"total"' not in p.output()  # still waiting, nothing published
+            received[role] = MessageCollector()
+            client.node.create_subscription(cls, TOPICS[role], received[role], qos(role))
+        summary = finish(p)
+        for role in TYPES:
+            received[role].wait_for(counts[TOPICS[role]], timeout=10.0)
+    assert summary["unmatched"] == [] and summary["unacked"] == []
+    assert {role: len(c.messages) for role, c in received.items()} == {r: counts[TOPICS[r]] for r in TYPES}
+
+
 class _Arrivals:
     def __init__(self) -> None:
         self.times: list[float] = []
@@ -138,14 +157,15 @@ def test_replay_keeps_the_recorded_rate_and_publishes_clock(bag: Path, tmp_path:
 
 def test_late_subscriber_gets_the_latched_map_and_ctrl_c_exits_cleanly(scene, bag: Path, tmp_path: Path) -> None:
     env = ros_environment(tmp_path)
-    with replay_process(bag, env, "--rate", "4", "--hold", "60") as p:
+    with replay_process(bag, env, "--rate", "4", "--hold", "60", "--wait-subscribers", "0") as p:
         p.wait_for_output('"total"', timeout=30.0)  # playback over; the publishers are held
         with ClientNode(env) as client:
             maps = MessageCollector()
             client.node.create_subscription(PointCloud2, TOPICS["gaussians"], maps, qos("gaussians"))
             maps.wait_for(2, timeout=10.0, process=p)
-        assert p.stop() == 0, p.describe()
+        assert p.stop() == 2, p.describe()  # the keyframes went out to no one: said loudly, exit code 2
     assert "Traceback" not in p.output()
+    assert "WARNING: no subscriber on" in p.output() and TOPICS["mask"] in p.output()
     assert_same_map(ma.cloud_to_gaussian_map(maps.messages[0]), scene.gaussians)
     assert_same_map(ma.cloud_to_gaussian_map(maps.messages[-1]), moved(scene.gaussians))
 

@@ -5,6 +5,12 @@ resolved from the schema name. Every publisher is reliable; topics recorded as t
 ``*/gaussians``, the Gaussian map) are transient-local with a history deep enough for all their
 messages, so a subscriber that joins late still gets the map.
 
+No loss at the start: by default the replay waits until each of the bag's keyframe and map topics (the
+node's inputs: image, mask, camera_info, pose, gaussians) has a subscriber, as a node that is still starting
+(``ros2 launch`` starts both at once) would otherwise miss the first messages, and with ``fast`` all of them.
+One of those topics that had no subscriber when its first message went out is reported (``unmatched``;
+`monovoc replay` warns and exits with 2).
+
 No loss with ``fast``: a reliable KEEP_LAST writer overwrites samples that are not yet acknowledged
 once its history is full, so every ``depth`` messages on a topic the replay waits until they are
 acknowledged, and before it returns it waits for all of them (``wait_for_all_acked``). What a
@@ -27,6 +33,7 @@ from monovoc_ros.bags import schemas
 from monovoc_ros.bags.qos import rclpy_profile
 from monovoc_ros.bags.reader import BagInfo, bag_info, iter_messages
 from monovoc_ros.bags.rosnode import WRITER_HEARTBEAT_MS, ros_node
+from monovoc_ros.contract import KEYFRAME_ROLES, MAP_ROLE
 
 STREAM_DEPTH_MAX = 100  # history of a volatile topic (unacknowledged messages in flight in fast mode)
 LATCHED_DEPTH_MAX = 32  # history of a transient-local topic (what a late joiner gets)
@@ -48,6 +55,7 @@ class ReplaySummary:
     rate: float | None  # None when fast
     max_late_ms: float = 0.0  # worst delay behind the recorded schedule (timed replay)
     unacked: list[str] = field(default_factory=list)  # topics not fully acknowledged in time
+    unmatched: list[str] = field(default_factory=list)  # expected topics without a subscriber at their first message
     interrupted: bool = False
 
     def as_dict(self) -> dict:
@@ -61,6 +69,7 @@ class ReplaySummary:
             "rate": self.rate,
             "max_late_ms": round(self.max_late_ms, 2),
             "unacked": self.unacked,
+            "unmatched": self.unmatched,
             "interrupted": self.interrupted,
         }
 
@@ -86,6 +95,14 @@ def _split_remap(text: str) -> tuple[str, str]:
     return src, dst
 
 
+def expected_topics(topics: Iterable[str]) -> list[str]:
+    """The topics a replay waits for by default: those of the node's keyframe and map inputs (by the
+    contract's role names); for a bag without any, all of them."""
+    roles = {*KEYFRAME_ROLES, MAP_ROLE}
+    topics = list(topics)
+    return [t for t in topics if t.rsplit("/", 1)[-1] in roles] or topics
+
+
 def latched_topics(info: BagInfo) -> set[str]:
     """Topics replayed transient-local: recorded so, or the Gaussian map topic of our contract."""
     return {t.name for t in info.topics.values() if t.transient_local or t.name.endswith("/gaussians")}
@@ -104,6 +121,7 @@ class _Publishers:
         self.out: dict[str, str] = {}
         self.pubs: dict[str, Any] = {}
         self.depth: dict[str, int] = {}
+        self.unmatched: set[str] = set()  # topics whose first message went out to no subscriber
         for topic, cls in classes.items():
             transient = topic in latched
             depth = min(max(info.topics[topic].count, 1), LATCHED_DEPTH_MAX if transient else STREAM_DEPTH_MAX)
@@ -112,14 +130,18 @@ class _Publishers:
             profile = rclpy_profile(transient_local=transient, depth=depth)
             self.pubs[topic] = node.create_publisher(cls, self.out[topic], profile)
 
-    def wait_matched(self, count: int, timeout: float, stop: threading.Event) -> None:
+    def wait_matched(self, topics: Iterable[str], count: int, timeout: float, stop: threading.Event) -> None:
         deadline = time.monotonic() + timeout
+        topics = list(topics)
         while True:
-            lacking = [self.out[t] for t, p in self.pubs.items() if p.get_subscription_count() < count]
+            lacking = [self.out[t] for t in topics if self.pubs[t].get_subscription_count() < count]
             if not lacking:
                 return
             if time.monotonic() >= deadline:
-                raise ReplayError(f"timed out after {timeout:.1f} s waiting for {count} subscriber(s) on {lacking}")
+                raise ReplayError(
+                    f"timed out after {timeout:.1f} s waiting for {count} subscriber(s) on {lacking} "
+                    "(is the node running, in the same ROS_DOMAIN_ID? --wait-subscribers 0 starts without them)"
+                )
             if stop.wait(0.02):
                 return
 
@@ -148,7 +170,7 @@ def replay(
     clock_hz: float = DEFAULT_CLOCK_HZ,
     remap: Iterable[str] | Mapping[str, str] | None = None,
     topics: Iterable[str] | None = None,
-    wait_subscribers: int = 0,
+    wait_subscribers: int | None = None,
     wait_timeout: float = 30.0,
     ack_timeout: float = 30.0,
     loop: bool = False,
@@ -162,9 +184,10 @@ def replay(
 
     ``rate``: multiple of the recorded rate (ignored with ``fast``). ``topics``: only these bag topics.
     ``wait_subscribers``: before starting, wait until every replayed topic has that many subscribers
-    (``wait_timeout``, then ReplayError). ``hold``: seconds to keep the publishers (and the latched map)
-    alive after the last message. ``stop_event``: set it to stop early (Ctrl-C in the main thread does
-    the same). ``node``: publish from this node instead of an own one in a new context.
+    (``wait_timeout``, then ReplayError); None (the default): one on each `expected_topics`; 0: no wait.
+    ``hold``: seconds to keep the publishers (and the latched map) alive after the last message.
+    ``stop_event``: set it to stop early (Ctrl-C in the main thread does the same). ``node``: publish
+    from this node instead of an own one in a new context.
     ``on_started()``: called when publishing starts; ``on_done(summary)``: when it ends, before ``hold``.
     """
     if not fast and not rate > 0:
@@ -183,8 +206,10 @@ def replay(
         pubs = _Publishers(ros, info, selected, remaps)
         clock_pub = _ClockPublisher(ros) if clock else None
         try:
-            if wait_subscribers > 0:
-                pubs.wait_matched(wait_subscribers, wait_timeout, stop)
+            if wait_subscribers is None:
+                pubs.wait_matched(expected_topics(selected), 1, wait_timeout, stop)
+            elif wait_subscribers > 0:
+                pubs.wait_matched(selected, wait_subscribers, wait_timeout, stop)
             if on_started is not None:
                 on_started()
             start = time.monotonic()
@@ -202,6 +227,7 @@ def replay(
             summary.unacked = pubs.wait_acked(selected, 1.0 if summary.interrupted else ack_timeout)
             summary.seconds = time.monotonic() - start
             summary.messages = {pubs.out[t]: counts[t] for t in selected}
+            summary.unmatched = [pubs.out[t] for t in expected_topics(selected) if t in pubs.unmatched]
             if on_done is not None:
                 on_done(summary)
             if hold > 0 and not summary.interrupted:
@@ -266,6 +292,8 @@ def _play_once(
         if clock_pub is not None:
             clock_pub.publish(message.log_time_ns)
         topic = message.topic
+        if not counts[topic] and pubs.pubs[topic].get_subscription_count() == 0:
+            pubs.unmatched.add(topic)
         pubs.pubs[topic].publish(message.data)
         counts[topic] += 1
         since_ack[topic] += 1

@@ -31,9 +31,10 @@ def register(subparsers) -> None:
     p.add_argument(
         "--wait-subscribers",
         type=int,
-        default=0,
+        default=None,
         metavar="N",
-        help="start once every replayed topic has N subscribers (default 0: start at once)",
+        help="start once every replayed topic has N subscribers (0: start at once; default: once each of the bag's "
+        "keyframe and map topics, the node's inputs, has one, so a node still starting misses nothing)",
     )
     p.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for subscribers (default 30)")
     p.add_argument("--loop", action="store_true", help="replay again and again until Ctrl-C")
@@ -57,6 +58,13 @@ def run(args: argparse.Namespace) -> int:
     def done(summary) -> None:
         # Printed before --hold, so callers know playback has ended while the map stays latched.
         print(json.dumps(summary.as_dict(), indent=1), flush=True)
+        if summary.unmatched:
+            print(
+                f"monovoc replay: WARNING: no subscriber on {summary.unmatched} when their first message went out: "
+                "those messages reached no one",
+                file=sys.stderr,
+                flush=True,
+            )
 
     try:
         summary = replay(
@@ -80,4 +88,4 @@ def run(args: argparse.Namespace) -> int:
         return 1
     except KeyboardInterrupt:  # before publishing started (e.g. while waiting for subscribers)
         return 130
-    return 0 if not summary.unacked else 2
+    return 0 if not (summary.unacked or summary.unmatched) else 2

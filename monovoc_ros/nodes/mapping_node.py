@@ -32,6 +32,7 @@ from typing import Any
 
 import rclpy
 from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
@@ -120,9 +121,12 @@ class MappingNode(Node):
         self._create_services()
         self._diagnostics = self.create_publisher(_diagnostic_array_type(), "/diagnostics", DIAGNOSTICS_QOS)
         timers = self.callback_groups["timers"]
-        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics, callback_group=timers)
+        # Wall-clock (steady) timers: with use_sim_time, ROS-time timers stop when /clock stops (a bag's end)
+        # or never start (no /clock yet), and with them diagnostics and the flush of held inputs.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics, callback_group=timers, clock=steady)
         if p.reorder_wait_s > 0:
-            self.create_timer(min(0.1, p.reorder_wait_s), self._flush_stale_inputs, callback_group=timers)
+            self.create_timer(min(0.1, p.reorder_wait_s), self._flush_stale_inputs, callback_group=timers, clock=steady)
 
     # ------------------------------------------------------------------ hooks for other components
 
