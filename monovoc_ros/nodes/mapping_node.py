@@ -24,6 +24,7 @@ name is `semantic_mapper` whichever executable runs it.
 from __future__ import annotations
 
 import concurrent.futures
+import signal
 import sys
 import threading
 from collections.abc import Callable
@@ -428,6 +429,16 @@ def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Com
     # keyframe and per query; with the default 5 ms switch interval each handoff could wait up to 5 ms
     # behind another thread's Python code (the tails of query and keyframe-to-cloud latency).
     sys.setswitchinterval(0.001)
+    _StopSignals()
+    try:
+        return _run(args, compose)
+    finally:
+        # Stopped: the process only exits now, and a late signal must not turn that into exit code -2.
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, signal.SIG_IGN)
+
+
+def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component]] | None) -> int:
     rclpy.init(args=args)
     node = None
     try:
@@ -459,6 +470,24 @@ def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Com
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+class _StopSignals:
+    """SIGINT / SIGTERM handler, installed before rclpy.init (rclpy's own handler shuts the context down,
+    then calls this one): the first signal stops the node, later ones are only logged. A terminal's Ctrl-C
+    reaches both the node and `ros2 launch`, which forwards one more; raised again during shutdown, that
+    KeyboardInterrupt cut the final snapshot short."""
+
+    def __init__(self) -> None:
+        self.received = 0
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, self)
+
+    def __call__(self, signum: int, _frame: Any) -> None:
+        self.received += 1
+        if self.received == 1:
+            raise KeyboardInterrupt
+        print(f"{NODE_NAME}: {signal.Signals(signum).name} again: already shutting down", file=sys.stderr, flush=True)
 
 
 def _abort(node: MappingNode | None) -> None:
