@@ -61,6 +61,7 @@ class NodeProcess:
         name: str = "process",
         output_path: Path | None = None,
         cwd: Path | None = None,
+        process_group: bool = False,
     ):
         env = dict(os.environ if env is None else env)
         self.name = name
@@ -71,7 +72,12 @@ class NodeProcess:
             output_path = log_dir / f"{name}-{os.getpid()}-{time.monotonic_ns()}.out"
         self.output_path = Path(output_path)
         self._out = open(self.output_path, "wb")
-        self.proc = subprocess.Popen(self.args, env=env, cwd=cwd, stdout=self._out, stderr=subprocess.STDOUT)
+        # process_group: the child leads a new process group and every signal goes to the whole group, as a
+        # terminal's Ctrl-C reaches a foreground job (`ros2 launch` and the nodes it started alike).
+        self.process_group = process_group
+        self.proc = subprocess.Popen(
+            self.args, env=env, cwd=cwd, stdout=self._out, stderr=subprocess.STDOUT, start_new_session=process_group
+        )
 
     @classmethod
     def python(cls, args: Sequence[str], env: Mapping[str, str] | None = None, *, python: str | Path = sys.executable,
@@ -128,7 +134,10 @@ class NodeProcess:
 
     def _signal(self, sig: int) -> None:
         try:
-            self.proc.send_signal(sig)
+            if self.process_group:
+                os.killpg(self.proc.pid, sig)
+            else:
+                self.proc.send_signal(sig)
         except ProcessLookupError:
             pass
 

@@ -4,7 +4,8 @@ The full node `semantic_mapper` (monovoc_ros.nodes.semantic_mapper) composes it 
 (monovoc_ros.nodes.mapping_node) through the interface of monovoc_ros.nodes.component. It adds:
 
 * service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) on its own node
-  (``<name>_query``, in the mapping node's namespace) and executor thread, with a keep-last-1000 request
+  (``<name>_query`` whatever the remaps, in the mapping node's namespace, without parameters) and
+  executor thread, with a keep-last-1000 request
   queue (SERVICE_QOS), answered from an immutable snapshot of the object index, so it stays responsive
   while the worker integrates keyframes and while objects are being embedded (recent query texts are cached);
 * topics ``query/highlight`` (PointCloud2 in the semantic-cloud schema: the Gaussians of the objects of
@@ -120,7 +121,17 @@ class ObjectQueryComponent:
         # MultiThreadedExecutor each request waited for a wait set rebuilt over every subscription, timer and
         # service of the node while keyframes arrived (p99 several seconds at 100 queries/s on 2 cores).
         self.group = MutuallyExclusiveCallbackGroup()
-        self._node = rclpy.create_node(f"{host.name}_query", namespace=host.namespace, context=host.context)
+        name = f"{host.name}_query"
+        self._node = rclpy.create_node(
+            name,
+            namespace=host.namespace,
+            context=host.context,
+            # A node's own remap wins over the process's: `-r __node:=X` (what ros2 launch passes for name=)
+            # would otherwise rename this node to X too, and two nodes of one name answer at random.
+            cli_args=["--ros-args", "-r", f"__node:={name}"],
+            # Every parameter is the mapping node's: no second parameter server beside it.
+            start_parameter_services=False,
+        )
 
         def count_error() -> None:
             self.queries_failed += 1

@@ -1,0 +1,128 @@
+"""The real ROS 2 command line (upstream ros2cli / launch wheels from ../shared/ros2_tools, installed into the
+venv by scripts/install.sh, with the development install registered in the venv's ament index) against the
+nodes, with the README's commands as a user types them:
+
+* `ros2 launch ... bag:=...` integrates all 60 keyframes of the bundled bag, twice; Ctrl-C sent to the
+  launch's whole process group (as a terminal does) stops everything with the final snapshot written;
+* `ros2 node list` names every node once; `ros2 param get` answers 5 of 5, `ros2 param describe` shows the
+  range; `ros2 service call /monovoc/query ...` and `ros2 topic echo --once /monovoc/objects` answer;
+* `ros2 run monovoc_ros semantic_mapper` and a plain `monovoc replay --fast` started as soon as the query
+  service appears: 60 of 60.
+"""
+
+from __future__ import annotations
+
+import shlex
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from monovoc_ros.bags import bag_info
+from monovoc_ros.core.map_store import load_snapshot
+from monovoc_ros.embed import default_model_dir
+from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, wait_for_service, wait_until
+from tests.rosutil import REPO, ros_environment
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+BAG = REPO / "bags" / "synthetic_room.mcap"
+KEYFRAMES = bag_info(BAG).topics["/monovoc/mask"].count
+
+
+def readme_session() -> list[str]:
+    """The commands of the README's "With the ROS 2 command line" block."""
+    text = (REPO / "README.md").read_text()
+    section = text[text.index("### With the ROS 2 command line") :]
+    block = section[section.index("```bash\n") + 8 :]
+    return [line.strip() for line in block[: block.index("```")].splitlines() if line.strip()]
+
+
+@pytest.fixture()
+def env(tmp_path) -> dict:
+    if shutil.which("ros2") is None:
+        pytest.fail("no `ros2` on PATH: scripts/install.sh installs it from ../shared/ros2_tools")
+    return ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
+
+
+def ros2(command: str, env: dict, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    """One README line in bash ($HOME expands to the test's home)."""
+    return subprocess.run(["bash", "-c", command], env=env, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+def answered(command: str, env: dict, expected: str, timeout: float = 60.0) -> str:
+    """Runs `command` until its output holds `expected` (the daemon's first answers may predate discovery)."""
+    out: list[str] = []
+
+    def done() -> bool:
+        result = ros2(command, env)
+        out[:] = [result.stdout + result.stderr]
+        return result.returncode == 0 and expected in result.stdout
+
+    wait_until(done, timeout, f"`{command}` to print {expected!r}", interval=0.5)
+    return out[0]
+
+
+def launch(line: str, env: dict, name: str) -> NodeProcess:
+    assert line.endswith(" &") and line.startswith("ros2 launch monovoc_ros monovoc.launch.py ")
+    return NodeProcess(["bash", "-c", "exec " + line.removesuffix("&").strip()], env, name=name, cwd=REPO,
+                       process_group=True)  # fmt: skip
+
+
+def snapshot_keyframes(env: dict, line: str) -> int:
+    map_dir = shlex.split(line.split("map_directory:=")[1])[0].replace("$HOME", env["HOME"])
+    return load_snapshot(Path(map_dir)).n_keyframes
+
+
+def integrate_the_bag(process: NodeProcess, client: ClientNode) -> None:
+    diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+    process.wait_for_output('"unmatched": []', 120.0)  # the replay's summary: every keyframe topic matched
+    diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(KEYFRAMES), 120.0, process=process)
+
+
+def test_launch_with_a_bag_and_the_ros2_command_line(env):
+    launch_line, node_list, param_get, param_describe, service_call, topic_echo = readme_session()
+    try:
+        with launch(launch_line, env, "ros2_launch_1") as process, ClientNode(env) as client:
+            integrate_the_bag(process, client)
+            nodes = answered(node_list, env, "/monovoc/semantic_mapper_query")
+            listed = [line for line in nodes.splitlines() if line.startswith("/")]
+            assert "/monovoc/semantic_mapper" in listed and len(listed) == len(set(listed)), nodes
+            assert "share an exact name" not in nodes
+            for _ in range(5):
+                got = ros2(param_get, env)
+                assert got.returncode == 0 and got.stdout.strip() == "Integer value is: 4", got.stdout + got.stderr
+            described = answered(param_describe, env, "Min value: 1")
+            assert "Max value: 16" in described, described
+            answer = answered(service_call, env, "success=True", timeout=120.0)
+            assert "monovoc_interfaces.msg.SemanticObject(id=" in answer, answer
+            echoed = answered(topic_echo, env, "objects:")
+            assert echoed.count("num_gaussians:") >= 5, echoed
+            assert process.stop() == 0, process.describe()  # SIGINT to the process group
+        assert "Traceback" not in process.output()
+        assert snapshot_keyframes(env, launch_line) == KEYFRAMES, process.describe()
+        # A second run on the same map directory: the launch again integrates the whole bag.
+        shutil.rmtree(Path(env["HOME"]) / "maps")
+        with launch(launch_line, env, "ros2_launch_2") as process, ClientNode(env) as client:
+            integrate_the_bag(process, client)
+            assert process.stop() == 0, process.describe()
+        assert snapshot_keyframes(env, launch_line) == KEYFRAMES, process.describe()
+    finally:
+        ros2("ros2 daemon stop", env)
+
+
+def test_ros2_run_then_a_plain_fast_replay_loses_nothing(env):
+    from monovoc_interfaces.srv import TextQuery
+
+    config = "--params-file config/semantic_mapper.yaml --params-file config/object_query.yaml"
+    run = f"exec ros2 run monovoc_ros semantic_mapper --ros-args {config} -p diagnostics_period_s:=0.5"
+    with NodeProcess(["bash", "-c", run], env, name="ros2_run", cwd=REPO, process_group=True) as node:
+        with ClientNode(env) as client:
+            diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+            wait_for_service(client.node.create_client(TextQuery, "/monovoc/query"), 120.0, process=node)
+            replay = ros2("monovoc replay bags/synthetic_room.mcap --fast", env, timeout=180.0)
+            assert replay.returncode == 0, replay.stdout + replay.stderr
+            done = diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(KEYFRAMES), 120.0, process=node)
+            assert done["keyframes_received"] == str(KEYFRAMES) and done["keyframes_dropped"] == "0"
+        assert node.stop() == 0, node.describe()
