@@ -9,9 +9,9 @@ in a namespace, with the seven inputs remapped by launch arguments; optionally r
         gaussians:=/slam/gaussians map_directory:=$HOME/maps/office rviz:=true
     ros2 launch monovoc_ros monovoc.launch.py bag:=$HOME/bags/synthetic_room.mcap use_sim_time:=true
 
-Every argument is listed in the README ("Launch file"). launch_ros has no PyPI wheel, so this file is
-not executed in CI; tests/test_launch_rviz.py checks that it parses, that every executable and file it
-names is installed by colcon, and that every argument is declared and documented.
+Every argument is listed in the README ("Launch file"). tests/test_ros2_tools.py runs it with the real
+`ros2 launch`; tests/test_packaging.py checks that every argument is declared and documented, and
+tests/test_colcon.py that every executable and file it names is installed by colcon.
 """
 
 from launch import LaunchDescription

