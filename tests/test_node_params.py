@@ -1,4 +1,4 @@
-"""semantic_mapper parameters: one specification each, the YAML files and README table made of it,
+"""semantic_mapper parameters: one specification each, the YAML files and the docs table made of it,
 validation, the descriptors a running node shows, and start-up with files, remaps and bad values."""
 
 from __future__ import annotations
@@ -195,8 +195,9 @@ def test_object_query_config_lists_every_parameter_with_its_default_and_meaning(
     assert _yaml_comments(OBJECT_CONFIG) == {p.name: p.description for p in OBJECT_PARAMETERS}
 
 
-def test_readme_documents_every_parameter_with_its_default_and_meaning():
-    rows = [line for line in (REPO / "README.md").read_text().splitlines() if re.match(r"^\| `[\w.]+` \| `", line)]
+def test_docs_document_every_parameter_with_its_default_and_meaning():
+    text = (REPO / "docs" / "parameters.md").read_text()
+    rows = [line for line in text.splitlines() if re.match(r"^\| `[\w.]+` \| `", line)]
     expected = []
     for p in PARAMETERS + OBJECT_PARAMETERS:
         default = str(p.default).lower() if isinstance(p.default, bool) else json.dumps(p.default)

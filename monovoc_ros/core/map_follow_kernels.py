@@ -70,54 +70,6 @@ def _slot(key, bits):
 
 
 @numba.njit(cache=True, nogil=True)
-def _bin_by_cell(points, keys):  # pragma: no cover - numba
-    """A counting sort of points (N, 3) by their cell keys (N,), fused with the gather (an argsort and a
-    gather cost 3x as much at 1M points). Returns the sorted points (N, 3) float64, their rows (N,), the
-    hash table cell key -> cell index (keys -1 where empty) and the first sorted row of each cell (C + 1,);
-    cells are numbered in the order of their first point, so the result does not depend on the hash."""
-    n = keys.shape[0]
-    bits = 4
-    while (1 << bits) < 2 * n:
-        bits += 1
-    size = 1 << bits
-    mask = size - 1
-    table_keys = np.full(size, -1, np.int64)
-    table_values = np.empty(size, np.int64)
-    cell_of = np.empty(n, np.int64)
-    counts = np.zeros(n + 1, np.int64)
-    n_cells = 0
-    for i in range(n):
-        key = keys[i]
-        h = _slot(key, bits)
-        while table_keys[h] != -1 and table_keys[h] != key:
-            h = (h + 1) & mask
-        if table_keys[h] == -1:
-            table_keys[h] = key
-            table_values[h] = n_cells
-            n_cells += 1
-        c = table_values[h]
-        cell_of[i] = c
-        counts[c + 1] += 1
-    cell_keys = np.empty(n_cells, np.int64)
-    for h in range(size):
-        if table_keys[h] != -1:
-            cell_keys[table_values[h]] = table_keys[h]
-    starts = np.cumsum(counts[: n_cells + 1])
-    fill = starts[:n_cells].copy()
-    sorted_points = np.empty((n, 3))
-    order = np.empty(n, np.int64)
-    for i in range(n):
-        p = fill[cell_of[i]]
-        fill[cell_of[i]] += 1
-        order[p] = i
-        for a in range(3):
-            sorted_points[p, a] = points[i, a]
-    # The search looks cells up at random: a table sized by the cells, not the points, stays in cache.
-    table_keys, table_values = _cell_table(cell_keys)
-    return sorted_points, order, table_keys, table_values, starts
-
-
-@numba.njit(cache=True, nogil=True)
 def _cell_table(cell_keys):
     """Open-addressing hash table cell key -> cell index (keys -1 where empty)."""
     bits = 4
@@ -260,16 +212,22 @@ def grid_nearest(points: np.ndarray, queries: np.ndarray, radius: np.ndarray, ce
     cell = float(cell)
     if not len(points) or not len(queries):
         return np.full(len(queries), -1, np.int64)
-    sorted_points, order, table_keys, table_values, cell_starts = _bin_by_cell(points, _cell_keys(points, cell))
+    points = np.ascontiguousarray(points, np.float64)
+    queries = np.ascontiguousarray(queries, np.float64)
+    keys = _cell_keys(points, cell)
+    order = np.argsort(keys, kind="quicksort")  # order within a cell is free: ties go to the lower row
+    sorted_keys = keys[order]
+    first = np.flatnonzero(np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1])))
+    table_keys, table_values = _cell_table(sorted_keys[first])
+    cell_starts = np.append(first, len(points)).astype(np.int64)
     # Queries grouped by cell: each group looks its 27 neighbour cells up once, and neighbouring groups read
-    # neighbouring memory. (Sorted by argsort and parallel gathers: the search then reads and writes them
-    # in order, which a counting sort's permutation would make random.)
+    # neighbouring memory.
     q_keys = _cell_keys(queries, cell)
     q_order = np.argsort(q_keys, kind="quicksort")
     q_sorted = q_keys[q_order]
     q_starts = np.append(np.flatnonzero(np.concatenate(([True], q_sorted[1:] != q_sorted[:-1]))), len(queries))
     found = _search(
-        sorted_points, order, table_keys, table_values, cell_starts, gather_rows(queries, q_order),
+        gather_rows(points, order), order, table_keys, table_values, cell_starts, gather_rows(queries, q_order),
         q_starts.astype(np.int64), radius[q_order], cell,
     )  # fmt: skip
     out = np.empty(len(queries), np.int64)
