@@ -7,7 +7,8 @@ in a namespace, with the seven inputs remapped by launch arguments; optionally r
     ros2 launch monovoc_ros monovoc.launch.py image:=/camera/color/image_raw/compressed \\
         mask:=/segmentation/mask camera_info:=/camera/color/camera_info pose:=/slam/camera_pose \\
         gaussians:=/slam/gaussians map_directory:=$HOME/maps/office rviz:=true
-    ros2 launch monovoc_ros monovoc.launch.py bag:=$HOME/bags/synthetic_room.mcap use_sim_time:=true
+    ros2 launch monovoc_ros monovoc.launch.py bag:=$HOME/bags/synthetic_room.mcap \\
+        labels_file:=$HOME/bags/synthetic_room.labels.json use_sim_time:=true
 
 Every argument is listed in the README ("Launch file"). tests/test_ros2_tools.py runs it with the real
 `ros2 launch`; tests/test_packaging.py checks that every argument is declared and documented, and
@@ -57,6 +58,14 @@ def generate_launch_description() -> LaunchDescription:
             "keyframe_poses", default_value="keyframe_poses", description="input topic: corrected keyframe poses (Path)"
         ),
         DeclareLaunchArgument("map_directory", default_value="", description="snapshot directory ('' = none)"),
+        DeclareLaunchArgument(
+            "labels_file",
+            default_value="",
+            description="labels.json naming objects by mask color ('' = none: segment names or the model's guess)",
+        ),
+        DeclareLaunchArgument(
+            "use_segments", default_value="false", description="subscribe to `segments` (a segmenter's class names)"
+        ),
         DeclareLaunchArgument("use_sim_time", default_value="false", description="stamp by /clock (bag replay)"),
         DeclareLaunchArgument("bag", default_value="", description="MCAP bag to replay into the node ('' = none)"),
         DeclareLaunchArgument("bag_rate", default_value="1.0", description="replay speed, multiple of the recorded"),
@@ -77,6 +86,8 @@ def generate_launch_description() -> LaunchDescription:
             {
                 "use_sim_time": ParameterValue(use_sim_time, value_type=bool),
                 "map_directory": ParameterValue(LaunchConfiguration("map_directory"), value_type=str),
+                "labels_file": ParameterValue(LaunchConfiguration("labels_file"), value_type=str),
+                "use_segments": ParameterValue(LaunchConfiguration("use_segments"), value_type=bool),
             },
         ],
         remappings=[

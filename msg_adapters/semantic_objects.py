@@ -18,12 +18,14 @@ def semantic_object(
     bbox_min: Sequence[float],
     bbox_max: Sequence[float],
     label: str = "",
+    label_source: str = "",
     description: str = "",
     score: float = 0.0,
     num_gaussians: int = 0,
     num_observations: int = 0,
 ):
-    """A ``monovoc_interfaces.msg.SemanticObject``; color and extent are derived from the id and box."""
+    """A ``monovoc_interfaces.msg.SemanticObject``; color and extent are derived from the id and box.
+    ``label_source``: "given", "segments", "guess" or "" (monovoc_ros.core.object_labels)."""
     from geometry_msgs.msg import Point, Vector3
     from std_msgs.msg import ColorRGBA
 
@@ -47,6 +49,7 @@ def semantic_object(
     return SemanticObject(
         id=object_id,
         label=str(label),
+        label_source=str(label_source),
         description=str(description),
         score=float(score),
         color=ColorRGBA(r=r, g=g, b=b, a=1.0),
@@ -69,6 +72,8 @@ def semantic_object_to_dict(msg: Any) -> dict:
         "id": int(msg.id),
         "hex": format_object_id(msg.id),
         "label": str(msg.label),
+        # Messages recorded before the field existed have none.
+        "label_source": str(getattr(msg, "label_source", "")),
         "description": str(msg.description),
         "score": float(msg.score),
         "color": [float(msg.color.r), float(msg.color.g), float(msg.color.b), float(msg.color.a)],

@@ -22,7 +22,7 @@ from monovoc_ros.bags import (
     sequence_to_bag,
     topic_names,
 )
-from monovoc_ros.bags.bundled import SYNTHETIC_BAG, bundled_bag
+from monovoc_ros.bags.bundled import BUNDLED_DIR, SYNTHETIC_BAG, SYNTHETIC_LABELS, bundled_bag, write_labels_file
 from monovoc_ros.bags.convert import MIN_START_NS
 from monovoc_ros.bags.schemas import deserialize_rosbags, type_hash
 from monovoc_ros.cli import main as monovoc
@@ -255,6 +255,15 @@ def test_bundled_synthetic_bag() -> None:
     events = list(bag_events(path, assembler=assembler))
     assert isinstance(events[0], GaussianMap) and len(events[0]) > 1000
     assert sum(isinstance(e, Keyframe) for e in events) == n and not assembler.rejected
+
+
+def test_bundled_labels_file_is_the_bags_labels(tmp_path: Path) -> None:
+    """bags/synthetic_room.labels.json, the labels_file to launch the node on the bundled bag with (README),
+    is what `monovoc bag make-bundled` writes from the bag's labels."""
+    committed = BUNDLED_DIR / SYNTHETIC_LABELS
+    made = write_labels_file(bundled_bag(SYNTHETIC_BAG), tmp_path / SYNTHETIC_LABELS)
+    assert committed.read_bytes() == made.read_bytes()
+    assert json.loads(committed.read_text()) == bag_labels(bundled_bag(SYNTHETIC_BAG))
 
 
 def test_convert_with_mask_noise_renumbers_every_mask(tmp_path: Path) -> None:

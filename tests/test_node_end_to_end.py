@@ -136,6 +136,10 @@ def test_live_node_matches_offline_mapping(tmp_path, scene):
     ids = sorted(o.id for o in final.objects)
     assert ids == sorted(set(got.object_ids.tolist()) - {0xFFFFFF})
     assert all(o.label == names[o.id] for o in final.objects)
+    # mapping_node alone has no guesses: labels_file's names, else none.
+    assert all(o.label_source == ("given" if o.label else "") for o in final.objects)
+    texts = {m.id: m.text for m in markers.messages[-1].markers if m.ns == "monovoc/labels"}
+    assert all(texts[o.id] == (o.label or f"#{o.id:06x}") for o in final.objects)
     assert all(o.num_gaussians > 0 and 0 < o.num_observations <= N_KEYFRAMES for o in final.objects)
     boxes = [m for m in markers.messages[-1].markers if m.ns == "monovoc/boxes"]
     assert sorted(m.id for m in boxes) == ids

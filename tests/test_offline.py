@@ -174,7 +174,7 @@ def test_per_frame_map_with_segment_labels_answers_queries_through_instance_matc
     records = ObjectDatabase(out, create=False).records()
     names = {e["class_name"] for e in scene.labels()}
     # Every object is named by the segmenter's leading class, not by a palette it does not have.
-    assert len(records) >= 10 and all(r.label in names and r.label_source == "given" for r in records)
+    assert len(records) >= 10 and all(r.label in names and r.label_source == "segments" for r in records)
     queries = tmp_path / "queries.json"
     sofa = next(e for e in scene.labels() if e["class_name"] == "sofa")
     sofa_id = "#" + "".join(f"{v:02x}" for v in sofa["color"])

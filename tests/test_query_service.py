@@ -4,12 +4,14 @@
   the `monovoc query` client prints its answer (or exits 2 when no node is there);
 * a node fed keyframes live: no objects before, objects after, queries stay fast while it integrates,
   objects.db is written with save_map, cleared by reset and restored by load_map;
-* both: the objects topic, its markers and the answers agree on every object's centroid and extent.
+* both: the objects topic, its markers and the answers agree on every object's centroid and extent, and
+  on its one label and label source (given by labels_file, restored from objects.db, or the model's guess).
 """
 
 from __future__ import annotations
 
 import json
+import sqlite3
 import subprocess
 import time
 
@@ -17,6 +19,8 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
+from monovoc_ros.core.object_labels import ObjectLabel, display
+from monovoc_ros.core.palette import format_object_id
 from monovoc_ros.embed import default_model_dir
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
@@ -31,7 +35,7 @@ from monovoc_ros.ros_harness import (
     wait_for_subscribers,
     wait_until,
 )
-from tests.object_room import copy_directory, room, room_directory, room_id, room_map
+from tests.object_room import copy_directory, room, room_directory, room_id, room_labels, room_map
 from tests.rosutil import VENV_PYTHON, ros_environment
 
 pytestmark = pytest.mark.ros
@@ -154,9 +158,32 @@ def _disagreements(objects, markers, answer) -> list[str]:
     return problems
 
 
-def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path):
+def _label_disagreements(objects, markers, answer) -> list[str]:
+    """Where an object's label or label source differs between the latest `objects` message, the text of
+    its `objects/markers` label and the query answer (empty: they agree). Every object on the topic has
+    a marker showing its label (a guess marked "couch?", no label: its hex id)."""
+    texts = {m.id: m.text for m in markers.markers if m.ns == "monovoc/labels"}
+    published = {o.id: o for o in objects.objects}
+    problems = []
+    for o in objects.objects:
+        shown = display(ObjectLabel.stored(o.label, o.label_source)) or format_object_id(o.id)
+        if texts.get(o.id) != shown:
+            problems.append(f"#{o.id:06x}: marker text {texts.get(o.id)!r}, topic {o.label!r} ({o.label_source!r})")
+    for a in answer.objects:
+        o = published.get(a.id)
+        if o is None or (o.label, o.label_source) != (a.label, a.label_source):
+            topic = None if o is None else (o.label, o.label_source)
+            problems.append(f"#{a.id:06x}: topic {topic}, answer {(a.label, a.label_source)}")
+    return problems
+
+
+@pytest.mark.parametrize("labels", ["restored", "guessed"])
+def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path, labels):
     """One object geometry (core.objects): a resumed map's objects topic and its markers (computed by the
-    mapping worker from the resumed result) and the answers (restored from objects.db) agree everywhere."""
+    mapping worker from the resumed result) and the answers (restored from objects.db) agree everywhere.
+    One label (core.object_labels) too, without a labels_file: "restored", the names objects.db was
+    written with; "guessed", a database without names (written before label sources had names), whose
+    objects the component names by the model's guess after the first result was published."""
     from visualization_msgs.msg import MarkerArray
 
     from monovoc_interfaces.msg import SemanticObjectArray
@@ -164,6 +191,9 @@ def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path)
 
     directory = copy_directory(room_directory(), tmp_path / "map")
     _, index = room_map()
+    if labels == "guessed":
+        with sqlite3.connect(directory / DB_NAME) as db:
+            db.execute("UPDATE objects SET label = '', label_source = 'imagenet'")
     env = _environment(tmp_path)
     params = {"map_directory": str(directory), "resume": True, "diagnostics_period_s": 5.0}
     with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
@@ -177,6 +207,22 @@ def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path)
         objects.wait_for(1, 20.0, process=node)
         markers.wait_for(1, 20.0, process=node)
         assert _disagreements(objects.messages[-1], markers.messages[-1], answer) == []
+
+        def labels_agree() -> bool:
+            nonlocal answer
+            answer = _query(service, "anything", top_k=1000, process=node)
+            latest = objects.messages[-1], markers.messages[-1]
+            return all(a.label for a in answer.objects) and not _label_disagreements(*latest, answer)
+
+        wait_until(labels_agree, 30.0, "one label on the topic, markers and answers", process=node, interval=0.2)
+        sources = {a.label_source for a in answer.objects}
+        if labels == "restored":
+            assert sources == {"given"}
+            assert {a.id: a.label for a in answer.objects} == {r.id: r.label for r in index.records()}
+        else:
+            assert sources == {"guess"}
+            texts = {m.id: m.text for m in markers.messages[-1].markers if m.ns == "monovoc/labels"}
+            assert all(texts[a.id] == f"{a.label}?" for a in answer.objects)
         # The geometry is the main cluster's: the vase (0.12 m across, 0.25 m tall) is no longer metres wide.
         vase = next(o for o in objects.messages[-1].objects if o.id == room_id("vase"))
         assert _xyz(vase.extent).max() < 0.5
@@ -237,13 +283,18 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
 
         wait_until(all_embedded, 60.0, "most objects to be embedded", process=node, interval=0.2)
 
-        # The objects topic, its markers and the answers report one geometry, once the index has the last result.
+        # The objects topic, its markers and the answers report one geometry and one label (labels_file's), once
+        # the index has the last result.
+        answer = None
+
         def agree() -> bool:
+            nonlocal answer
             answer = _query(service, "anything", top_k=1000, process=node)
             latest = objects.messages[-1], markers.messages[-1]
-            return answer.success and not _disagreements(*latest, answer)
+            return answer.success and not _disagreements(*latest, answer) and not _label_disagreements(*latest, answer)
 
         wait_until(agree, 30.0, "the objects topic, markers and answers to agree", process=node, interval=0.2)
+        assert {(a.label, a.label_source) for a in answer.objects} <= {(n, "given") for n in room_labels().values()}
         median, worst = 1e3 * np.median(latencies), 1e3 * max(latencies)
         print(f"query latency while mapping: median {median:.1f} ms, max {worst:.1f} ms")
         assert np.median(latencies) < 0.5 and max(latencies) < 5.0

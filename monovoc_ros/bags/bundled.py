@@ -1,9 +1,10 @@
 """The bags shipped in ``bags/`` and how to regenerate them deterministically.
 
 ``synthetic_room.mcap``: the default synthetic scene (``generate_scene(SceneConfig())``), every keyframe,
-JPEG images, PNG masks. Committed. ``replica_office0.mcap``: Replica office_0 from the plain folder in
-``../shared/data/replica_office0`` beside the repository (research-only license: generated on demand, git-ignored, never
-committed).
+JPEG images, PNG masks. Committed, with ``synthetic_room.labels.json``: the bag's labels (``bag_labels``) as a
+labels file for the node's ``labels_file`` (the launch file's ``labels_file:=``).
+``replica_office0.mcap``: Replica office_0 from the plain folder in ``../shared/data/replica_office0`` beside the
+repository (research-only license: generated on demand, git-ignored, never committed).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ BUNDLED_DIR = Path(__file__).resolve().parents[2] / "bags"
 SYNTHETIC_BAG = "synthetic_room.mcap"
 REPLICA_BAG = "replica_office0.mcap"
 PER_FRAME_BAG = "synthetic_room_per_frame.mcap"
+SYNTHETIC_LABELS = "synthetic_room.labels.json"
 DEFAULT_REPLICA_SOURCE = BUNDLED_DIR.parents[1] / "shared" / "data" / "replica_office0"
 
 
@@ -28,7 +30,22 @@ def bundled_bag(name: str = SYNTHETIC_BAG) -> Path:
 def make_synthetic_bag(out_dir: str | os.PathLike = BUNDLED_DIR, *, progress: bool = False) -> ConvertReport:
     from monovoc_ros.synthetic import SceneConfig, generate_scene
 
-    return sequence_to_bag(generate_scene(SceneConfig()), Path(out_dir) / SYNTHETIC_BAG, progress=progress)
+    report = sequence_to_bag(generate_scene(SceneConfig()), Path(out_dir) / SYNTHETIC_BAG, progress=progress)
+    write_labels_file(report.path, Path(out_dir) / SYNTHETIC_LABELS)
+    return report
+
+
+def write_labels_file(bag: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """The labels a bag carries in its metadata, as a labels.json file: the node reads labels from a file
+    only (a launched node, unlike `monovoc demo`, is not told which bag feeds it)."""
+    import json
+
+    from monovoc_ros.bags import bag_labels
+
+    path = Path(path)
+    entries = [json.dumps(entry, sort_keys=True) for entry in bag_labels(bag)]  # one object a line
+    path.write_text("[\n" + ",\n".join(entries) + "\n]\n")
+    return path
 
 
 def per_frame_scene():

@@ -225,18 +225,28 @@ def _session(node, mapper, bag, out, n_keyframes, queries, rate, top_k, timeout)
 
 
 def _print_answer(text: str, answer: Any) -> dict:
+    from monovoc_ros.core.object_labels import ObjectLabel, display
     from monovoc_ros.core.palette import format_object_id
 
     print(f"\nquery: {text!r} -> {answer.message}")
     found = []
     for rank, o in enumerate(answer.objects, start=1):
         c = (o.centroid.x, o.centroid.y, o.centroid.z)
+        label = display(ObjectLabel.stored(o.label, o.label_source)) or "-"
         print(
-            f"  {rank}. {o.label or '-':12s} {format_object_id(o.id)}  score {o.score:.3f}"
+            f"  {rank}. {label:12s} {format_object_id(o.id)}  score {o.score:.3f}"
             f"  at ({c[0]:6.2f}, {c[1]:6.2f}, {c[2]:6.2f}) m"
             f"  size {o.extent.x:.2f} x {o.extent.y:.2f} x {o.extent.z:.2f} m"
         )
-        found.append({"id": format_object_id(o.id), "label": o.label, "score": round(float(o.score), 4), "centroid": c})
+        found.append(
+            {
+                "id": format_object_id(o.id),
+                "label": o.label,
+                "label_source": o.label_source,
+                "score": round(float(o.score), 4),
+                "centroid": c,
+            }
+        )
     return {"text": text, "success": bool(answer.success), "message": answer.message, "objects": found}
 
 

@@ -170,10 +170,7 @@ def run(args: argparse.Namespace) -> int:
     if index is not None:
         from monovoc_ros.objects.database import save_object_index
 
-        segment_labels = mapper.object_labels()
-        if segment_labels:  # the segmenter's names, saved with the database (labels.json names win)
-            index.config.labels = {**segment_labels, **(index.config.labels or {})}
-        index.refresh(mapper)
+        index.refresh(mapper)  # reads the segmenter's names too (source "segments"; labels.json names win)
         report = save_object_index(
             index, args.out, snapshot=snapshot.path.name, map_version=mapper.map_version, keyframes=mapper.n_keyframes
         )

@@ -50,6 +50,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print(answer: dict, as_json: bool) -> None:
+    from monovoc_ros.core.object_labels import ObjectLabel, display
+
     if as_json:
         print(json.dumps(answer, indent=1))
         return
@@ -60,7 +62,8 @@ def _print(answer: dict, as_json: bool) -> None:
     for n, o in enumerate(answer["objects"], start=1):
         c = " ".join(f"{v:7.2f}" for v in o["centroid"])
         e = " ".join(f"{v:5.2f}" for v in o["extent"])
-        print(f"{n:>4}  {o['hex']:7}  {o['label'][:20]:20} {o['score']:6.3f}  {c:24} {e}")
+        label = display(ObjectLabel.stored(o["label"], o.get("label_source", "")))  # a guess shows as "couch?"
+        print(f"{n:>4}  {o['hex']:7}  {label[:20]:20} {o['score']:6.3f}  {c:24} {e}")
         if o.get("description"):
             print(f"{'':15}{o['description']}")
 

@@ -20,6 +20,7 @@ from typing import Any, Protocol
 from monovoc_ros.core.map_store import SnapshotInfo
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import KeyframeListener, LoadCheck
+from monovoc_ros.nodes.outputs import LabelProvider
 from monovoc_ros.nodes.worker import ResultListener
 
 SaveListener = Callable[[str, SnapshotInfo, SemanticMapper], None]
@@ -62,3 +63,10 @@ class MappingHost:
     add_save_listener: Callable[[SaveListener], None]  # fn(directory, info, mapper) after every snapshot
     add_load_check: Callable[[LoadCheck], None]  # see MapWorker.add_load_check
     add_diagnostics_source: Callable[[Callable[[], dict[str, Any]]], None]  # fn() -> pairs for /diagnostics
+    # Object labels (core.object_labels): set_label_provider(fn), fn() -> {object id: ObjectLabel}, gives the
+    # objects topic and its markers the labels a component knows (after labels_file and segment labels; one
+    # provider; fn runs on the worker thread, so it returns a ready mapping). republish_objects() asks for
+    # the last objects and markers again with the current labels (queued on the worker thread; when a
+    # component's labels changed; requests queued meanwhile are coalesced).
+    set_label_provider: Callable[[LabelProvider], None]
+    republish_objects: Callable[[], None]

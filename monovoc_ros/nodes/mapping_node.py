@@ -87,6 +87,8 @@ class MappingNode(Node):
         self._reject_log = RejectionLog(self.get_logger().warning)
         self._warned_frame: set[str] = set()
         self._diagnostics_sources: list[Callable[[], dict[str, Any]]] = []
+        self._republish_lock = threading.Lock()
+        self._republish_queued = False
         # Named so that plugins can put their own callbacks beside ours.
         # One group per input topic: each topic's messages are handled one at a time, in order (what the
         # assembler needs), while the topics progress side by side. In one shared mutually exclusive group
@@ -154,6 +156,8 @@ class MappingNode(Node):
             add_save_listener=worker.add_save_listener,
             add_load_check=worker.add_load_check,
             add_diagnostics_source=self.add_diagnostics_source,
+            set_label_provider=self.outputs.set_label_provider,
+            republish_objects=self.republish_objects,
         )
 
     def add_keyframe_listener(self, fn: KeyframeListener) -> None:
@@ -167,6 +171,21 @@ class MappingNode(Node):
     def add_diagnostics_source(self, fn: Callable[[], dict[str, Any]]) -> None:
         """fn() -> key/value pairs added to every /diagnostics status (timer thread; keep it cheap)."""
         self._diagnostics_sources.append(fn)
+
+    def republish_objects(self) -> None:
+        """Queues a republication of the objects and markers with the current labels on the worker thread
+        (the `publish` service's path, without the cloud); one request at a time, later ones coalesce."""
+        with self._republish_lock:
+            if self._republish_queued:
+                return
+            self._republish_queued = True
+
+        def republish() -> int:
+            with self._republish_lock:
+                self._republish_queued = False  # labels changing from here on need another pass
+            return self.outputs.republish_objects()
+
+        self.worker.call(republish, "republish_objects")
 
     def submit(self, fn: Callable[[SemanticMapper | None], Any]) -> concurrent.futures.Future:
         """Runs fn(mapper) on the worker thread, in order with keyframes and map updates."""

@@ -20,7 +20,9 @@ only hands the newest result over; this component's own thread refreshes summari
 objects in bounded chunks (``objects.max_objects_per_refresh``), so the worker never waits for the image
 encoder. A reset clears the objects; a load_map restores those saved with that map (if any). Geometry
 (centroids, boxes) is the mapping result's own (``SemanticResult.objects``): the objects topic, its markers
-and the answers agree.
+and the answers agree. So do labels (core.object_labels): this component gives the host the labels its
+records carry (``MappingHost.set_label_provider``: restored names and the embedding model's guesses, which
+exist only after embedding) and asks for the objects and markers again when they change.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor
 
 import msg_adapters as ma
+from monovoc_ros.core.object_labels import ObjectLabel, display
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
 from monovoc_ros.nodes.object_query_params import PARAMETERS
@@ -109,7 +112,10 @@ class ObjectQueryComponent:
         self._backend_source = backend if backend is not None else lazy_backend(settings.backend, **options)
         self._index_lock = threading.Lock()
         self.index = ObjectIndex(self._backend_source, settings.index)
-        self._pending: tuple[Any, Any] | None = None  # newest (gaussians, result) from the worker
+        self._pending: tuple[Any, Any, Any] | None = None  # newest (gaussians, result, segment labels) from the worker
+        # The labels of the index's records, as last given to the host (replaced, never changed in place:
+        # the worker thread reads it).
+        self._labels: Mapping[int, ObjectLabel] = {}
         self._labelled: tuple[Any, np.ndarray] | None = None  # newest (gaussians, per-Gaussian ids)
         self._wake = threading.Event()
         self._stopping = threading.Event()
@@ -165,6 +171,7 @@ class ObjectQueryComponent:
         # objects.db is written with every snapshot and read back with load_map.
         host.add_save_listener(self._on_saved)
         host.add_load_check(self._check_load)
+        host.set_label_provider(lambda: self._labels)
         if host.resume and host.map_directory:
             self._restore(host.map_directory)
             mapper = host.mapper()
@@ -239,7 +246,7 @@ class ObjectQueryComponent:
 
     def _on_result(self, mapper: Any, result: Any) -> None:
         # Gaussian maps and results are immutable snapshots: safe to hand to another thread.
-        self._pending = (mapper.gaussians, result)
+        self._pending = (mapper.gaussians, result, mapper.object_labels())
         self._labelled = (mapper.gaussians, result.object_ids)
         self._wake.set()
 
@@ -273,20 +280,34 @@ class ObjectQueryComponent:
             except Exception as exc:  # one bad refresh must not end the indexing thread
                 self.log.error(f"object index refresh failed: {type(exc).__name__}: {exc}")
 
-    def _refresh(self, pending: tuple[Any, Any] | None) -> None:
+    def _refresh(self, pending: tuple[Any, Any, Any] | None) -> None:
         index = self.index
-        geometry = {} if pending is None else {"gaussians": pending[0], "result": pending[1]}
+        geometry = {}
+        if pending is not None:
+            geometry = {"gaussians": pending[0], "result": pending[1], "segment_labels": pending[2]}
         if not geometry and index.pending() == 0:
             return
         report = index.refresh(**geometry, max_objects=self.settings.max_objects_per_refresh)
         self.backend_error = None
         self._last_refresh = time.monotonic()
+        self._update_labels(index)
         # Keep going in bounded chunks until everything is embedded, a newer result arrives or keyframes wait.
         while report.pending and not self._stopping.is_set() and self._pending is None and index is self.index:
             if self._yield_to_mapping():
                 return
             report = index.refresh(max_objects=self.settings.max_objects_per_refresh)
             self._last_refresh = time.monotonic()
+            self._update_labels(index)
+
+    def _update_labels(self, index: ObjectIndex) -> None:
+        """Hands the index's labels to the host's outputs; when they changed, the objects and markers go out
+        again (a guess appears only once an object is embedded, after the result was published)."""
+        labels = index.labels()
+        with self._index_lock:  # a reset or load_map (worker thread) may replace the index meanwhile
+            if index is not self.index or labels == self._labels:
+                return  # replaced: _replace_index gave the host the new index's labels
+            self._labels = labels
+        self.host.republish_objects()
 
     def _yield_to_mapping(self) -> bool:
         """True while keyframes wait for the worker, for up to REFRESH_DEFER_S since the last refresh: on two
@@ -348,6 +369,7 @@ class ObjectQueryComponent:
     def _replace_index(self, index: ObjectIndex | None) -> None:
         with self._index_lock:
             self.index = index if index is not None else ObjectIndex(self._current_backend(), self.settings.index)
+            self._labels = self.index.labels()
 
     # ------------------------------------------------------------------ the service
 
@@ -386,6 +408,7 @@ class ObjectQueryComponent:
                     bbox_min=record.bbox_min,
                     bbox_max=record.bbox_max,
                     label=record.label,
+                    label_source=record.label_source,
                     description=record.description,
                     score=score,
                     num_gaussians=record.num_gaussians,
@@ -436,7 +459,7 @@ class ObjectQueryComponent:
         self.markers.publish(
             ma.object_markers(
                 ids.astype(np.int64),
-                [f"{r.label} {s:.2f}" for r, s in matches],
+                [f"{display(ObjectLabel.stored(r.label, r.label_source))} {s:.2f}" for r, s in matches],
                 np.array([r.centroid for r in records]).reshape(-1, 3),
                 np.array([r.extent for r in records]).reshape(-1, 3),
                 ids,

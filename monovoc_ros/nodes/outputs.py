@@ -3,6 +3,10 @@
 Everything published is derived from one `SemanticResult`, so cloud, markers and objects always agree; the
 objects and markers report the result's one object geometry (`SemanticResult.objects`), as do the query
 answers and objects.db.
+Labels follow core.object_labels: labels_file, then the segmenter's class names, then what a label
+provider knows (the object-query component: names restored from objects.db and the embedding model's
+guesses, which exist only once objects are embedded). When those change, `republish_objects` sends the
+objects and markers of the last result again with the new labels (on the worker thread, like `publish`).
 The cloud holds observed Gaussians only (those with evidence and a palette label): unobserved ones have
 no label to show, and leaving them out keeps the message small early in a run. Its header stamp is the
 stamp of the newest integrated keyframe, so clients can tell which keyframes a cloud includes.
@@ -10,15 +14,20 @@ stamp of the newest integrated keyframe, so clients can tell which keyframes a c
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
 import msg_adapters as ma
 from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
+from monovoc_ros.core.object_labels import ObjectLabel, display, label_fields, resolve_all
 from monovoc_ros.core.objects import ObjectSummary
 from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.qos import latched_qos
+
+# fn() -> object id -> label, consulted after labels_file and segment labels (called on the worker thread).
+LabelProvider = Callable[[], Mapping[int, ObjectLabel]]
 
 
 class SemanticOutputs:
@@ -37,6 +46,18 @@ class SemanticOutputs:
         self.cloud = node.create_publisher(PointCloud2, "semantic_cloud", latched_qos())
         self.markers = node.create_publisher(MarkerArray, "objects/markers", latched_qos())
         self.objects = node.create_publisher(SemanticObjectArray, "objects", latched_qos())
+        self._label_provider: LabelProvider | None = None
+        # (summaries, observations, header, segment labels) of the last publication, for republish_objects.
+        self._last: tuple[list[ObjectSummary], np.ndarray, dict, Mapping[int, str]] | None = None
+
+    def set_label_provider(self, fn: LabelProvider | None) -> None:
+        """Labels of a component (see the module docstring); set before the worker starts."""
+        self._label_provider = fn
+
+    def republish_objects(self) -> int:
+        """The objects and markers of the last publication again, with the labels known now (worker
+        thread); returns the number of objects."""
+        return 0 if self._last is None else self._publish_objects(*self._last)
 
     def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
         """Publishes the cloud, then the objects and markers; returns the number of objects. The cloud goes
@@ -52,7 +73,8 @@ class SemanticOutputs:
                 np.zeros(0, np.float32),
             )
             self.cloud.publish(ma.semantic_cloud_from_arrays(*empty, **header))
-            return self._publish_objects([], np.zeros(0, np.int64), header, self.labels)
+            self._last = ([], np.zeros(0, np.int64), header, {})
+            return self._publish_objects(*self._last)
         known = result.object_ids != UNOBSERVED_ID
         header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)
         self.cloud.publish(
@@ -64,20 +86,30 @@ class SemanticOutputs:
                 **header,
             )
         )
-        labels = {**mapper.object_labels(), **self.labels}  # labels_file first, then segment labels
         geometry = result.objects(mapper.gaussians)
         index = result.palette.index_of(geometry.ids)
         observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
-        return self._publish_objects(list(geometry.objects), observations, header, labels)
+        self._last = (list(geometry.objects), observations, header, mapper.object_labels())
+        return self._publish_objects(*self._last)
+
+    def _known_labels(self) -> Mapping[int, ObjectLabel]:
+        if self._label_provider is None:
+            return {}
+        try:
+            return self._label_provider()
+        except Exception as exc:  # a component's failure must not stop the map's own outputs
+            self._node.get_logger().error(f"label provider failed: {type(exc).__name__}: {exc}")
+            return {}
 
     def _publish_objects(
-        self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict, labels: dict[int, str]
+        self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict, segments: Mapping[int, str]
     ) -> int:
+        labels = resolve_all([s.id for s in summaries], self.labels, segments, self._known_labels())
         self.objects.publish(self._objects(summaries, observations, header, labels))
         self.markers.publish(
             ma.object_markers(
                 np.array([s.id for s in summaries], np.int64),
-                [labels.get(s.id, "") for s in summaries],
+                [display(label) for label in labels],
                 np.array([s.centroid for s in summaries]).reshape(-1, 3),
                 np.array([s.extent for s in summaries]).reshape(-1, 3),
                 np.array([s.rgb for s in summaries], np.uint8).reshape(-1, 3),
@@ -88,19 +120,21 @@ class SemanticOutputs:
         return len(summaries)
 
     def _objects(
-        self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict, labels: dict[int, str]
+        self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict, labels: list[ObjectLabel | None]
     ) -> Any:
         from monovoc_interfaces.msg import SemanticObjectArray
 
         out = SemanticObjectArray(header=ma.make_header(header["frame_id"], header["stamp"]))
-        for s, seen in zip(summaries, observations.tolist(), strict=True):
+        for s, seen, label in zip(summaries, observations.tolist(), labels, strict=True):
+            name, source = label_fields(label)
             out.objects.append(
                 ma.semantic_object(
                     s.id,
                     centroid=s.centroid,
                     bbox_min=s.bbox_min,
                     bbox_max=s.bbox_max,
-                    label=labels.get(s.id, ""),
+                    label=name,
+                    label_source=source,
                     num_gaussians=s.num_gaussians,
                     num_observations=int(seen),
                 )

@@ -33,6 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from monovoc_ros.core.object_labels import stored_source
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, backend_identity, lazy_backend, model_name
 from monovoc_ros.objects.records import ObjectRecord
 from monovoc_ros.objects.views import ObjectView
@@ -365,7 +366,7 @@ def _record(row: sqlite3.Row) -> ObjectRecord:
     return ObjectRecord(
         id=int(row["id"]),
         label=row["label"],
-        label_source=row["label_source"],
+        label_source=stored_source(row["label_source"]),
         description=row["description"],
         color_name=row["color_name"],
         centroid=np.array([row["cx"], row["cy"], row["cz"]], np.float64),

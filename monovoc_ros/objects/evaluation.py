@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monovoc_ros.core.object_labels import GUESS
 from monovoc_ros.core.palette import format_object_id, parse_object_id
 from monovoc_ros.embed.retrieval import chance_topk, rank
 from monovoc_ros.objects.database import ObjectDatabase
@@ -172,8 +173,8 @@ def evaluate_map(
         if mode not in CROP_MODES:
             raise ValueError(f"unknown crop mode {mode!r}; choose from {CROP_MODES}")
     # A variant without label nouns must not name objects either by the labels the map was saved with
-    # (labels.json or a segmenter's, restored as "given"): imagenet labels are re-derived on refresh.
-    unlabelled = [dataclasses.replace(r, label="", label_source="imagenet") for r in records]
+    # (labels.json or a segmenter's, restored with their source): the model's guesses are re-derived on refresh.
+    unlabelled = [dataclasses.replace(r, label="", label_source=GUESS) for r in records]
     variants = []
     for mode in modes:
         for weight in description_weights:

@@ -31,6 +31,7 @@ import numpy as np
 
 from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.object_labels import GIVEN, GUESS, SEGMENTS, ObjectLabel, resolve
 from monovoc_ros.core.objects import ObjectSummary
 from monovoc_ros.core.palette import format_object_id, parse_object_id
 from monovoc_ros.embed.arrays import l2_normalize
@@ -159,7 +160,8 @@ class ObjectIndex:
         self._snapshot: tuple[tuple[ObjectRecord, ...], np.ndarray] = ((), np.zeros((0, 0), np.float32))
         self._summaries: dict[int, ObjectSummary] = {}
         self._observations: dict[int, int] = {}
-        self.segment_labels: dict[int, str] = {}  # object id -> the segmenter's class (refresh(mapper))
+        # object id -> the segmenter's class (refresh(mapper) or refresh(segment_labels=...))
+        self.segment_labels: dict[int, str] = {}
         self._floor = 0.0
         self._upright: dict[int, tuple[np.ndarray, float]] = {}  # id -> (extent with height last, height)
         self._up_sum = np.zeros(3)  # sum of the keyframes' camera up directions (up_axis "auto")
@@ -172,8 +174,9 @@ class ObjectIndex:
         self._image_emb: dict[int, np.ndarray] = {}
         self._color: dict[int, str] = {}
         self._num_views: dict[int, int] = {}
-        self._imagenet_label: dict[int, str] = {}
-        self._restored_label: dict[int, str] = {}  # given labels of records restored from a database
+        self._guess: dict[int, ObjectLabel] = {}  # the model's best class, per embedded object
+        # Names (given or segments) of records restored from a database: a restart without labels_file keeps them.
+        self._restored_label: dict[int, ObjectLabel] = {}
         self._text_cache: dict[str, np.ndarray] = {}
         self._restored_backend_info: dict | None = None
 
@@ -251,17 +254,22 @@ class ObjectIndex:
         *,
         gaussians: GaussianMap | None = None,
         result=None,
+        segment_labels: Mapping[int, str] | None = None,
         max_objects: int | None = None,
     ) -> RefreshReport:
         """Updates geometry from ``mapper`` (or ``gaussians`` + ``result``), re-embeds dirty objects (at
         most ``max_objects`` of them, never-embedded ones and large ones first) and publishes the new
-        records. Without geometry arguments only embeddings are brought up to date."""
+        records. Without geometry arguments only embeddings are brought up to date. ``segment_labels``
+        (the mapper's ``object_labels()``, taken with ``result``): the segmenter's class names, which
+        ``refresh(mapper)`` reads itself."""
         start = time.perf_counter()
         report = RefreshReport()
         with self._refresh_lock:
             if mapper is not None:
                 gaussians, result = mapper.gaussians, mapper.result()
                 self.segment_labels = mapper.object_labels()
+            elif segment_labels is not None:
+                self.segment_labels = dict(segment_labels)
             if (gaussians is None) != (result is None):
                 raise ValueError("refresh needs both gaussians and result (or a mapper)")
             if gaussians is not None:
@@ -322,21 +330,22 @@ class ObjectIndex:
             self._image_emb[oid] = l2_normalize(np.mean([v.embeddings[key] for v in views], axis=0))
             self._color[oid] = dominant_color_name(np.concatenate([v.pixels() for v in views]))
             self._num_views[oid] = len(views)
-            self._imagenet_label.pop(oid, None)
+            self._guess.pop(oid, None)
             self._embedded_version[oid] = versions[oid]
         return len(todo)
 
-    def _label(self, oid: int, backend) -> tuple[str, str]:
-        labels = self.config.labels or {}
-        if oid in labels:
-            return labels[oid], "given"
-        if oid in self.segment_labels:  # the segmenter's leading class for the object
-            return self.segment_labels[oid], "given"
-        if oid in self._restored_label:  # given when the database was written: a restart keeps it
-            return self._restored_label[oid], "given"
-        if oid not in self._imagenet_label:
-            self._imagenet_label[oid] = best_class_name(self._image_emb[oid], backend)
-        return self._imagenet_label[oid], "imagenet"
+    def _label(self, oid: int, backend) -> ObjectLabel:
+        """The one rule (core.object_labels.resolve), with the model's guess last."""
+        label = resolve(oid, self.config.labels or {}, self.segment_labels, self._restored_label)
+        if label is not None:
+            return label
+        if oid not in self._guess:
+            self._guess[oid] = ObjectLabel(best_class_name(self._image_emb[oid], backend), GUESS)
+        return self._guess[oid]
+
+    def labels(self) -> dict[int, ObjectLabel]:
+        """Object id -> label of the queryable objects (what the answers and objects.db carry)."""
+        return {r.id: ObjectLabel(r.label, r.label_source) for r in self._snapshot[0] if r.label}
 
     def describe(self, oid: int, label: str) -> str:
         """The attribute description of a listed, embedded object under ``label``."""
@@ -350,9 +359,9 @@ class ObjectIndex:
         now = time.time()
         rows = []
         for oid in sorted(ready):
-            label, source = self._label(oid, backend)
-            subject = label if source == "given" or c.unlabeled_noun == "imagenet" else c.unlabeled_noun
-            rows.append((oid, label, source, self.describe(oid, subject)))
+            label = self._label(oid, backend)
+            subject = c.unlabeled_noun if label.is_guess and c.unlabeled_noun != "imagenet" else label.name
+            rows.append((oid, label, self.describe(oid, subject)))
         embedded = 0
         if c.description_weight > 0:
             new = sorted({d for *_, d in rows if d not in self._text_cache})
@@ -365,7 +374,7 @@ class ObjectIndex:
                 del self._text_cache[text]
         previous = {r.id: r for r in self._snapshot[0]}
         records = []
-        for oid, label, source, description in rows:
+        for oid, label, description in rows:
             s = self._summaries[oid]
             image = self._image_emb[oid]
             final = image
@@ -373,8 +382,8 @@ class ObjectIndex:
                 final = combine(image, self._text_cache[description], c.description_weight)
             record = ObjectRecord(
                 id=oid,
-                label=label,
-                label_source=source,
+                label=label.name,
+                label_source=label.source,
                 description=description,
                 color_name=self._color[oid],
                 centroid=np.asarray(s.centroid, np.float64),
@@ -510,15 +519,18 @@ class ObjectIndex:
             self.object_ids = object_ids
             self._image_emb.clear()
             self._embedded_version.clear()
-            self._imagenet_label.clear()
-            self._restored_label = {r.id: r.label for r in records if r.label_source == "given" and r.label}
+            self._guess.clear()
+            self._restored_label.clear()
             for r in records:
                 self._color[r.id] = r.color_name
                 self._num_views[r.id] = r.num_views
+                label = ObjectLabel.stored(r.label, r.label_source)
+                if label is not None and label.source in (GIVEN, SEGMENTS):
+                    self._restored_label[r.id] = label
                 if embeddings_valid:
                     self._image_emb[r.id] = r.image_embedding
-                    if r.label_source == "imagenet":
-                        self._imagenet_label[r.id] = r.label
+                    if label is not None and label.is_guess:  # the guess of these embeddings
+                        self._guess[r.id] = label
                     self._embedded_version[r.id] = versions.get(r.id, 0)
             ordered = tuple(sorted(records, key=lambda r: r.id)) if embeddings_valid else ()
             matrix = np.stack([r.embedding for r in ordered]).astype(np.float32) if ordered else np.zeros((0, 0))
@@ -531,6 +543,7 @@ class ObjectIndex:
 def _same_record(a: ObjectRecord, b: ObjectRecord) -> bool:
     return (
         a.label == b.label
+        and a.label_source == b.label_source
         and a.description == b.description
         and a.num_gaussians == b.num_gaussians
         and a.num_observations == b.num_observations

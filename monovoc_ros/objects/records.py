@@ -18,8 +18,10 @@ class QueryError(ValueError):
 @dataclass(eq=False)
 class ObjectRecord:
     id: int  # packed palette color r << 16 | g << 8 | b
-    label: str  # the given class name, else the best ImageNet class of the object's image embedding
-    label_source: str  # "given" or "imagenet"
+    # The object's one label (core.object_labels): labels_file, a segmenter's class, a restored name, else
+    # the embedding model's best class for its image embedding.
+    label: str
+    label_source: str  # "given", "segments" or "guess" (core.object_labels.SOURCES)
     description: str  # attribute description, e.g. "a blue chair, 0.97 m tall"
     color_name: str  # dominant basic color term of the object's pixels in its views
     centroid: np.ndarray  # (3,) float64, map frame, metres
