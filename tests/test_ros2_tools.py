@@ -96,7 +96,8 @@ def test_launch_with_a_bag_and_the_ros2_command_line(env):
             described = answered(param_describe, env, "Min value: 1")
             assert "Max value: 16" in described, described
             answer = answered(service_call, env, "success=True", timeout=120.0)
-            assert "monovoc_interfaces.msg.SemanticObject(id=" in answer, answer
+            first = answer[answer.index("monovoc_interfaces.msg.SemanticObject(") :]
+            assert "label='sofa', label_source='given'" in first[: first.index("description=")], answer
             echoed = answered(topic_echo, env, "objects:")
             assert echoed.count("num_gaussians:") >= 5, echoed
             assert process.stop() == 0, process.describe()  # SIGINT to the process group
