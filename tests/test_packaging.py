@@ -144,7 +144,7 @@ def test_launch_file_declares_and_documents_every_argument():
         assert spec["description"], f"launch argument {name} has no description"
         assert spec["default"] is not None, f"launch argument {name} has no default"
     documented = readme_launch_arguments()
-    assert set(documented) == set(launch.arguments), "launch-argument table of docs/parameters.md differs from the launch file"
+    assert set(documented) == set(launch.arguments), "docs/parameters.md: launch arguments differ"
     for name, spec in launch.arguments.items():
         default = spec["default"]
         if isinstance(default, ast.Constant):  # file defaults are substitutions: named in the table as paths
