@@ -12,9 +12,14 @@ that both a segment and an object claim. Then:
    Pairs below `min_iou` are never matched.
 2. A segment left unmatched that lies mostly inside one object (``C[s, o] >= part_share * |s|`` and
    at least `part_coverage` of that object) is a piece of it (a split segment): it joins the object.
-3. Any other segment of at least `new_object_fraction` of the image seeds a new object with a fresh
-   display color (a packed 24-bit color never issued before, never white, black or the grey of
-   unobserved points); smaller ones add no evidence this keyframe.
+3. Any other segment of at least `new_object_fraction` of the image continues the object being born
+   there, if any: where the map renders the segment as part of a larger object, the runner-up objects
+   (each Gaussian's second most voted, rendered the same way: on demand, one more pass) show an object
+   that an earlier keyframe started there; when one holds `part_share` of the segment, the segment is it.
+   Otherwise it seeds a new object with a fresh display color (a packed 24-bit color never issued before,
+   never white, black or the grey of unobserved points). Without this, an object hidden under a larger
+   one's label (a segmenter fused them in earlier frames) was born again in every keyframe, and none of
+   its births ever collected enough votes to lead. Smaller segments add no evidence this keyframe.
 4. Objects are only ever matched by what is rendered: an object the view does not show (occluded,
    out of view, unobserved) gets no evidence and keeps its id. The first keyframe renders nothing,
    so its segments seed the objects.
@@ -22,6 +27,13 @@ that both a segment and an object claim. Then:
    "covered together"; when a pair was covered together in at least `merge_min_keyframes` keyframes
    and more often than it was seen apart (matched to two different segments), the younger object is
    merged into the older one: their votes add (VoteState.merge_objects), exactly.
+6. Until then, a segment that covers two or more such objects, each at least `split_share` of it, is
+   split along the map's rendered labels
+   (a segmenter fused touching objects, or the map has not yet merged two objects of one): each of its
+   pixels goes to the object rendered there when that object is one of the covered ones and leads the
+   pixel with at least `split_confidence` of its weight; its other pixels add nothing. Given to one
+   object, the fused segment's pixels were voted into the other in every frame that fused them. A split
+   segment's class name (segment labels) is dropped: it names one of the objects, not which.
 
 The result of a keyframe is its mask relabeled with object colors (unassigned pixels void), which
 the mapper integrates through the ordinary vote path, so everything downstream (palette, objects,
@@ -33,6 +45,7 @@ from __future__ import annotations
 import json
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -55,9 +68,21 @@ class AssociationConfig:
     # Overlaps are counted on every render_scale-th pixel (the view rendered at 1/render_scale of the
     # mask's resolution): they are ratios of areas, and the rendering is most of the cost.
     render_scale: int = 2  # MapperConfig.association_scale
+    # Stage 6: least share of a pixel's rendering weight its leading object must hold for a split segment's
+    # pixel to go to that object.
+    split_confidence: float = 0.5
+    split_share: float = 0.2  # stage 6: least share of the segment's claimed pixels each covered object holds
 
     def __post_init__(self) -> None:
-        for name in ("min_iou", "part_share", "part_coverage", "new_object_fraction", "merge_containment"):
+        names = (
+            "min_iou",
+            "part_share",
+            "part_coverage",
+            "new_object_fraction",
+            "merge_containment",
+            "split_confidence",
+        )
+        for name in names:
             value = float(getattr(self, name))
             if not 0.0 < value <= 1.0:
                 raise ValueError(f"association {name} must be in (0, 1], got {value!r}")
@@ -88,10 +113,13 @@ class Association:
     segment_objects: np.ndarray  # (S,) uint32 object id per segment, UNOBSERVED_ID = no evidence
     matched: int = 0  # segments matched one to one to a rendered object
     parts: int = 0  # segments joined to an object as a piece of it
+    continued: int = 0  # segments given to the object being born where they lie (the runner-up rendering)
     new: int = 0  # segments that seeded a new object
     skipped: int = 0  # segments too small to seed an object
     rendered_objects: int = 0  # objects leading at least one pixel of the view
     merges: list[tuple[int, int]] = field(default_factory=list)  # (kept, merged away) object ids
+    # Stage 6: segment index -> the object ids its pixels are split between (along the rendered labels).
+    split: dict[int, np.ndarray] = field(default_factory=dict)
     seconds: float = 0.0  # the whole association of the keyframe (associate_keyframe), or the matching alone
     segment_seconds: float = 0.0  # associate_keyframe: the mask's segments (pixel labels)
     render_seconds: float = 0.0  # associate_keyframe: the map's labels rendered into the view
@@ -154,9 +182,17 @@ class Associator:
 
     # ------------------------------------------------------------------ association
 
-    def associate(self, segments: np.ndarray, n_segments: int, rendered: np.ndarray, rendered_ids: np.ndarray):
+    def associate(
+        self,
+        segments: np.ndarray,
+        n_segments: int,
+        rendered: np.ndarray,
+        rendered_ids: np.ndarray,
+        runner_up: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+    ):
         """Object id per segment. `segments` (H, W) int32 segment index (-1 = none), `rendered` (H, W)
-        int32 index into `rendered_ids` ((R,) uint32 object ids) of the leading object (-1 = void).
+        int32 index into `rendered_ids` ((R,) uint32 object ids) of the leading object (-1 = void);
+        `runner_up()`: the same for the runner-up objects (stage 3), called at most once, when needed.
         Updates the pair statistics and returns an Association whose `merges` the caller must apply
         to the evidence (merged-away ids never come back)."""
         start = time.perf_counter()
@@ -184,6 +220,7 @@ class Associator:
             matched_obj[rows[ok]] = cols[ok]
             out[rows[ok]] = rendered_ids[cols[ok]]
             report.matched = int(ok.sum())
+        second: tuple[np.ndarray, np.ndarray] | None = None  # (overlap counts, ids) of the runner-up rendering
         for s in np.flatnonzero(matched_obj < 0):
             if n_rendered and seg_claimed[s] > 0:
                 o = int(np.argmax(C[s]))
@@ -191,17 +228,41 @@ class Associator:
                     out[s] = rendered_ids[o]
                     report.parts += 1
                     continue
-            if seg_pixels[s] >= min_pixels:
-                out[s] = self.new_object()
-                report.new += 1
-            else:
+            if seg_pixels[s] < min_pixels:
                 report.skipped += 1
+                continue
+            if runner_up is not None and seg_claimed[s] > 0:
+                if second is None:
+                    labels2, ids2 = runner_up()
+                    second = (overlap_counts(segments, n_segments, labels2, len(ids2)), ids2)
+                C2, ids2 = second
+                n = int(np.argmax(C2[s])) if C2.shape[1] else -1
+                if n >= 0 and C2[s, n] >= cfg.part_share * seg_claimed[s] and ids2[n] not in out:
+                    out[s] = ids2[n]
+                    report.continued += 1
+                    continue
+            out[s] = self.new_object()
+            report.new += 1
         if n_rendered and n_segments:
             report.merges = self._pair_statistics(C, obj_claimed, matched_obj, rendered_ids, min_pixels)
             for keep, drop in report.merges:
                 out[out == drop] = keep
+            report.split = self._fused_segments(C, obj_claimed, rendered_ids, min_pixels)
         report.seconds = time.perf_counter() - start
         return report
+
+    def _fused_segments(self, C, obj_claimed, rendered_ids, min_pixels) -> dict[int, np.ndarray]:
+        """Stage 6: segment -> the (live, distinct) ids of the two or more objects it covers, each a good part
+        of it (a sliver of a neighbour rendered across the segment's border is no fusion)."""
+        cfg = self.config
+        inside = (C >= cfg.merge_containment * obj_claimed[None, :]) & (obj_claimed >= min_pixels)[None, :]
+        inside &= C >= cfg.split_share * C.sum(axis=1, keepdims=True)
+        split = {}
+        for s in np.flatnonzero(inside.sum(axis=1) >= 2):
+            ids = np.unique([self.resolve(int(rendered_ids[o])) for o in np.flatnonzero(inside[s])]).astype(np.uint32)
+            if ids.size >= 2:  # objects merged just now are one
+                split[int(s)] = ids
+        return split
 
     def _pair_statistics(self, C, obj_claimed, matched_obj, rendered_ids, min_pixels) -> list[tuple[int, int]]:
         cfg = self.config
@@ -235,10 +296,28 @@ class Associator:
 
     # ------------------------------------------------------------------ keyframes
 
-    def relabel_mask(self, segments: np.ndarray, segment_objects: np.ndarray) -> np.ndarray:
-        """(H, W, 3) uint8 mask with each segment's pixels in its object's color, the rest void."""
-        table = np.append(segment_objects, np.uint32(UNOBSERVED_ID))  # index -1 -> no evidence
+    def relabel_mask(
+        self,
+        segments: np.ndarray,
+        report: Association,
+        rendered_ids: np.ndarray | None = None,
+        rendered: np.ndarray | None = None,
+        weights: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(H, W, 3) uint8 mask with each segment's pixels in its object's color, the rest void. Pixels of a
+        split segment (report.split) take the object rendered there: `rendered` (H, W) index into
+        `rendered_ids` (-1 = void) and `weights` (H, W) its share of the pixel, at the mask's resolution."""
+        table = np.append(report.segment_objects, np.uint32(UNOBSERVED_ID))  # index -1 -> no evidence
         ids = table[segments]
+        if report.split:
+            assert rendered_ids is not None and rendered is not None and weights is not None
+            live = np.array([self.resolve(int(o)) for o in rendered_ids], np.uint32)
+            drawn = np.where(rendered >= 0, np.append(live, np.uint32(UNOBSERVED_ID))[rendered], UNOBSERVED_ID)
+            sure = weights >= self.config.split_confidence
+            for s, objects in report.split.items():
+                pixels = segments == s
+                here = drawn[pixels]
+                ids[pixels] = np.where(np.isin(here, objects) & sure[pixels], here, UNOBSERVED_ID)
         ids = np.where(ids == UNOBSERVED_ID, np.uint32(VOID_ID), ids)
         return unpack_rgb(ids.astype(np.uint32))
 
@@ -312,10 +391,12 @@ def associate_keyframe(
     *,
     metric: str = "cmc",
     min_snap_margin: float = 0.2,
+    runner_up_ids: Callable[[], np.ndarray] | None = None,
 ):
     """One keyframe of per-frame segments: its segments (the mask's own palette, core.pixel_labels),
     the map's labels `gaussian_ids` (N,) rendered into its view, the association, and the keyframe
-    with its mask relabeled in object colors. Returns (keyframe, Association)."""
+    with its mask relabeled in object colors. `runner_up_ids()`: (N,) each Gaussian's runner-up object
+    (VoteState.runner_up), rendered only when the association needs it. Returns (keyframe, Association)."""
     from dataclasses import replace
 
     from monovoc_ros.core.evaluation import resize_nearest
@@ -330,17 +411,33 @@ def associate_keyframe(
     small = k.scaled_to(max(1, k.width // scale), max(1, k.height // scale)) if scale > 1 else k
     segments_small = resize_nearest(labelled.labels, small.height, small.width) if scale > 1 else labelled.labels
     if ids.size:
-        rendered = render_label_weights(gaussians, compact, small, keyframe.cam_to_world).labels
+        rendering = render_label_weights(gaussians, compact, small, keyframe.cam_to_world)
+        rendered, weights = rendering.labels, rendering.weights
     else:
         rendered = np.full(segments_small.shape, -1, np.int32)
+        weights = np.zeros(segments_small.shape, np.float32)
     drawn = time.perf_counter()
-    report = associator.associate(segments_small, len(labelled.objects), rendered, ids)
-    mask = associator.relabel_mask(labelled.labels, report.segment_objects)
+
+    def runner_up() -> tuple[np.ndarray, np.ndarray]:
+        compact2, ids2 = rendered_object_index(runner_up_ids(), associator.issued)
+        if not ids2.size:
+            return np.full(segments_small.shape, -1, np.int32), ids2
+        return render_label_weights(gaussians, compact2, small, keyframe.cam_to_world).labels, ids2
+
+    report = associator.associate(
+        segments_small, len(labelled.objects), rendered, ids, runner_up if runner_up_ids is not None else None
+    )
+    if report.split and scale > 1:  # split segments follow the rendered labels at the mask's resolution
+        h, w = labelled.labels.shape
+        rendered, weights = resize_nearest(rendered, h, w), resize_nearest(weights, h, w)
+    mask = associator.relabel_mask(labelled.labels, report, ids, rendered, weights)
     segments = keyframe.segments
-    if segments:  # the segment labels follow their segments to the objects
+    if segments:  # the segment labels follow their segments to the objects; a split segment's name is dropped
         from monovoc_ros.core.segment_labels import SegmentLabel
 
-        table = dict(zip(labelled.objects.tolist(), report.segment_objects.tolist(), strict=True))
+        objects = np.where(np.isin(np.arange(len(labelled.objects)), list(report.split)), UNOBSERVED_ID,
+                           report.segment_objects)  # fmt: skip
+        table = dict(zip(labelled.objects.tolist(), objects.tolist(), strict=True))
         segments = tuple(
             SegmentLabel(table[s.id], s.class_name, s.score)
             for s in segments

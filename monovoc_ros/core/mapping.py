@@ -300,7 +300,7 @@ class SemanticMapper:
         ids, conf = self._vote_labels()
         keyframe, association = associate_keyframe(
             self.associator, self.gaussians, ids, keyframe,
-            metric=self.config.metric, min_snap_margin=self.config.min_snap_margin,
+            metric=self.config.metric, min_snap_margin=self.config.min_snap_margin, runner_up_ids=self.state.runner_up,
         )  # fmt: skip
         for keep, drop in association.merges:
             rows = self.state.merge_objects(keep, drop)

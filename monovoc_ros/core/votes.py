@@ -174,6 +174,13 @@ class VoteState(GaussianEvidence):
 
         label_rows(self.objects, self.votes, self.other, np.asarray(rows, np.int64), ids, confidence)
 
+    def runner_up(self) -> np.ndarray:
+        """(N,) uint32 the object with the second most votes of each Gaussian (UNOBSERVED_ID where none): where
+        an object is being born inside another one, it is second before it leads."""
+        if self.slots < 2:
+            return np.full(len(self.votes), UNOBSERVED_ID, np.uint32)
+        return np.where(self.votes[:, 1] > 0, self.objects[:, 1], UNOBSERVED_ID).astype(np.uint32)
+
     def labels(self, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Object id (uint32, UNOBSERVED_ID where unobserved) and confidence (float32 vote margin
         (V1 - V2) / sum V, 0 where unobserved) of every Gaussian, or of `rows` alone."""
