@@ -217,6 +217,44 @@ def test_shuffle_and_segment_noise():
         parse_mask_noise("merge")
 
 
+@pytest.mark.parametrize("cut", ["line", "voronoi"])
+def test_segments_fall_into_two_to_pieces_parts_inside_themselves(cut):
+    seg = (np.arange(80)[:, None] // 40) * 3 + np.arange(120)[None, :] // 40  # six 40x40 blocks
+    mask = unpack_rgb((0x101010 * (seg + 1)).astype(np.uint32))
+    out, counts = segment_noise(mask, NoiseRates(split=1.0, pieces=4, cut=cut), np.random.default_rng(4))
+    packed = pack_rgb(out)
+    assert counts["split"] == 6
+    per_block = [np.unique(packed[seg == b]).size for b in range(6)]
+    assert all(2 <= k <= 4 for k in per_block) and max(per_block) > 2, per_block
+    # Parts never cross blocks: every new color lies inside one block.
+    for color in np.unique(packed).tolist():
+        assert np.unique(seg[packed == color]).size == 1
+
+
+def test_boundary_jitter_and_granularity():
+    seg = (np.arange(96)[:, None] // 48) * 2 + np.arange(128)[None, :] // 64
+    mask = unpack_rgb((0x202020 * (seg + 1)).astype(np.uint32))
+    out, _ = segment_noise(mask, NoiseRates(jitter=3), np.random.default_rng(5))
+    a, b = pack_rgb(mask), pack_rgb(out)
+    assert set(np.unique(b).tolist()) == set(np.unique(a).tolist())  # the same segments
+    moved = a != b
+    assert 0 < moved.mean() < 0.1  # boundaries wander, by a few pixels only
+    near = np.zeros_like(moved)
+    near[:, 61:67] = near[45:51, :] = True  # within 3 pixels of a boundary
+    assert not (moved & ~near).any()
+    kinds = [segment_noise(mask, NoiseRates(merge=0.2, split=0.2, granularity=0.4), np.random.default_rng(k))[1]
+             for k in range(40)]  # fmt: skip
+    coarse = [c for c in kinds if c["coarse"]]
+    fine = [c for c in kinds if c["fine"]]
+    assert coarse and fine and all(c["split"] == 0 for c in coarse) and all(c["merged"] == 0 for c in fine)
+    assert parse_mask_noise("merge=0.1,split=0.1,pieces=4,cut=voronoi,jitter=2,granularity=0.2") == (
+        False, NoiseRates(merge=0.1, split=0.1, pieces=4, cut="voronoi", jitter=2, granularity=0.2)
+    )  # fmt: skip
+    for bad in ("cut=sam", "pieces=1", "jitter=x", "granularity=0.7"):
+        with pytest.raises(ValueError):
+            parse_mask_noise(bad)
+
+
 def test_instance_matching_counts_merges_and_splits():
     seg = blocks()
     ref = (0x010101 * (seg + 1)).astype(np.uint32)
@@ -339,3 +377,88 @@ def test_mapper_gathers_segment_labels_per_object(small_room):
             total += 1
             right += labels.get(oid) == names[int(np.bincount(truth).argmax())]
     assert total >= 15 and right >= 0.9 * total
+
+
+def test_a_fused_segment_is_split_along_the_rendered_labels():
+    a = Associator()
+    seg = blocks()
+    ids = a.associate(seg, 6, np.full(seg.shape, -1, np.int32), np.zeros(0, np.uint32)).segment_objects
+    fused = np.where(seg == 1, 0, seg)  # the segmenter fused touching objects 0 and 1
+    fused = np.unique(fused, return_inverse=True)[1].reshape(seg.shape)
+    report = a.associate(fused, 5, seg.astype(np.int32), ids)
+    assert list(report.split) == [0] and set(report.split[0].tolist()) == {int(ids[0]), int(ids[1])}
+    weights = np.ones(seg.shape, np.float32)
+    weights[0:5, 20:25] = 0.3  # the map is unsure there: no evidence
+    packed = pack_rgb(a.relabel_mask(fused, report, ids, seg.astype(np.int32), weights))
+    expected = ids[seg].astype(np.uint32)
+    expected[0:5, 20:25] = VOID_ID
+    np.testing.assert_array_equal(packed, expected)  # each object keeps its own pixels
+    # A sliver of a neighbour rendered across the border is no fusion: segment 0 stays whole.
+    rendered = seg.copy()
+    rendered[0:2, 18:20] = 1
+    sliver = a.associate(seg, 6, rendered.astype(np.int32), ids)
+    assert sliver.split == {}
+
+
+def test_a_segment_inside_a_larger_object_continues_the_object_born_there():
+    a = Associator(AssociationConfig(new_object_fraction=0.002))
+    seg = blocks()
+    ids = a.associate(seg, 6, np.full(seg.shape, -1, np.int32), np.zeros(0, np.uint32)).segment_objects
+    frame = seg.copy()
+    frame[2:6, 2:6] = 6  # a small object the map still renders as part of object 0
+    none = np.full(seg.shape, -1, np.int32)
+    born = a.associate(frame, 7, seg.astype(np.int32), ids, lambda: (none, np.zeros(0, np.uint32)))
+    assert born.new == 1
+    newborn = born.segment_objects[6]
+    # Next keyframe: its Gaussians still lead with object 0, the newborn is their runner-up.
+    runner = np.where(frame == 6, 0, -1).astype(np.int32)
+    calls = []
+
+    def runner_up():
+        calls.append(1)
+        return runner, np.array([newborn], np.uint32)
+
+    again = a.associate(frame, 7, seg.astype(np.int32), ids, runner_up)
+    assert again.segment_objects[6] == newborn and again.continued == 1 and again.new == 0
+    assert len(calls) == 1
+    # Without a segment that needs it, the runner-up rendering is never made.
+    a.associate(seg, 6, seg.astype(np.int32), ids, runner_up)
+    assert len(calls) == 1
+
+
+def test_a_fused_segments_class_name_names_neither_object(small_room):
+    from dataclasses import replace
+
+    from monovoc_ros.core.association import associate_keyframe
+    from monovoc_ros.core.segment_labels import SegmentLabel, palette_segments
+    from monovoc_ros.core.segment_noise import _adjacent_pairs
+
+    mapper = SemanticMapper(small_room.load_gaussians(), MapperConfig(mask_ids="per_frame"))
+    for i in range(6):
+        mapper.integrate(small_room.keyframe(i))
+    kf = small_room.keyframe(6)
+    packed = pack_rgb(kf.mask)
+    colors, labels = np.unique(packed, return_inverse=True)
+    labels = labels.reshape(packed.shape)
+    sizes = np.bincount(labels.ravel())
+    pairs = [(a, b) for a, b in _adjacent_pairs(labels).tolist() if VOID_ID not in (colors[a], colors[b])]
+    a, b = max(pairs, key=lambda p: min(sizes[p[0]], sizes[p[1]]))  # the two largest touching objects
+    fused = np.where(packed == colors[b], colors[a], packed).astype(np.uint32)
+    others = {int(c): f"name{k}" for k, c in enumerate(colors) if c not in (VOID_ID, colors[b])}
+    others[int(colors[a])] = "fusedname"
+    fused_kf = replace(kf, mask=unpack_rgb(fused), segments=palette_segments(unpack_rgb(fused), others))
+    ids, _ = mapper._vote_labels()
+    relabeled, report = associate_keyframe(mapper.associator, mapper.gaussians, ids, fused_kf,
+                                           runner_up_ids=mapper.state.runner_up)  # fmt: skip
+    assert len(report.split) == 1
+    assert "fusedname" not in {s.class_name for s in relabeled.segments}
+    assert all(isinstance(s, SegmentLabel) for s in relabeled.segments) and relabeled.segments
+    out = pack_rgb(relabeled.mask)
+    # The fused segment's pixels went to both objects, each mostly its own, as the map renders them.
+    leading = []
+    for color in (colors[a], colors[b]):
+        got = out[(packed == color) & (out != VOID_ID)]
+        values, counts = np.unique(got, return_counts=True)
+        assert counts.max() >= 0.8 * got.size, (values, counts)
+        leading.append(int(values[np.argmax(counts)]))
+    assert leading[0] != leading[1]
