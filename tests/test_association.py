@@ -336,26 +336,11 @@ def test_label_histogram_leads_merges_and_round_trips():
     h.merge_objects(20, 10)
     assert h.leading() == {20: "sofa"} and h.scores[20]["chair"] == pytest.approx(0.9)
     assert LabelHistogram.from_json(h.to_json()).scores == h.scores
-    assert LabelHistogram.from_json(h.to_json()).named == h.named
     other = LabelHistogram()
     other.add(20, "chair", 2.0)
     assert h.merged(other).leading() == {20: "chair"} and h.leading() == {20: "sofa"}
     with pytest.raises(ValueError):
         SegmentLabel(VOID_ID, "wall")
-
-
-def test_an_object_is_named_only_when_enough_of_its_sightings_named_it():
-    from monovoc_ros.core.segment_labels import MIN_SUPPORT, LabelHistogram
-
-    h = LabelHistogram()
-    h.add(1, "table", 1.0)  # named once (a fused segment), seen in 10 keyframes: no name of its own
-    for _ in range(4):
-        h.add(2, "chair", 0.9)
-    seen = {1: 10, 2: 10}
-    assert 1 / 10 < MIN_SUPPORT <= 4 / 10
-    assert h.leading(seen) == {2: "chair"} and h.leading() == {1: "table", 2: "chair"}
-    old = LabelHistogram.from_json('{"1": {"table": 1.0}}')  # written before the counts: not held to them
-    assert old.leading(seen) == {1: "table"}
 
 
 def test_segment_labels_follow_shuffled_segments():
@@ -408,14 +393,6 @@ def test_a_fused_segment_is_split_along_the_rendered_labels():
     expected = ids[seg].astype(np.uint32)
     expected[0:5, 20:25] = VOID_ID
     np.testing.assert_array_equal(packed, expected)  # each object keeps its own pixels
-    assert report.named.tolist() == [False, True, True, True, True]  # the fused segment names neither
-    # Half of object 1 taken into segment 0 is no fusion of two objects (object 1 is not inside it), but
-    # its name is not object 0's alone either.
-    grabbed = seg.copy()
-    grabbed[:10, 20:40] = 0
-    partial = a.associate(grabbed, 6, seg.astype(np.int32), ids)
-    assert partial.split == {} and partial.segment_objects[0] == ids[0] and not partial.named[0]
-    assert partial.named[2:].all()
     # A sliver of a neighbour rendered across the border is no fusion: segment 0 stays whole.
     rendered = seg.copy()
     rendered[0:2, 18:20] = 1

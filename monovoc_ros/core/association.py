@@ -32,10 +32,8 @@ that both a segment and an object claim. Then:
    (a segmenter fused touching objects, or the map has not yet merged two objects of one): each of its
    pixels goes to the object rendered there when that object is one of the covered ones and leads the
    pixel with at least `split_confidence` of its weight; its other pixels add nothing. Given to one
-   object, the fused segment's pixels were voted into the other in every frame that fused them.
-7. A segment's class name (segment labels) goes to its object only when other objects claim at most
-   `1 - name_share` of the pixels the map renders in it: a segment that fused two objects names one of
-   them, not which (a split segment's name is always dropped).
+   object, the fused segment's pixels were voted into the other in every frame that fused them. A split
+   segment's class name (segment labels) is dropped: it names one of the objects, not which.
 
 The result of a keyframe is its mask relabeled with object colors (unassigned pixels void), which
 the mapper integrates through the ordinary vote path, so everything downstream (palette, objects,
@@ -74,7 +72,6 @@ class AssociationConfig:
     # pixel to go to that object.
     split_confidence: float = 0.5
     split_share: float = 0.2  # stage 6: least share of the segment's claimed pixels each covered object holds
-    name_share: float = 0.75  # stage 7: least share of its claimed pixels a segment's own object holds for its name
 
     def __post_init__(self) -> None:
         names = (
@@ -84,8 +81,6 @@ class AssociationConfig:
             "new_object_fraction",
             "merge_containment",
             "split_confidence",
-            "split_share",
-            "name_share",
         )
         for name in names:
             value = float(getattr(self, name))
@@ -125,8 +120,6 @@ class Association:
     merges: list[tuple[int, int]] = field(default_factory=list)  # (kept, merged away) object ids
     # Stage 6: segment index -> the object ids its pixels are split between (along the rendered labels).
     split: dict[int, np.ndarray] = field(default_factory=dict)
-    # Stage 7: (S,) bool, the segments whose class name may go to their object (None: all).
-    named: np.ndarray | None = None
     seconds: float = 0.0  # the whole association of the keyframe (associate_keyframe), or the matching alone
     segment_seconds: float = 0.0  # associate_keyframe: the mask's segments (pixel labels)
     render_seconds: float = 0.0  # associate_keyframe: the map's labels rendered into the view
@@ -255,9 +248,6 @@ class Associator:
             for keep, drop in report.merges:
                 out[out == drop] = keep
             report.split = self._fused_segments(C, obj_claimed, rendered_ids, min_pixels)
-            own = np.array([C[s, rendered_ids == out[s]].sum() for s in range(n_segments)], np.int64)
-            report.named = seg_claimed - own <= (1.0 - cfg.name_share) * seg_claimed
-            report.named[list(report.split)] = False
         report.seconds = time.perf_counter() - start
         return report
 
@@ -442,11 +432,11 @@ def associate_keyframe(
         rendered, weights = resize_nearest(rendered, h, w), resize_nearest(weights, h, w)
     mask = associator.relabel_mask(labelled.labels, report, ids, rendered, weights)
     segments = keyframe.segments
-    if segments:  # the segment labels follow their segments to the objects (stage 7: not across a fusion)
+    if segments:  # the segment labels follow their segments to the objects; a split segment's name is dropped
         from monovoc_ros.core.segment_labels import SegmentLabel
 
-        named = report.named if report.named is not None else np.ones(len(labelled.objects), bool)
-        objects = np.where(named, report.segment_objects, UNOBSERVED_ID)
+        objects = np.where(np.isin(np.arange(len(labelled.objects)), list(report.split)), UNOBSERVED_ID,
+                           report.segment_objects)  # fmt: skip
         table = dict(zip(labelled.objects.tolist(), objects.tolist(), strict=True))
         segments = tuple(
             SegmentLabel(table[s.id], s.class_name, s.score)

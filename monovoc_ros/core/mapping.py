@@ -381,10 +381,8 @@ class SemanticMapper:
         )
 
     def object_labels(self) -> dict[int, str]:
-        """Object id -> the leading class name its segments were given (core.segment_labels), for objects
-        named in enough of the keyframes that showed them."""
-        seen = dict(zip(self.palette_builder.ids.tolist(), self.palette_builder.counts["masks"].tolist(), strict=True))
-        return self.segment_labels.leading(seen)
+        """Object id -> the leading class name its segments were given (core.segment_labels)."""
+        return self.segment_labels.leading()
 
     def result(self) -> SemanticResult:
         """Labels for every Gaussian (cached until the next keyframe or map update)."""

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,24 +72,15 @@ def write_segments(path: str | Path, segments: tuple[SegmentLabel, ...]) -> None
     Path(path).write_text(json.dumps(segments_to_entries(segments, digits=6)))
 
 
-# An object is named only when at least this share of the keyframes that showed it named it: a segment
-# that fused two objects gives its one class name to whichever it was associated with, and an object that
-# has no name of its own (an unnamed class) would otherwise take its neighbour's from those few frames.
-MIN_SUPPORT = 0.3
-
-
 class LabelHistogram:
-    """Per object, the summed scores of the class names its segments were given, and how many segments
-    named it at all."""
+    """Per object, the summed scores of the class names its segments were given."""
 
     def __init__(self) -> None:
         self.scores: dict[int, dict[str, float]] = defaultdict(dict)
-        self.named: dict[int, int] = defaultdict(int)  # object -> segment labels it received
 
-    def add(self, object_id: int, class_name: str, score: float, times: int = 1) -> None:
+    def add(self, object_id: int, class_name: str, score: float) -> None:
         table = self.scores[int(object_id)]
         table[class_name] = table.get(class_name, 0.0) + float(score)
-        self.named[int(object_id)] += times
 
     def add_keyframe(self, segments: tuple[SegmentLabel, ...], segment_objects: dict[int, int]) -> int:
         """Adds a keyframe's segment labels; `segment_objects` maps a segment id to its object id
@@ -103,51 +93,31 @@ class LabelHistogram:
                 added += 1
         return added
 
-    def _absorb(self, oid: int, table: dict[str, float], named: int) -> None:
-        for name, score in table.items():
-            self.add(oid, name, score, times=0)
-        self.named[oid] += named
-
     def merge_objects(self, keep: int, drop: int) -> None:
-        self._absorb(int(keep), self.scores.pop(int(drop), {}), self.named.pop(int(drop), 0))
+        for name, score in self.scores.pop(int(drop), {}).items():
+            self.add(keep, name, score)
 
     def merged(self, other: LabelHistogram) -> LabelHistogram:
         """Both histograms' scores added (two maps of the same scene with global ids)."""
         out = LabelHistogram()
         for source in (self, other):
             for oid, table in source.scores.items():
-                out._absorb(oid, table, source.named.get(oid, 0))
+                for name, score in table.items():
+                    out.add(oid, name, score)
         return out
 
-    def leading(self, seen: Mapping[int, int] | None = None) -> dict[int, str]:
-        """Object id -> its leading class (highest summed score; ties: alphabetical). With `seen` (object ->
-        keyframes that showed it), only objects named in at least MIN_SUPPORT of those."""
-        out = {}
-        for oid, table in self.scores.items():
-            if not table or (
-                seen is not None and oid in self.named and self.named[oid] < MIN_SUPPORT * seen.get(oid, 0)
-            ):
-                continue
-            out[oid] = min(table.items(), key=lambda kv: (-kv[1], kv[0]))[0]
-        return out
+    def leading(self) -> dict[int, str]:
+        """Object id -> its leading class (highest summed score; ties: alphabetical)."""
+        return {oid: min(t.items(), key=lambda kv: (-kv[1], kv[0]))[0] for oid, t in self.scores.items() if t}
 
     def to_json(self) -> str:
-        return json.dumps({
-            "scores": {str(k): v for k, v in sorted(self.scores.items())},
-            "named": {str(k): v for k, v in sorted(self.named.items())},
-        })  # fmt: skip
+        return json.dumps({str(k): v for k, v in sorted(self.scores.items())})
 
     @classmethod
     def from_json(cls, text: str) -> LabelHistogram:
-        """Also reads the older form {object: {name: score}} (no counts: those objects are never held to
-        MIN_SUPPORT)."""
-        data = json.loads(text)
         out = cls()
-        counted = set(data) == {"scores", "named"}
-        for k, table in (data["scores"] if counted else data).items():
+        for k, table in json.loads(text).items():
             out.scores[int(k)] = {str(n): float(s) for n, s in table.items()}
-        for k, n in data["named"].items() if counted else ():
-            out.named[int(k)] = int(n)
         return out
 
 
