@@ -28,12 +28,12 @@ that both a segment and an object claim. Then:
    and more often than it was seen apart (matched to two different segments), the younger object is
    merged into the older one: their votes add (VoteState.merge_objects), exactly.
 6. Until then, a segment that covers two or more such objects, each at least `split_share` of it, is
-   split along the map's rendered labels
-   (a segmenter fused touching objects, or the map has not yet merged two objects of one): each of its
-   pixels goes to the object rendered there when that object is one of the covered ones and leads the
-   pixel with at least `split_confidence` of its weight; its other pixels add nothing. Given to one
-   object, the fused segment's pixels were voted into the other in every frame that fused them. A split
-   segment's class name (segment labels) is dropped: it names one of the objects, not which.
+   split along the map's rendered labels (a segmenter fused touching objects, or the map has not yet
+   merged two objects of one): each of its pixels goes to the object rendered there when that object is
+   one of the covered ones and leads the pixel with at least `split_confidence` of its weight; its other
+   pixels add nothing. Given to one object, the fused segment's pixels were voted into the other in
+   every frame that fused them. A split segment's class name (segment labels) is dropped: it names one
+   of the objects, not which.
 
 The result of a keyframe is its mask relabeled with object colors (unassigned pixels void), which
 the mapper integrates through the ordinary vote path, so everything downstream (palette, objects,
@@ -81,6 +81,7 @@ class AssociationConfig:
             "new_object_fraction",
             "merge_containment",
             "split_confidence",
+            "split_share",
         )
         for name in names:
             value = float(getattr(self, name))
