@@ -31,6 +31,14 @@ BAG = REPO / "bags" / "synthetic_room.mcap"
 KEYFRAMES = bag_info(BAG).topics["/monovoc/mask"].count
 
 
+def readme_live_launch() -> str:
+    """The first command of the README's "Launch file and RViz" block: the node on a robot's topics."""
+    text = (REPO / "README.md").read_text()
+    section = text[text.index("### Launch file and RViz") :]
+    block = section[section.index("```bash\n") + 8 :]
+    return block[: block.index("```")].replace("\\\n", " ").splitlines()[0].strip()
+
+
 def readme_session() -> list[str]:
     """The commands of the README's "With the ROS 2 command line" block."""
     text = (REPO / "README.md").read_text()
@@ -65,7 +73,7 @@ def answered(command: str, env: dict, expected: str, timeout: float = 60.0) -> s
 
 
 def launch(line: str, env: dict, name: str) -> NodeProcess:
-    assert line.endswith(" &") and line.startswith("ros2 launch monovoc_ros monovoc.launch.py ")
+    assert line.startswith("ros2 launch monovoc_ros monovoc.launch.py ")
     return NodeProcess(["bash", "-c", "exec " + line.removesuffix("&").strip()], env, name=name, cwd=REPO,
                        process_group=True)  # fmt: skip
 
@@ -130,3 +138,22 @@ def test_ros2_run_then_a_plain_fast_replay_loses_nothing(env):
             done = diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(KEYFRAMES), 120.0, process=node)
             assert done["keyframes_received"] == str(KEYFRAMES) and done["keyframes_dropped"] == "0"
         assert node.stop() == 0, node.describe()
+
+
+def test_launch_on_a_robots_topics(env):
+    """The README's launch on a camera's and a SLAM's topics: the bag replayed onto them arrives whole."""
+    line = readme_live_launch()
+    remaps = {
+        role: line.split(f" {role}:=")[1].split()[0] for role in ("image", "mask", "camera_info", "pose", "gaussians")
+    }
+    assert remaps["image"] == "/camera/color/image_raw/compressed" and "map_directory:=$HOME/maps/office" in line
+    replay = "monovoc replay bags/synthetic_room.mcap --fast --remap " + " ".join(
+        f"/monovoc/{role}:={topic}" for role, topic in remaps.items()
+    )
+    with launch(line, env, "ros2_launch_live") as process, ClientNode(env) as client:
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        played = ros2(replay, env, timeout=180.0)  # waits for the launched node's subscriptions
+        assert played.returncode == 0, played.stdout + played.stderr
+        diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(KEYFRAMES), 120.0, process=process)
+        assert process.stop() == 0, process.describe()
+    assert snapshot_keyframes(env, line) == KEYFRAMES, process.describe()
