@@ -90,17 +90,19 @@ def integrate_the_bag(process: NodeProcess, client: ClientNode) -> None:
 
 
 def test_launch_with_a_bag_and_the_ros2_command_line(env):
-    launch_line, node_list, param_get, param_describe, service_call, topic_echo = readme_session()
+    launch_line, node_list, param_get, param_describe, service_call, topic_echo, node_info = readme_session()
     # As on a robot where it already runs: the first `ros2` command would start the daemon and answer
     # without it, and the next one would ask a daemon that has not discovered the graph yet.
     assert ros2("ros2 daemon start", env).returncode == 0
     try:
         with launch(launch_line, env, "ros2_launch_1") as process, ClientNode(env) as client:
             integrate_the_bag(process, client)
-            nodes = answered(node_list, env, "/monovoc/semantic_mapper_query")  # the daemon knows the graph
+            nodes = answered(node_list, env, "/monovoc/semantic_mapper")  # the daemon knows the graph
             listed = [line for line in nodes.splitlines() if line.startswith("/")]
-            assert "/monovoc/semantic_mapper" in listed and len(listed) == len(set(listed)), nodes
+            assert [n for n in listed if n.startswith("/monovoc/")] == ["/monovoc/semantic_mapper"], nodes
             assert "share an exact name" not in nodes
+            info = answered(node_info, env, "/monovoc/query: monovoc_interfaces/srv/TextQuery")
+            assert "/monovoc/save_map: monovoc_interfaces/srv/SaveMap" in info, info
             for _ in range(5):
                 got = ros2(param_get, env)
                 assert got.returncode == 0 and got.stdout.strip() == "Integer value is: 4", got.stdout + got.stderr

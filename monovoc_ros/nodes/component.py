@@ -48,6 +48,8 @@ class MappingHost:
     clock: Any  # the mapping node's clock (ROS time, /clock with use_sim_time): stamps of what components publish
     # create_publisher(type, topic, qos): a publisher of the mapping node (`ros2 node info` lists it there)
     create_publisher: Callable[..., Any]
+    # create_service(type, name, handler, qos): a service of the mapping node, in a callback group of its own
+    create_service: Callable[..., Any]
     # Read-only settings of the mapping node.
     frame_id: str
     marker_up: tuple[float, float, float]

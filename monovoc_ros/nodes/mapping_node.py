@@ -133,6 +133,11 @@ class MappingNode(Node):
 
     # ------------------------------------------------------------------ hooks for other components
 
+    def _create_component_service(self, srv_type: Any, name: str, handler: Callable, qos: Any) -> Any:
+        """A component's service on this node, in its own group: it runs beside keyframes and other services."""
+        group = self.callback_groups.setdefault(f"component.{name}", MutuallyExclusiveCallbackGroup())
+        return self.create_service(srv_type, name, handler, qos_profile=qos, callback_group=group)
+
     def host(self) -> MappingHost:
         """What this node offers the components composed with it (monovoc_ros.nodes.component)."""
         p, worker = self.params, self.worker
@@ -143,6 +148,7 @@ class MappingNode(Node):
             logger=self.get_logger(),
             clock=self.get_clock(),
             create_publisher=self.create_publisher,
+            create_service=self._create_component_service,
             frame_id=p.frame_id,
             marker_up=tuple(p.marker_up),
             labels=dict(p.labels),

@@ -3,11 +3,13 @@
 The full node `semantic_mapper` (monovoc_ros.nodes.semantic_mapper) composes it with the mapping node
 (monovoc_ros.nodes.mapping_node) through the interface of monovoc_ros.nodes.component. It adds:
 
-* service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) on its own node
-  (``<name>_query`` whatever the remaps, in the mapping node's namespace, without parameters) and
-  executor thread, with a keep-last-1000 request
-  queue (SERVICE_QOS), answered from an immutable snapshot of the object index, so it stays responsive
-  while the worker integrates keyframes and while objects are being embedded (recent query texts are cached);
+* service ``query`` (monovoc_interfaces/srv/TextQuery; /monovoc/query by default) of the mapping node
+  (`ros2 node info` lists it there), in a callback group of its own, with a keep-last-1000 request queue
+  (SERVICE_QOS), answered from an immutable snapshot of the object index, so it stays responsive while
+  the worker integrates keyframes and while objects are being embedded (recent query texts are cached).
+  It used to live on a second node with its own executor, for latency: once the mapping node's executor
+  no longer fought BLAS threads for the cores, both gave the same tails (benchmarks/bench_query.py), and
+  the second node had cost a second name under `__node` remaps and `ros2 node info` the service;
 * topics ``query/highlight`` (PointCloud2 in the semantic-cloud schema: the Gaussians of the objects of
   the last successful query) and ``query/markers`` (MarkerArray: their boxes and labels), both latched;
 * ``objects.db`` (monovoc_ros.objects.database) beside the map snapshots, written whenever the node
@@ -37,9 +39,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rclpy
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor
 
 import msg_adapters as ma
 from monovoc_ros.core.object_labels import ObjectLabel, display
@@ -123,32 +122,12 @@ class ObjectQueryComponent:
         self.queries_answered = 0
         self._last_refresh = time.monotonic()
         self.queries_failed = 0
-        # The query service lives on its own node, spun by its own single-threaded executor: in the mapper's
-        # MultiThreadedExecutor each request waited for a wait set rebuilt over every subscription, timer and
-        # service of the node while keyframes arrived (p99 several seconds at 100 queries/s on 2 cores).
-        self.group = MutuallyExclusiveCallbackGroup()
-        name = f"{host.name}_query"
-        self._node = rclpy.create_node(
-            name,
-            namespace=host.namespace,
-            context=host.context,
-            # A node's own remap wins over the process's: `-r __node:=X` (what ros2 launch passes for name=)
-            # would otherwise rename this node to X too, and two nodes of one name answer at random.
-            cli_args=["--ros-args", "-r", f"__node:={name}"],
-            # Every parameter is the mapping node's: no second parameter server beside it.
-            start_parameter_services=False,
-        )
 
         def count_error() -> None:
             self.queries_failed += 1
 
         handler = guarded(TextQuery, "query", self._on_query, log=self.log.error, on_error=count_error)
-        self.service = self._node.create_service(
-            TextQuery, "query", handler, qos_profile=SERVICE_QOS, callback_group=self.group
-        )
-        self._service_executor = SingleThreadedExecutor(context=host.context)
-        self._service_executor.add_node(self._node)
-        self._service_thread = threading.Thread(target=self._spin_service, name="monovoc-query-service", daemon=True)
+        self.service = host.create_service(TextQuery, "query", handler, SERVICE_QOS)
         self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
         self.highlight = host.create_publisher(PointCloud2, "query/highlight", latched_qos())
         self.markers = host.create_publisher(MarkerArray, "query/markers", latched_qos())
@@ -180,13 +159,6 @@ class ObjectQueryComponent:
                 self._labelled = (mapper.gaussians, ids)  # highlights work before the first result
         self._thread.start()
         self._highlighter.start()
-        self._service_thread.start()
-
-    def _spin_service(self) -> None:
-        try:
-            self._service_executor.spin()
-        except (ExternalShutdownException, ShutdownException):
-            pass
 
     def _on_saved(self, directory: str, info: Any, mapper: Any) -> None:
         self.save(directory, snapshot=info.path.name, keyframes=info.keyframes, mapper=mapper)
@@ -220,12 +192,9 @@ class ObjectQueryComponent:
         self._stopping.set()
         self._wake.set()
         self._highlight_wake.set()
-        # The service executor first, then its node (the other order aborts: ROS_WHEELS.md).
-        self._service_executor.shutdown(timeout_sec=5.0)
-        for thread in (self._thread, self._highlighter, self._service_thread):
+        for thread in (self._thread, self._highlighter):
             if thread.is_alive():
                 thread.join(10.0)
-        self._node.destroy_node()
 
     def diagnostics(self) -> dict[str, Any]:
         """The object index's part of the node's /diagnostics status."""
