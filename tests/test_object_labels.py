@@ -15,7 +15,6 @@ from monovoc_ros.core.object_labels import (
     display,
     label_fields,
     resolve,
-    resolve_all,
 )
 from monovoc_ros.embed.attributes import best_class_name
 from monovoc_ros.objects.database import DB_NAME, load_object_index, save_object_index
@@ -33,7 +32,7 @@ def test_given_beats_segments_beats_known_labels():
     assert resolve(4, given, segments, known) == ObjectLabel("bed", GIVEN)  # a restored name keeps its source
     assert resolve(5, given, segments) == ObjectLabel("lamp", GIVEN)
     assert resolve(6, given, segments, known) is None
-    assert resolve_all([6, 1, 4], given, segments, known) == [None, ObjectLabel("sofa", GIVEN), known[4]]
+    assert [resolve(o, given, segments, known) for o in (6, 1, 4)] == [None, ObjectLabel("sofa", GIVEN), known[4]]
 
 
 def test_a_guess_is_marked_and_an_unlabelled_object_has_empty_fields():

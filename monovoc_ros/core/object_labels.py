@@ -87,27 +87,3 @@ def resolve(
     if name:
         return ObjectLabel(name, SEGMENTS)
     return (known or {}).get(object_id)
-
-
-def resolve_all(
-    object_ids: list[int],
-    given: Mapping[int, str],
-    segments: Mapping[int, str],
-    known: Mapping[int, ObjectLabel] | None = None,
-) -> list[ObjectLabel | None]:
-    """``resolve`` for each id, in order."""
-    return [resolve(int(oid), given, segments, known) for oid in object_ids]
-
-
-__all__ = [
-    "GIVEN",
-    "GUESS",
-    "SEGMENTS",
-    "SOURCES",
-    "ObjectLabel",
-    "display",
-    "label_fields",
-    "resolve",
-    "resolve_all",
-    "stored_source",
-]

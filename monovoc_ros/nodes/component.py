@@ -41,9 +41,6 @@ class MappingHost:
     """What the mapping node offers the components composed with it. Listeners run on the worker thread,
     in order with keyframes, map updates and services (monovoc_ros.nodes.worker)."""
 
-    name: str  # the mapping node's name, namespace and context: a component's own nodes live beside it
-    namespace: str
-    context: Any  # rclpy.context.Context
     logger: Any  # the mapping node's logger: one log for the node and its components
     clock: Any  # the mapping node's clock (ROS time, /clock with use_sim_time): stamps of what components publish
     # create_publisher(type, topic, qos): a publisher of the mapping node (`ros2 node info` lists it there)

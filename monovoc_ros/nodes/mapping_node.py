@@ -142,9 +142,6 @@ class MappingNode(Node):
         """What this node offers the components composed with it (monovoc_ros.nodes.component)."""
         p, worker = self.params, self.worker
         return MappingHost(
-            name=self.get_name(),
-            namespace=self.get_namespace(),
-            context=self.context,
             logger=self.get_logger(),
             clock=self.get_clock(),
             create_publisher=self.create_publisher,

@@ -21,7 +21,7 @@ import numpy as np
 
 import msg_adapters as ma
 from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
-from monovoc_ros.core.object_labels import ObjectLabel, display, label_fields, resolve_all
+from monovoc_ros.core.object_labels import ObjectLabel, display, label_fields, resolve
 from monovoc_ros.core.objects import ObjectSummary
 from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.qos import latched_qos
@@ -104,7 +104,8 @@ class SemanticOutputs:
     def _publish_objects(
         self, summaries: list[ObjectSummary], observations: np.ndarray, header: dict, segments: Mapping[int, str]
     ) -> int:
-        labels = resolve_all([s.id for s in summaries], self.labels, segments, self._known_labels())
+        known = self._known_labels()
+        labels = [resolve(s.id, self.labels, segments, known) for s in summaries]
         self.objects.publish(self._objects(summaries, observations, header, labels))
         self.markers.publish(
             ma.object_markers(
