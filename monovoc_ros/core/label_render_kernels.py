@@ -23,11 +23,11 @@ from monovoc_ros.core.raster.numba_kernels import (
     _alpha,
     _any_live,
     _blend,
-    _block_rows,
     _fetch_add,
     _footprint,
-    _pixel_span,
+    _pair_blocks,
     _reset_transmittance,
+    _row_start,
     _tile_pixels,
 )
 
@@ -68,10 +68,10 @@ def _label_tile(t, rows, tile_start, tile_list, gx, width, height, out_label, ou
                 s = used
                 used += 1
         acc = wt[s]
-        br0, br1 = _block_rows(rows, r, oy)
+        br0, br1, lo, hi = _pair_blocks(rows, r, ox, oy)
         for br in range(br0, br1 + 1):
-            k0, k1 = _pixel_span(rows, r, ox, oy, br)
-            for k in range(k0, k1):
+            first = _row_start(br)
+            for k in range(first + lo, first + hi):
                 w = _blend(T, k, _alpha(px[k], py[k], u, v, A, R, S, o))
                 acc[k] += w
         if (j - j0) % 32 == 31 and not _any_live(T):

@@ -2,8 +2,8 @@
 
 Layout and numeric choices, all for the compositing loop, which is nearly all of the time:
 - A tile's 256 pixels are stored as sixteen 4x4 blocks (block-major, row-major inside a block). A
-  Gaussian visits only the blocks under its alpha >= 1/255 ellipse, as one contiguous run of 16 to
-  64 pixels per block row, which LLVM turns into SIMD code.
+  Gaussian visits only the block rows and block columns its alpha >= 1/255 ellipse reaches, as one
+  contiguous run of 16 to 64 pixels per block row, which LLVM turns into SIMD code.
 - The pixel loop is float32 with unsigned indices (no negative-index wraparound code) and a
   polynomial exp built from an integer bit-cast (a libm call would stop vectorization); the
   per-pair sums are reductions that fast-math reassociation lets LLVM vectorize.
@@ -440,28 +440,32 @@ def _load_observations(t, gx, width, height, mask, scale, valid, has_valid, y0, 
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _block_rows(rows, r, oy):
-    """Block rows [a, b] of a tile whose top pixel row is oy that the culling ellipse reaches."""
-    v = np.float64(rows[r, ROW_V])
-    ey = np.float64(rows[r, ROW_EY]) + _CULL_PAD_PX
-    a = max(0, int(math.ceil((v - ey - oy - 3.0) * 0.25)))
-    b = min(_BLOCKS_PER_ROW - 1, int(math.floor((v + ey - oy) * 0.25)))
-    return a, b
+def _pair_blocks(rows, r, ox, oy):
+    """The blocks of a tile (top-left pixel ox, oy) that the culling ellipse reaches, as block rows
+    [br0, br1] (none when br1 < br0) times pixels [c0, c1) of each block row (from its first pixel).
 
-
-@njit(cache=True, nogil=True, inline="always")
-def _pixel_span(rows, r, ox, oy, br):
-    """Pixels [k0, k1) of block row br: the blocks of that row that the culling ellipse reaches."""
+    One column run for all the block rows, from the ellipse's x extent over their whole band: a run per
+    block row visits ~20% fewer pixels but computes band_extent (two sqrt, two divisions) per block row,
+    and accumulate_tiles took a third longer that way (bench: synthetic room, 140k). The extra pixels
+    lie outside the ellipse, where alpha is below ALPHA_MIN: they blend alpha 0, leaving T and every
+    sum exactly as they were."""
     u = np.float64(rows[r, ROW_U])
     v = np.float64(rows[r, ROW_V])
-    top = oy + br * 4
-    lo, hi = band_extent(rows, r, top - v, top + 3 - v)
+    ey = np.float64(rows[r, ROW_EY]) + _CULL_PAD_PX
+    br0 = max(0, int(math.ceil((v - ey - oy - 3.0) * 0.25)))
+    br1 = min(_BLOCKS_PER_ROW - 1, int(math.floor((v + ey - oy) * 0.25)))
+    lo, hi = band_extent(rows, r, oy + br0 * 4 - v, oy + br1 * 4 + 3 - v)
     a = max(0, int(math.ceil((u + lo - ox - 3.0) * 0.25)))
     b = min(_BLOCKS_PER_ROW - 1, int(math.floor((u + hi - ox) * 0.25)))
     if lo > hi or b < a:
-        return np.uint64(0), np.uint64(0)
-    first = br * _BLOCKS_PER_ROW * 16
-    return np.uint64(first + a * 16), np.uint64(first + b * 16 + 16)
+        return 0, -1, np.uint64(0), np.uint64(0)
+    return br0, br1, np.uint64(a * 16), np.uint64(b * 16 + 16)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_start(br):
+    """First pixel of block row br in the tile's block layout."""
+    return np.uint64(br * _BLOCKS_PER_ROW * 16)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -508,10 +512,10 @@ def _transmittance_pass(rows, tile_list, j0, j1, t, gx, px, py, T):
     for j in range(j0, j1):
         r = tile_list[j]
         u, v, A, R, S, o = _footprint(rows, r)
-        br0, br1 = _block_rows(rows, r, oy)
+        br0, br1, lo, hi = _pair_blocks(rows, r, ox, oy)
         for br in range(br0, br1 + 1):
-            k0, k1 = _pixel_span(rows, r, ox, oy, br)
-            for k in range(k0, k1):
+            first = _row_start(br)
+            for k in range(first + lo, first + hi):
                 _blend(T, k, _alpha(px[k], py[k], u, v, A, R, S, o))
         if (j - j0) % 32 == 31 and not _any_live(T):
             break
@@ -575,10 +579,10 @@ def _accumulate_tile(t, rows, tile_start, tile_list, tile_slot, gx, width, heigh
         acc_1 = _F0
         acc_2 = _F0
         acc_3 = _F0
-        br0, br1 = _block_rows(rows, r, oy)
+        br0, br1, lo, hi = _pair_blocks(rows, r, ox, oy)
         for br in range(br0, br1 + 1):
-            k0, k1 = _pixel_span(rows, r, ox, oy, br)
-            for k in range(k0, k1):
+            first = _row_start(br)
+            for k in range(first + lo, first + hi):
                 w = _blend(T, k, _alpha(px[k], py[k], u, v, A, R, S, o))
                 # w^power for power 1..4 by selects, which keep the loop vectorized (a pow call would not).
                 w2 = w * w
@@ -772,10 +776,10 @@ def _render_tile(t, rows, tile_start, tile_list, gx, width, height, bg, image, t
         r = tile_list[j]
         u, v, A, R, S, o = _footprint(rows, r)
         cr, cg, cb, z = rows[r, ROW_RED], rows[r, ROW_GREEN], rows[r, ROW_BLUE], rows[r, ROW_Z]
-        br0, br1 = _block_rows(rows, r, oy)
+        br0, br1, lo, hi = _pair_blocks(rows, r, ox, oy)
         for br in range(br0, br1 + 1):
-            k0, k1 = _pixel_span(rows, r, ox, oy, br)
-            for k in range(k0, k1):
+            first = _row_start(br)
+            for k in range(first + lo, first + hi):
                 w = _blend(T, k, _alpha(px[k], py[k], u, v, A, R, S, o))
                 c0[k] += w * cr
                 c1[k] += w * cg
