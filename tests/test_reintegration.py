@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
 from monovoc_ros import offline
-from monovoc_ros.core.keyframe_log import KeyframeLog, KeyframePoses
+from monovoc_ros.core.keyframe_log import KeyframeLog, KeyframePoses, decode_mask, encode_mask
 from monovoc_ros.core.map_store import load_snapshot, save_snapshot
 from monovoc_ros.core.segment_labels import SegmentLabel
 from monovoc_ros.core.session import MappingSession
@@ -63,12 +64,27 @@ def test_log_round_trip_keeps_masks_poses_segments(tmp_path):
         KeyframeLog.load(tmp_path / "bad.npz")
 
 
+def test_mask_codec_round_trips_reads_old_png_logs_and_refuses_bad_bytes():
+    mask = _keyframes(1)[0].mask  # (H, W, 3) uint8
+    h, w = mask.shape[:2]
+    blob = encode_mask(mask)
+    np.testing.assert_array_equal(decode_mask(blob, h, w), mask)
+    assert len(blob) < mask.nbytes / 20
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(mask[:, :, ::-1]))  # how logs were saved before zstd
+    assert ok
+    np.testing.assert_array_equal(decode_mask(png.tobytes(), h, w), mask)
+    assert decode_mask(blob, h + 1, w) is None  # not a mask of these intrinsics
+    assert decode_mask(png.tobytes(), h, w + 1) is None
+    assert decode_mask(blob[: len(blob) // 2], h, w) is None
+    assert decode_mask(b"not a mask", h, w) is None
+
+
 def test_log_is_bounded_oldest_first():
     kfs = _keyframes(4)
     log = KeyframeLog()
-    log.add(kfs[0])
-    one = log.nbytes
-    small = KeyframeLog(max_bytes=int(2.5 * one))
+    for kf in kfs:
+        log.add(kf)
+    small = KeyframeLog(max_bytes=log.entries[2].nbytes + log.entries[3].nbytes)  # room for the last two
     for kf in kfs:
         small.add(kf)
     assert len(small) == 2 and small.dropped == 2 and not small.complete
@@ -207,7 +223,7 @@ def test_a_corrupt_logged_mask_is_refused_not_fatal():
     scene, kfs = small_scene(), _keyframes(3)
     session = _session(scene.gaussians, kfs)
     log = session.mapper.keyframe_log
-    log.entries[1] = replace(log.entries[1], mask_png=b"not a png")
+    log.entries[1] = replace(log.entries[1], mask_blob=b"not a mask")
     session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, _shifted(kf).cam_to_world) for kf in kfs)))
     while session.reintegration_step():
         pass

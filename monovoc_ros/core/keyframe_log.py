@@ -1,8 +1,8 @@
 """The keyframe log: what each integrated keyframe's evidence came from, kept to re-integrate it
 (METHOD section 10: re-integration against a corrected map, as BundleFusion and OVO-SLAM do).
 
-Per keyframe: stamp, pose, intrinsics, the mask as given (lossless PNG; per-frame mask ids keep the
-segmenter's own colors, so re-integration associates them again) and its segments. RGB is not kept:
+Per keyframe: stamp, pose, intrinsics, the mask as given (its raw RGB bytes, zstd-compressed; per-frame
+mask ids keep the segmenter's own colors, so re-integration associates them again) and its segments. RGB is not kept:
 the object views keep the crops they need. The log is bounded by `max_bytes`: beyond it the oldest
 entries are dropped and the log is no longer complete (core.session then does not re-integrate: a
 rebuild would lose the dropped keyframes' evidence). It is saved in the snapshot (`keyframe_log.npz`)
@@ -19,6 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import zstandard
 
 from monovoc_ros.core.camera import Intrinsics, validate_pose
 from monovoc_ros.core.keyframe import Keyframe
@@ -26,6 +27,11 @@ from monovoc_ros.core.segment_labels import segments_from_entries, segments_to_e
 
 FORMAT = "monovoc_keyframe_log"
 DEFAULT_MAX_BYTES = 256 * 1024 * 1024
+# Flat masks: zstd level 1 of the raw bytes is half the size of a fast PNG, and decodes 20x and encodes
+# 30x faster (616x344: 4.2 KB, 0.05 ms / 0.13 ms against 7.9 KB, 1.0 ms / 4.3 ms); decoding is on
+# re-integration's path for every keyframe, encoding on the live one.
+_ZSTD_LEVEL = 1
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 @dataclass(frozen=True)
@@ -41,27 +47,37 @@ class LoggedKeyframe:
     stamp_ns: int
     cam_to_world: np.ndarray  # (4, 4) float64, corrected when the SLAM corrected it
     intrinsics: Intrinsics
-    mask_png: bytes
+    mask_blob: bytes  # encode_mask's bytes
     segments: tuple | None = None
 
     @property
     def nbytes(self) -> int:
-        return len(self.mask_png) + 16 * 8 + 64 + 48 * len(self.segments or ())
+        return len(self.mask_blob) + 16 * 8 + 64 + 48 * len(self.segments or ())
 
     def keyframe(self) -> Keyframe:
-        bgr = cv2.imdecode(np.frombuffer(self.mask_png, np.uint8), cv2.IMREAD_COLOR)
-        if bgr is None:
+        mask = decode_mask(self.mask_blob, self.intrinsics.height, self.intrinsics.width)
+        if mask is None:
             raise ValueError(f"logged keyframe {self.stamp_ns}: its mask does not decode")
-        mask = np.ascontiguousarray(bgr[:, :, ::-1])
         return Keyframe(self.index, self.stamp_ns, self.cam_to_world.copy(), self.intrinsics, mask, None, self.segments)
 
 
 def encode_mask(mask: np.ndarray) -> bytes:
-    """Lossless PNG of an (H, W, 3) uint8 RGB mask (fast setting: flat masks compress well anyway)."""
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(mask[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise ValueError("mask could not be PNG-encoded")
-    return buf.tobytes()
+    """Lossless zstd frame of an (H, W, 3) uint8 RGB mask's bytes (the shape is the intrinsics')."""
+    return zstandard.ZstdCompressor(level=_ZSTD_LEVEL).compress(np.ascontiguousarray(mask, np.uint8).tobytes())
+
+
+def decode_mask(blob: bytes, height: int, width: int) -> np.ndarray | None:
+    """The (H, W, 3) uint8 RGB mask of `encode_mask` (or of a PNG, as logs saved before zstd hold them);
+    None when the bytes are neither, or not a mask of that size."""
+    if blob[:8] == _PNG_SIGNATURE:
+        bgr = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_COLOR)
+        return None if bgr is None or bgr.shape != (height, width, 3) else np.ascontiguousarray(bgr[:, :, ::-1])
+    size = height * width * 3
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(blob, max_output_size=size)
+    except zstandard.ZstdError:
+        return None
+    return np.frombuffer(raw, np.uint8).reshape(height, width, 3).copy() if len(raw) == size else None
 
 
 class KeyframeLog:
@@ -134,8 +150,8 @@ class KeyframeLog:
             "index": np.array([e.index for e in self.entries], np.int64),
             "poses": np.array([e.cam_to_world for e in self.entries], np.float64).reshape(-1, 4, 4),
             "intrinsics": np.array(json.dumps([e.intrinsics.to_dict() for e in self.entries])),
-            "mask_sizes": np.array([len(e.mask_png) for e in self.entries], np.int64),
-            "masks": np.frombuffer(b"".join(e.mask_png for e in self.entries), np.uint8),
+            "mask_sizes": np.array([len(e.mask_blob) for e in self.entries], np.int64),
+            "masks": np.frombuffer(b"".join(e.mask_blob for e in self.entries), np.uint8),
             "segments": np.array(
                 json.dumps([None if e.segments is None else segments_to_entries(e.segments) for e in self.entries])
             ),

@@ -365,8 +365,12 @@ class SemanticMapper:
         objects = np.append(labelled.objects, np.uint32(0))[votes.labels]  # label -1 -> 0, an unused entry
         # Void votes (void_policy include) name no object: they count against every object's margin.
         void = named & (objects == VOID_ID)
-        pooled = votes.other + np.where(void, votes.weights, 0.0).sum(axis=1)
-        weights = np.where(named & ~void, votes.weights, 0.0)
+        if void.any():
+            pooled = votes.other + np.where(void, votes.weights, 0.0).sum(axis=1)
+            named &= ~void
+        else:  # the (V, E) row sum is a tenth of the re-integration budget and adds zeros here
+            pooled = votes.other
+        weights = np.where(named, votes.weights, 0.0)
         self.state.add(votes.rows, objects, weights, pooled, keyframe.stamp_ns)
         self.palette_builder.absorb(own)
         if self._labels is not None:
