@@ -43,6 +43,13 @@ def test_radix_depth_sort_is_a_stable_argsort():
     np.testing.assert_array_equal(got, idx[np.argsort(depth[idx], kind="stable")])
 
 
+def test_ranks_by_index_is_the_argsort_of_the_depth_order():
+    rng = np.random.default_rng(1)
+    for n, v in ((1000, 0), (1000, 1), (5000, 3000)):
+        order = rng.choice(n, v, replace=False).astype(np.int32)
+        np.testing.assert_array_equal(nk.ranks_by_index(order, n), np.argsort(order))
+
+
 def test_tile_lists_are_depth_ordered_and_cull_no_reachable_tile():
     """Every tile holding a pixel with alpha >= 1/255 (float64) keeps the Gaussian; lists stay front to back."""
     for seed, kind in ((0, "mixed"), (3, "needles")):

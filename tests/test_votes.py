@@ -84,6 +84,7 @@ def test_votes_are_exact_for_one_object_per_gaussian():
     total[ev.rows] = ev.weights[:, 0]
     np.testing.assert_allclose(total, weights.sum(axis=0), rtol=1e-4, atol=1e-6)
     assert (ev.labels[:, 1:] == -1).all() and not ev.other.any()
+    assert np.all(np.diff(ev.rows) > 0)  # map order: merge_slots walks the state in memory order
 
 
 def test_bad_labels_raise():

@@ -60,7 +60,7 @@ class Evidence:
 class VoteEvidence:
     """One keyframe's votes, for the Gaussians it sees (vote_tables has the exact definition)."""
 
-    rows: np.ndarray  # (V,) int64 map index of each visible Gaussian
+    rows: np.ndarray  # (V,) int64 map index of each visible Gaussian (ascending from the numba kernels)
     labels: np.ndarray  # (V, E) int32 keyframe label of each kept entry, -1 where unused
     weights: np.ndarray  # (V, E) float64 sum_p w_ip^k [label_p == label], heaviest first
     other: np.ndarray  # (V,) float64 votes for labels not kept

@@ -191,9 +191,12 @@ def accumulate_votes(
         out_labels = np.empty((nv, slots), np.int32)
         out_weights = np.empty((nv, slots))
         out_other = np.empty(nv)
-        nk.reduce_votes(pair_acc, pair_tile, tile_labels, b.gauss_start, b.order, out_labels, out_weights, out_other,
+        # Written in map order: merging them into the per-Gaussian state then walks it in memory order,
+        # which took a third of the time of depth order's scattered rows (vote_kernels.merge_slots).
+        ranks = nk.ranks_by_index(b.order, n)
+        nk.reduce_votes(pair_acc, pair_tile, tile_labels, b.gauss_start, ranks, out_labels, out_weights, out_other,
                         workers)  # fmt: skip
-        return b.order.astype(np.int64), out_labels, out_weights, out_other, nv
+        return b.order[ranks].astype(np.int64), out_labels, out_weights, out_other, nv
 
 
 def render(
