@@ -36,6 +36,7 @@ from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup,
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
 import msg_adapters as ma
 from monovoc_ros.contract import (
@@ -64,6 +65,7 @@ from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, 
 NODE_NAME = "semantic_mapper"
 # One per callback group (4 or 5 inputs, map, diagnostics) plus services, which may block waiting for the worker.
 EXECUTOR_THREADS = 8
+STOP_POLL_S = 0.1  # how soon a stop signal is noticed (s)
 
 
 def _message_types(params: NodeParams) -> dict[str, type]:
@@ -451,17 +453,18 @@ def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Com
     # keyframe and per query; with the default 5 ms switch interval each handoff could wait up to 5 ms
     # behind another thread's Python code (the tails of query and keyframe-to-cloud latency).
     sys.setswitchinterval(0.001)
-    _StopSignals()
+    stop = _StopSignals()
     try:
-        return _run(args, compose)
+        return _run(args, compose, stop)
     finally:
         # Stopped: the process only exits now, and a late signal must not turn that into exit code -2.
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, signal.SIG_IGN)
 
 
-def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component]] | None) -> int:
-    rclpy.init(args=args)
+def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component]] | None, stop: _StopSignals) -> int:
+    # rclpy's own handlers would shut the context down under the final snapshot's feet: ours only ask to stop.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = MappingNode()
@@ -480,8 +483,10 @@ def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component
         component.start()
     node.start()
     try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
+        # spin() in slices: a signal is only noticed between waits, and never lands inside the executor.
+        while not stop.requested.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=STOP_POLL_S)
+    except ExternalShutdownException:
         pass
     finally:
         # Order matters (ROS_WHEELS.md): worker (final snapshot), components, executor, then node and context.
@@ -495,20 +500,21 @@ def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component
 
 
 class _StopSignals:
-    """SIGINT / SIGTERM handler, installed before rclpy.init (rclpy's own handler shuts the context down,
-    then calls this one): the first signal stops the node, later ones are only logged. A terminal's Ctrl-C
-    reaches both the node and `ros2 launch`, which forwards one more; raised again during shutdown, that
-    KeyboardInterrupt cut the final snapshot short."""
+    """SIGINT / SIGTERM handler: the first signal asks the node to stop, later ones are only logged. A
+    terminal's Ctrl-C reaches both the node and `ros2 launch`, which forwards one more. Raising
+    KeyboardInterrupt instead (as rclpy's default does) lands wherever the main thread happens to be: in
+    the worker's join it cut the final snapshot short, inside the executor it left half-built rclpy Tasks
+    whose __del__ printed a traceback."""
 
     def __init__(self) -> None:
-        self.received = 0
+        self.requested = threading.Event()
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, self)
 
     def __call__(self, signum: int, _frame: Any) -> None:
-        self.received += 1
-        if self.received == 1:
-            raise KeyboardInterrupt
+        if not self.requested.is_set():
+            self.requested.set()
+            return
         print(f"{NODE_NAME}: {signal.Signals(signum).name} again: already shutting down", file=sys.stderr, flush=True)
 
 
