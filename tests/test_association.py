@@ -9,6 +9,7 @@ import pytest
 from monovoc_ros.core.association import (
     AssociationConfig,
     Associator,
+    SegmentNames,
     compact_index_reference,
     display_color,
     overlap_counts,
@@ -154,6 +155,52 @@ def test_objects_covered_together_are_merged_only_when_repeatedly():
         b.associate(seg, 6, seg.astype(np.int32), ids)
     for _ in range(3):
         assert b.associate(together, 5, seg.astype(np.int32), ids).merges == []
+
+
+def test_a_named_segment_never_takes_an_object_named_otherwise():
+    """office_0 under fusion noise: a fused segment once voted the desk organizer's Gaussians into the tissue
+    box; seen again, the organizer's segment took the tissue box's id and the tissue box was born anew."""
+    a = Associator()
+    seg = blocks()
+    ids = a.associate(seg, 6, np.full(seg.shape, -1, np.int32), np.zeros(0, np.uint32)).segment_objects
+    tissue, organizer = int(ids[0]), int(ids[1])
+    # The map renders the tissue box over its quarter of block 0 and over 3/4 of block 1 (the organizer).
+    rendered = np.full(seg.shape, -1, np.int32)
+    rendered[0:10, 0:10] = 0
+    rendered[seg == 1] = 0
+    rendered[10:20, 30:40] = 1
+    frame = np.full(seg.shape, -1)
+    frame[0:10, 0:10] = 0  # the tissue box
+    frame[seg == 1] = 1  # the organizer
+    two = np.array([tissue, organizer], np.uint32)
+    unnamed = Associator.from_json(a.to_json()).associate(frame, 2, rendered, two)
+    assert unnamed.segment_objects[1] == tissue  # by overlap alone the organizer's segment is the tissue box
+    names = SegmentNames(
+        ("tissue-paper", "desk-organizer"), {tissue: {"tissue-paper": 3.0}, organizer: {"desk-organizer": 2.0}}
+    )
+    named = a.associate(frame, 2, rendered, two, names=names)
+    assert named.segment_objects.tolist() == [tissue, organizer] and named.matched == 2 and not named.split
+    # An object named by less than name_min_score is not named yet: overlap decides.
+    young = SegmentNames(names.segments, {tissue: {"tissue-paper": 1.0}, organizer: {"desk-organizer": 1.0}})
+    assert (
+        Associator.from_json(a.to_json()).associate(frame, 2, rendered, two, names=young).segment_objects[1] == tissue
+    )
+    # A name among the object's minor ones (>= name_share of its names) does not conflict.
+    mixed = SegmentNames(names.segments, {tissue: {"tissue-paper": 3.0, "desk-organizer": 1.0}, organizer: {}})
+    assert mixed.conflicts(two, a.config).tolist() == [[False, False], [False, False]]
+    assert names.conflicts(two, a.config).tolist() == [[False, True], [True, False]]
+
+
+def test_objects_named_differently_are_never_merged():
+    seg = blocks()
+    together = np.unique(np.where(seg == 1, 0, seg), return_inverse=True)[1].reshape(seg.shape)
+    for first, second, merged in (("chair", "chair", True), ("chair", "table", False)):
+        a = Associator(AssociationConfig(merge_min_keyframes=3))
+        ids = a.associate(seg, 6, np.full(seg.shape, -1, np.int32), np.zeros(0, np.uint32)).segment_objects
+        objects = {int(ids[0]): {first: 5.0}, int(ids[1]): {second: 5.0}}
+        names = SegmentNames((None,) * 5, objects)  # an unnamed segment covers both
+        merges = [a.associate(together, 5, seg.astype(np.int32), ids, names=names).merges for _ in range(3)]
+        assert (merges[-1] == [(int(ids[0]), int(ids[1]))]) is merged, (first, second, merges)
 
 
 def test_associator_round_trips_through_json():

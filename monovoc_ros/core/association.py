@@ -34,6 +34,13 @@ that both a segment and an object claim. Then:
    pixels add nothing. Given to one object, the fused segment's pixels were voted into the other in
    every frame that fused them. A split segment's class name (segment labels) is dropped: it names one
    of the objects, not which.
+7. Where the segments carry class names (segment labels, core.segment_labels), an object whose names add
+   up to `name_min_score` is named, and a segment whose name holds less than `name_share` of an object's
+   names is another object: its pixels where the map renders that object count as unclaimed (as void) in
+   stages 1-6, so it is never matched to it, and two objects named differently are never merged (stage 5).
+   Without this, an object whose Gaussians a fused segment once voted into its neighbour was taken over by
+   that neighbour where the neighbour's segment covered it best, and the object itself was born again in
+   every keyframe (office_0: the desk organizer took the tissue box's id).
 
 The result of a keyframe is its mask relabeled with object colors (unassigned pixels void), which
 the mapper integrates through the ordinary vote path, so everything downstream (palette, objects,
@@ -45,7 +52,7 @@ from __future__ import annotations
 import json
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -72,6 +79,8 @@ class AssociationConfig:
     # pixel to go to that object.
     split_confidence: float = 0.5
     split_share: float = 0.2  # stage 6: least share of the segment's claimed pixels each covered object holds
+    name_min_score: float = 2.0  # stage 7: summed segment-name score from which an object is named
+    name_share: float = 0.2  # stage 7: least share of a named object's names a segment's name must hold
 
     def __post_init__(self) -> None:
         names = (
@@ -82,6 +91,7 @@ class AssociationConfig:
             "merge_containment",
             "split_confidence",
             "split_share",
+            "name_share",
         )
         for name in names:
             value = float(getattr(self, name))
@@ -89,6 +99,8 @@ class AssociationConfig:
                 raise ValueError(f"association {name} must be in (0, 1], got {value!r}")
         if int(self.render_scale) < 1:
             raise ValueError(f"association render_scale must be >= 1, got {self.render_scale!r}")
+        if not float(self.name_min_score) > 0.0:
+            raise ValueError(f"association name_min_score must be > 0, got {self.name_min_score!r}")
         if int(self.merge_min_keyframes) < 1:
             raise ValueError(f"association merge_min_keyframes must be >= 1, got {self.merge_min_keyframes!r}")
 
@@ -124,6 +136,40 @@ class Association:
     seconds: float = 0.0  # the whole association of the keyframe (associate_keyframe), or the matching alone
     segment_seconds: float = 0.0  # associate_keyframe: the mask's segments (pixel labels)
     render_seconds: float = 0.0  # associate_keyframe: the map's labels rendered into the view
+
+
+@dataclass(frozen=True)
+class SegmentNames:
+    """Stage 7: the class names of one keyframe's segments and those the map's objects were given."""
+
+    segments: tuple[str | None, ...]  # (S,) per segment index, None = unnamed
+    objects: Mapping[int, Mapping[str, float]]  # object id -> class name -> summed score (LabelHistogram.scores)
+
+    def named(self, object_id: int, config: AssociationConfig) -> Mapping[str, float] | None:
+        """The object's names when they add up to name_min_score, else None."""
+        table = self.objects.get(int(object_id))
+        return table if table and sum(table.values()) >= config.name_min_score else None
+
+    def conflicts(self, object_ids: np.ndarray, config: AssociationConfig) -> np.ndarray:
+        """(S, R) bool: segment s is named and object `object_ids[r]` is named otherwise (never the same)."""
+        out = np.zeros((len(self.segments), len(object_ids)), bool)
+        for r, oid in enumerate(object_ids.tolist()):
+            table = self.named(oid, config)
+            if table is None:
+                continue
+            least = config.name_share * sum(table.values())
+            for s, name in enumerate(self.segments):
+                out[s, r] = name is not None and table.get(name, 0.0) < least
+        return out
+
+    def differ(self, a: int, b: int, config: AssociationConfig) -> bool:
+        """Both objects named, with different leading names."""
+        ta, tb = self.named(a, config), self.named(b, config)
+        return ta is not None and tb is not None and _lead(ta) != _lead(tb)
+
+
+def _lead(table: Mapping[str, float]) -> str:
+    return min(table.items(), key=lambda kv: (-kv[1], kv[0]))[0]
 
 
 def overlap_counts(segments: np.ndarray, n_segments: int, rendered: np.ndarray, n_rendered: int) -> np.ndarray:
@@ -190,10 +236,12 @@ class Associator:
         rendered: np.ndarray,
         rendered_ids: np.ndarray,
         runner_up: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+        names: SegmentNames | None = None,
     ):
         """Object id per segment. `segments` (H, W) int32 segment index (-1 = none), `rendered` (H, W)
         int32 index into `rendered_ids` ((R,) uint32 object ids) of the leading object (-1 = void);
-        `runner_up()`: the same for the runner-up objects (stage 3), called at most once, when needed.
+        `runner_up()`: the same for the runner-up objects (stage 3), called at most once, when needed;
+        `names`: the segments' class names and the objects' (stage 7).
         Updates the pair statistics and returns an Association whose `merges` the caller must apply
         to the evidence (merged-away ids never come back)."""
         start = time.perf_counter()
@@ -206,6 +254,8 @@ class Associator:
             C = overlap_counts(segments, n_segments, rendered, n_rendered)
         else:
             C = np.zeros((n_segments, 0), np.int64)
+        if names is not None:  # the segment's name says the object rendered there is not what it shows
+            C = np.where(names.conflicts(rendered_ids, cfg), 0, C)
         seg_claimed = C.sum(axis=1)  # (S,) pixels of s where some object leads
         obj_claimed = C.sum(axis=0)  # (R,) pixels of o inside some segment
         report.rendered_objects = int((obj_claimed > 0).sum())
@@ -235,7 +285,10 @@ class Associator:
             if runner_up is not None and seg_claimed[s] > 0:
                 if second is None:
                     labels2, ids2 = runner_up()
-                    second = (overlap_counts(segments, n_segments, labels2, len(ids2)), ids2)
+                    C2 = overlap_counts(segments, n_segments, labels2, len(ids2))
+                    if names is not None:
+                        C2 = np.where(names.conflicts(ids2, cfg), 0, C2)
+                    second = (C2, ids2)
                 C2, ids2 = second
                 n = int(np.argmax(C2[s])) if C2.shape[1] else -1
                 if n >= 0 and C2[s, n] >= cfg.part_share * seg_claimed[s] and ids2[n] not in out:
@@ -245,7 +298,7 @@ class Associator:
             out[s] = self.new_object()
             report.new += 1
         if n_rendered and n_segments:
-            report.merges = self._pair_statistics(C, obj_claimed, matched_obj, rendered_ids, min_pixels)
+            report.merges = self._pair_statistics(C, obj_claimed, matched_obj, rendered_ids, min_pixels, names)
             for keep, drop in report.merges:
                 out[out == drop] = keep
             report.split = self._fused_segments(C, obj_claimed, rendered_ids, min_pixels)
@@ -265,7 +318,7 @@ class Associator:
                 split[int(s)] = ids
         return split
 
-    def _pair_statistics(self, C, obj_claimed, matched_obj, rendered_ids, min_pixels) -> list[tuple[int, int]]:
+    def _pair_statistics(self, C, obj_claimed, matched_obj, rendered_ids, min_pixels, names) -> list[tuple[int, int]]:
         cfg = self.config
         visible = obj_claimed >= min_pixels
         inside = (C >= cfg.merge_containment * obj_claimed[None, :]) & visible[None, :]  # (S, R)
@@ -283,6 +336,8 @@ class Associator:
             keep, drop = pair
             if n >= cfg.merge_min_keyframes and n > self.apart.get(pair, 0):
                 if keep in self.merged_into or drop in self.merged_into:
+                    continue
+                if names is not None and names.differ(keep, drop, cfg):
                     continue
                 merges.append((keep, drop))
                 self._forget(drop, keep)
@@ -393,11 +448,14 @@ def associate_keyframe(
     metric: str = "cmc",
     min_snap_margin: float = 0.2,
     runner_up_ids: Callable[[], np.ndarray] | None = None,
+    object_names: Mapping[int, Mapping[str, float]] | None = None,
 ):
     """One keyframe of per-frame segments: its segments (the mask's own palette, core.pixel_labels),
     the map's labels `gaussian_ids` (N,) rendered into its view, the association, and the keyframe
     with its mask relabeled in object colors. `runner_up_ids()`: (N,) each Gaussian's runner-up object
-    (VoteState.runner_up), rendered only when the association needs it. Returns (keyframe, Association)."""
+    (VoteState.runner_up), rendered only when the association needs it. `object_names`: object id -> class
+    name -> summed score (LabelHistogram.scores), for the keyframe's named segments (stage 7). Returns
+    (keyframe, Association)."""
     from dataclasses import replace
 
     from monovoc_ros.core.evaluation import resize_nearest
@@ -425,8 +483,12 @@ def associate_keyframe(
             return np.full(segments_small.shape, -1, np.int32), ids2
         return render_label_weights(gaussians, compact2, small, keyframe.cam_to_world).labels, ids2
 
+    names = None
+    if keyframe.segments and object_names is not None:
+        by_color = {s.id: s.class_name for s in keyframe.segments}
+        names = SegmentNames(tuple(by_color.get(c) for c in labelled.objects.tolist()), object_names)
     report = associator.associate(
-        segments_small, len(labelled.objects), rendered, ids, runner_up if runner_up_ids is not None else None
+        segments_small, len(labelled.objects), rendered, ids, runner_up if runner_up_ids is not None else None, names
     )
     if report.split and scale > 1:  # split segments follow the rendered labels at the mask's resolution
         h, w = labelled.labels.shape

@@ -301,6 +301,7 @@ class SemanticMapper:
         keyframe, association = associate_keyframe(
             self.associator, self.gaussians, ids, keyframe,
             metric=self.config.metric, min_snap_margin=self.config.min_snap_margin, runner_up_ids=self.state.runner_up,
+            object_names=self.segment_labels.scores,
         )  # fmt: skip
         for keep, drop in association.merges:
             rows = self.state.merge_objects(keep, drop)
