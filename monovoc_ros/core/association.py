@@ -58,6 +58,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, pack_rgb, unpack_rgb
+from monovoc_ros.core.segment_labels import SegmentLabel, leading_name
 
 MASK_ID_MODES = ("global", "per_frame")
 # Colors never issued to a new object: void white, black and the grey unobserved points are drawn in.
@@ -165,11 +166,7 @@ class SegmentNames:
     def differ(self, a: int, b: int, config: AssociationConfig) -> bool:
         """Both objects named, with different leading names."""
         ta, tb = self.named(a, config), self.named(b, config)
-        return ta is not None and tb is not None and _lead(ta) != _lead(tb)
-
-
-def _lead(table: Mapping[str, float]) -> str:
-    return min(table.items(), key=lambda kv: (-kv[1], kv[0]))[0]
+        return ta is not None and tb is not None and leading_name(ta) != leading_name(tb)
 
 
 def overlap_counts(segments: np.ndarray, n_segments: int, rendered: np.ndarray, n_rendered: int) -> np.ndarray:
@@ -496,8 +493,6 @@ def associate_keyframe(
     mask = associator.relabel_mask(labelled.labels, report, ids, rendered, weights)
     segments = keyframe.segments
     if segments:  # the segment labels follow their segments to the objects; a split segment's name is dropped
-        from monovoc_ros.core.segment_labels import SegmentLabel
-
         objects = np.where(np.isin(np.arange(len(labelled.objects)), list(report.split)), UNOBSERVED_ID,
                            report.segment_objects)  # fmt: skip
         table = dict(zip(labelled.objects.tolist(), objects.tolist(), strict=True))

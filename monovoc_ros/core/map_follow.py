@@ -47,9 +47,16 @@ class FollowResult:
     refusal: str = ""  # why the update must not be applied; "" when it may
 
 
-def nearest_within(points: np.ndarray, queries: np.ndarray, radius: np.ndarray, cell: float = 0.03) -> np.ndarray:
+# Grid cell of nearest_within (m): 0.045-0.09 took 150 ms for 1M queries on office_0 tiled, 0.03 (the base
+# radius) 200 ms and 0.015 390 ms: larger cells share each cell's lookups among more queries.
+GRID_CELL_M = 0.05
+
+
+def nearest_within(
+    points: np.ndarray, queries: np.ndarray, radius: np.ndarray, cell: float = GRID_CELL_M
+) -> np.ndarray:
     """(Q,) int64: per query (Q, 3) the row of its nearest point (N, 3) within its own radius (Q,), or -1
-    (numba grid search; `cell` metres about the typical radius)."""
+    (numba grid search in cubes of `cell` metres)."""
     return grid_nearest(points, queries, radius, cell)
 
 
@@ -67,7 +74,10 @@ def nearest_within_reference(points: np.ndarray, queries: np.ndarray, radius: np
 
 def transfer_radius(new: GaussianMap, rows: np.ndarray, config: FollowConfig) -> np.ndarray:
     """(len(rows),) float64 transfer radius of the new Gaussians `rows`."""
-    largest = new.scales.max(axis=1)[rows].astype(np.float64) if len(rows) else np.zeros(0)
+    if not len(rows):
+        return np.zeros(0)
+    s = new.scales[rows]
+    largest = np.maximum(np.maximum(s[:, 0], s[:, 1]), s[:, 2]).astype(np.float64)  # 5x numpy's max(axis=1)
     return np.minimum(config.radius + config.scale_factor * largest, config.max_radius)
 
 
@@ -102,9 +112,7 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
     if new_ok is not None:
         rest = rest[np.isin(rest, new_ok)]
     if rest.size and len(old_means):
-        found = nearest_within(
-            motion.apply(old_means), new.means[rest], transfer_radius(new, rest, config), config.radius
-        )
+        found = nearest_within(motion.apply(old_means), new.means[rest], transfer_radius(new, rest, config))
         if old_ok is not None:
             found = np.where(found >= 0, old_ok[np.maximum(found, 0)], -1)
         sources[rest] = found
@@ -113,8 +121,9 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
 
 def _finite_rows(means: np.ndarray) -> np.ndarray | None:
     """Rows of finite means, or None when every row is finite (the common case)."""
-    finite = np.isfinite(means).all(axis=1)
-    return None if finite.all() else np.flatnonzero(finite)
+    if np.isfinite(means).all():  # one flat pass: a per-row reduction over 1M rows takes 20x longer
+        return None
+    return np.flatnonzero(np.isfinite(means).all(axis=1))
 
 
 def _refusal(motion: MapMotion, old_means: np.ndarray, config: FollowConfig) -> str:

@@ -175,14 +175,15 @@ class _Targets:
             if len(new) > config.target_sample:  # every k-th after a random start: a permutation costs more
                 step = len(new) / config.target_sample
                 rows = (rng.random() * step + step * np.arange(config.target_sample)).astype(np.int64)
-            self.points = new[rows]
-            self.tree = cKDTree(self.points)
+            self.points = np.asarray(new[rows], np.float64)
+            # Unbalanced, uncompacted: built in half the time; ~12k queries per iteration barely notice.
+            self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
             self._frames = None if frames is None else (frames[0][rows], frames[1][rows])
             if len(rows) < len(new):
                 sampled = np.zeros(len(new), bool)
                 sampled[rows] = True
                 others = rng.choice(len(new), config.rigid_sample)
-                self._others = new[others[~sampled[others]]]
+                self._others = np.asarray(new[others[~sampled[others]]], np.float64)
 
     @cached_property
     def normals(self) -> np.ndarray | None:
@@ -250,19 +251,18 @@ def estimate_motion(
     along the surface normals of flat Gaussians (point-to-plane: sliding along a wall is not evidence).
     """
     config = config or MotionConfig()
-    old = np.asarray(old, np.float64)
-    new = np.asarray(new, np.float64)
     rng = np.random.default_rng(config.seed)
     known = old_rows is not None and new_rows is not None and len(old_rows) >= 3
+    # Rows are sampled before they are gathered: gathering every partner at 1M Gaussians took 64 ms.
     if known:
-        src_all, dst_all = old[old_rows], new[new_rows]
-        pick = rng.choice(len(src_all), min(config.sample, len(src_all)), replace=False)
-        src, targets = src_all[pick], _Targets(new, dst_all[pick], config)
+        pick = rng.choice(len(old_rows), min(config.sample, len(old_rows)), replace=False)
+        src = np.asarray(old[old_rows[pick]], np.float64)
+        targets = _Targets(new, np.asarray(new[new_rows[pick]], np.float64), config)
         by = "ids"
     else:
         if len(old) < 3 or len(new) < 3:
             return MapMotion(converged=False, inliers=0.0)
-        src = old[rng.choice(len(old), min(config.sample, len(old)), replace=False)]
+        src = np.asarray(old[rng.choice(len(old), min(config.sample, len(old)), replace=False)], np.float64)
         targets = _Targets(new, None, config, new_frames)
         by = "registration"
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,6 +73,11 @@ def write_segments(path: str | Path, segments: tuple[SegmentLabel, ...]) -> None
     Path(path).write_text(json.dumps(segments_to_entries(segments, digits=6)))
 
 
+def leading_name(table: Mapping[str, float]) -> str:
+    """The class of highest summed score in an object's non-empty table (ties: alphabetical)."""
+    return min(table.items(), key=lambda kv: (-kv[1], kv[0]))[0]
+
+
 class LabelHistogram:
     """Per object, the summed scores of the class names its segments were given."""
 
@@ -107,8 +113,8 @@ class LabelHistogram:
         return out
 
     def leading(self) -> dict[int, str]:
-        """Object id -> its leading class (highest summed score; ties: alphabetical)."""
-        return {oid: min(t.items(), key=lambda kv: (-kv[1], kv[0]))[0] for oid, t in self.scores.items() if t}
+        """Object id -> its leading class."""
+        return {oid: leading_name(t) for oid, t in self.scores.items() if t}
 
     def to_json(self) -> str:
         return json.dumps({str(k): v for k, v in sorted(self.scores.items())})
