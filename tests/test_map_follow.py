@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.map_follow import FollowConfig, follow_map, nearest_within
+from monovoc_ros.core.map_follow import GRID_CELL_M, FollowConfig, follow_map, nearest_within
 from monovoc_ros.core.map_motion import MapMotion, estimate_motion, kabsch
 from monovoc_ros.core.mapping import MapMotionError, SemanticMapper
 from monovoc_ros.core.session import MappingSession
@@ -164,20 +164,21 @@ def test_kernels_equal_their_plain_twins():
     pts = rng.uniform(-1, 1, (20000, 3))
     queries = np.concatenate([pts[:3000] + rng.normal(0, 0.01, (3000, 3)), rng.uniform(-1.5, 1.5, (3000, 3))])
     radius = rng.uniform(0.0, 0.12, len(queries))
-    fast = nearest_within(pts, queries, radius, cell=0.03)
     plain = nearest_within_reference(pts, queries, radius)
-    np.testing.assert_array_equal(fast >= 0, plain >= 0)
-    hit = fast >= 0
-    d_fast = np.linalg.norm(pts[fast[hit]] - queries[hit], axis=1)
-    d_plain = np.linalg.norm(pts[plain[hit]] - queries[hit], axis=1)
-    np.testing.assert_array_equal(d_fast, d_plain)  # the same nearest (ties may name another row)
-    assert hit.sum() > 2000
-    # A radius many cells wide still finds the nearest point (the ring search runs farther out).
     far = np.array([[5.0, 5.0, 5.0]])
-    assert (
-        nearest_within(pts, far, np.array([20.0]), cell=0.03)[0]
-        == nearest_within_reference(pts, far, np.array([20.0]))[0]
-    )
+    for cell in (0.03, GRID_CELL_M):  # cells smaller and about as large as the radii
+        fast = nearest_within(pts, queries, radius, cell=cell)
+        np.testing.assert_array_equal(fast >= 0, plain >= 0)
+        hit = fast >= 0
+        d_fast = np.linalg.norm(pts[fast[hit]] - queries[hit], axis=1)
+        d_plain = np.linalg.norm(pts[plain[hit]] - queries[hit], axis=1)
+        np.testing.assert_array_equal(d_fast, d_plain)  # the same nearest (ties may name another row)
+        assert hit.sum() > 2000
+        # A radius many cells wide still finds the nearest point (the ring search runs farther out).
+        assert (
+            nearest_within(pts, far, np.array([20.0]), cell=cell)[0]
+            == nearest_within_reference(pts, far, np.array([20.0]))[0]
+        )
 
     scene = small_scene()
     motion = estimate_motion(scene.gaussians.means, churn.drift_correction(scene.gaussians).gaussians.means)
