@@ -179,7 +179,8 @@ def test_a_named_segment_never_takes_an_object_named_otherwise():
         ("tissue-paper", "desk-organizer"), {tissue: {"tissue-paper": 3.0}, organizer: {"desk-organizer": 2.0}}
     )
     named = a.associate(frame, 2, rendered, two, names=names)
-    assert named.segment_objects.tolist() == [tissue, organizer] and named.matched == 2 and not named.split
+    assert named.segment_objects.tolist() == [tissue, organizer] and named.matched == 2
+    assert set(named.split[1].tolist()) == {tissue, organizer}  # stage 6 still reads the rendering as it is
     # An object named by less than name_min_score is not named yet: overlap decides.
     young = SegmentNames(names.segments, {tissue: {"tissue-paper": 1.0}, organizer: {"desk-organizer": 1.0}})
     assert (
@@ -189,6 +190,37 @@ def test_a_named_segment_never_takes_an_object_named_otherwise():
     mixed = SegmentNames(names.segments, {tissue: {"tissue-paper": 3.0, "desk-organizer": 1.0}, organizer: {}})
     assert mixed.conflicts(two, a.config).tolist() == [[False, False], [False, False]]
     assert names.conflicts(two, a.config).tolist() == [[False, True], [True, False]]
+
+
+def test_a_named_fused_segment_is_still_split_and_the_runner_up_still_continues():
+    seg = blocks()
+    a = Associator()
+    ids = a.associate(seg, 6, np.full(seg.shape, -1, np.int32), np.zeros(0, np.uint32)).segment_objects
+    chair, table = int(ids[0]), int(ids[1])
+    names = SegmentNames(("chair",) + (None,) * 4, {chair: {"chair": 3.0}, table: {"table": 3.0}})
+    fused = np.unique(np.where(seg == 1, 0, seg), return_inverse=True)[1].reshape(seg.shape)  # "chair" over both
+    out = a.associate(fused, 5, seg.astype(np.int32), ids, names=names)
+    assert 0 in out.split and set(out.split[0].tolist()) == {chair, table}
+    # Every object the map renders under a named segment is named otherwise: the runner-up rendering (where an
+    # object of that name is being born) still decides, and conflicting runner-ups are skipped.
+    b = Associator()
+    ids = b.associate(seg, 6, np.full(seg.shape, -1, np.int32), np.zeros(0, np.uint32)).segment_objects
+    tissue, organizer = int(ids[0]), int(ids[1])
+    names = SegmentNames(("desk-organizer",), {tissue: {"tissue-paper": 3.0}, organizer: {"desk-organizer": 1.0}})
+    frame = np.where(seg == 1, 0, -1)
+    rendered = np.where(seg == 1, 0, -1).astype(np.int32)  # the organizer's block renders as the tissue box
+    two = np.array([tissue, organizer], np.uint32)
+    calls = []
+
+    def runner_up():
+        calls.append(1)
+        return np.where(seg == 1, 1, -1).astype(np.int32), two
+
+    out = b.associate(frame, 1, rendered, two, runner_up, names=names)
+    assert calls and out.continued == 1 and out.segment_objects.tolist() == [organizer]
+    conflicting = SegmentNames(("desk-organizer",), {tissue: {"tissue-paper": 3.0}, organizer: {"lamp": 3.0}})
+    out = b.associate(frame, 1, rendered, two, runner_up, names=conflicting)
+    assert out.new == 1 and out.segment_objects[0] not in (tissue, organizer)
 
 
 def test_objects_named_differently_are_never_merged():

@@ -37,7 +37,9 @@ that both a segment and an object claim. Then:
 7. Where the segments carry class names (segment labels, core.segment_labels), an object whose names add
    up to `name_min_score` is named, and a segment whose name holds less than `name_share` of an object's
    names is another object: its pixels where the map renders that object count as unclaimed (as void) in
-   stages 1-6, so it is never matched to it, and two objects named differently are never merged (stage 5).
+   stages 1, 2 and 5, so it is never matched to it, and two objects named differently are never merged.
+   Stage 3 (whose runner-up objects are checked against the name) and stage 6 read the rendering as it
+   is: a named segment that covers two objects is still split along their rendered labels.
    Without this, an object whose Gaussians a fused segment once voted into its neighbour was taken over by
    that neighbour where the neighbour's segment covered it best, and the object itself was born again in
    every keyframe (office_0: the desk organizer took the tissue box's id).
@@ -251,6 +253,7 @@ class Associator:
             C = overlap_counts(segments, n_segments, rendered, n_rendered)
         else:
             C = np.zeros((n_segments, 0), np.int64)
+        raw = C  # stages 3 and 6 read what the map renders, names aside
         if names is not None:  # the segment's name says the object rendered there is not what it shows
             C = np.where(names.conflicts(rendered_ids, cfg), 0, C)
         seg_claimed = C.sum(axis=1)  # (S,) pixels of s where some object leads
@@ -279,7 +282,8 @@ class Associator:
             if seg_pixels[s] < min_pixels:
                 report.skipped += 1
                 continue
-            if runner_up is not None and seg_claimed[s] > 0:
+            raw_claimed = int(raw[s].sum())
+            if runner_up is not None and raw_claimed > 0:
                 if second is None:
                     labels2, ids2 = runner_up()
                     C2 = overlap_counts(segments, n_segments, labels2, len(ids2))
@@ -288,7 +292,7 @@ class Associator:
                     second = (C2, ids2)
                 C2, ids2 = second
                 n = int(np.argmax(C2[s])) if C2.shape[1] else -1
-                if n >= 0 and C2[s, n] >= cfg.part_share * seg_claimed[s] and ids2[n] not in out:
+                if n >= 0 and C2[s, n] >= cfg.part_share * raw_claimed and ids2[n] not in out:
                     out[s] = ids2[n]
                     report.continued += 1
                     continue
@@ -298,7 +302,7 @@ class Associator:
             report.merges = self._pair_statistics(C, obj_claimed, matched_obj, rendered_ids, min_pixels, names)
             for keep, drop in report.merges:
                 out[out == drop] = keep
-            report.split = self._fused_segments(C, obj_claimed, rendered_ids, min_pixels)
+            report.split = self._fused_segments(raw, raw.sum(axis=0), rendered_ids, min_pixels)
         report.seconds = time.perf_counter() - start
         return report
 
@@ -482,7 +486,7 @@ def associate_keyframe(
 
     names = None
     if keyframe.segments and object_names is not None:
-        by_color = {s.id: s.class_name for s in keyframe.segments}
+        by_color = {s.id: s.class_name for s in keyframe.segments if s.score > 0}  # as LabelHistogram counts
         names = SegmentNames(tuple(by_color.get(c) for c in labelled.objects.tolist()), object_names)
     report = associator.associate(
         segments_small, len(labelled.objects), rendered, ids, runner_up if runner_up_ids is not None else None, names

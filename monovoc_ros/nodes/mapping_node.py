@@ -24,6 +24,7 @@ name is `semantic_mapper` whichever executable runs it.
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import signal
 import sys
 import threading
@@ -515,7 +516,10 @@ class _StopSignals:
         if not self.requested.is_set():
             self.requested.set()
             return
-        print(f"{NODE_NAME}: {signal.Signals(signum).name} again: already shutting down", file=sys.stderr, flush=True)
+        with contextlib.suppress(OSError):  # a closed stderr must not raise in the main thread
+            print(
+                f"{NODE_NAME}: {signal.Signals(signum).name} again: already shutting down", file=sys.stderr, flush=True
+            )
 
 
 def _abort(node: MappingNode | None) -> None:
