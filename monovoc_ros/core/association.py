@@ -148,27 +148,28 @@ class SegmentNames:
     segments: tuple[str | None, ...]  # (S,) per segment index, None = unnamed
     objects: Mapping[int, Mapping[str, float]]  # object id -> class name -> summed score (LabelHistogram.scores)
 
-    def named(self, object_id: int, config: AssociationConfig) -> Mapping[str, float] | None:
-        """The object's names when they add up to name_min_score, else None."""
+    def named(self, object_id: int, config: AssociationConfig) -> tuple[Mapping[str, float], float] | None:
+        """(the object's names, their summed score) when that reaches name_min_score, else None."""
         table = self.objects.get(int(object_id))
-        return table if table and sum(table.values()) >= config.name_min_score else None
+        total = sum(table.values()) if table else 0.0
+        return (table, total) if table and total >= config.name_min_score else None
 
     def conflicts(self, object_ids: np.ndarray, config: AssociationConfig) -> np.ndarray:
         """(S, R) bool: segment s is named and object `object_ids[r]` is named otherwise (never the same)."""
         out = np.zeros((len(self.segments), len(object_ids)), bool)
         for r, oid in enumerate(object_ids.tolist()):
-            table = self.named(oid, config)
-            if table is None:
+            named = self.named(oid, config)
+            if named is None:
                 continue
-            least = config.name_share * sum(table.values())
+            table, total = named
             for s, name in enumerate(self.segments):
-                out[s, r] = name is not None and table.get(name, 0.0) < least
+                out[s, r] = name is not None and table.get(name, 0.0) < config.name_share * total
         return out
 
     def differ(self, a: int, b: int, config: AssociationConfig) -> bool:
         """Both objects named, with different leading names."""
-        ta, tb = self.named(a, config), self.named(b, config)
-        return ta is not None and tb is not None and leading_name(ta) != leading_name(tb)
+        na, nb = self.named(a, config), self.named(b, config)
+        return na is not None and nb is not None and leading_name(na[0]) != leading_name(nb[0])
 
 
 def overlap_counts(segments: np.ndarray, n_segments: int, rendered: np.ndarray, n_rendered: int) -> np.ndarray:
@@ -254,6 +255,7 @@ class Associator:
         else:
             C = np.zeros((n_segments, 0), np.int64)
         raw = C  # stages 3 and 6 read what the map renders, names aside
+        raw_claimed = raw.sum(axis=1)  # (S,)
         if names is not None:  # the segment's name says the object rendered there is not what it shows
             C = np.where(names.conflicts(rendered_ids, cfg), 0, C)
         seg_claimed = C.sum(axis=1)  # (S,) pixels of s where some object leads
@@ -282,8 +284,7 @@ class Associator:
             if seg_pixels[s] < min_pixels:
                 report.skipped += 1
                 continue
-            raw_claimed = int(raw[s].sum())
-            if runner_up is not None and raw_claimed > 0:
+            if runner_up is not None and raw_claimed[s] > 0:
                 if second is None:
                     labels2, ids2 = runner_up()
                     C2 = overlap_counts(segments, n_segments, labels2, len(ids2))
@@ -292,7 +293,7 @@ class Associator:
                     second = (C2, ids2)
                 C2, ids2 = second
                 n = int(np.argmax(C2[s])) if C2.shape[1] else -1
-                if n >= 0 and C2[s, n] >= cfg.part_share * raw_claimed and ids2[n] not in out:
+                if n >= 0 and C2[s, n] >= cfg.part_share * raw_claimed[s] and ids2[n] not in out:
                     out[s] = ids2[n]
                     report.continued += 1
                     continue
