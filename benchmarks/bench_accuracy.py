@@ -28,9 +28,9 @@ sys.path.insert(0, str(REPO))
 
 from monovoc_ros import offline  # noqa: E402
 from monovoc_ros.commands.eval import score, sequence_frames  # noqa: E402
-from monovoc_ros.core.datasets import SequenceView  # noqa: E402
+from monovoc_ros.core.evaluation.datasets import SequenceView  # noqa: E402
+from monovoc_ros.core.evidence.palette import labels_from_entries  # noqa: E402
 from monovoc_ros.core.mapping import MapperConfig  # noqa: E402
-from monovoc_ros.core.palette import labels_from_entries  # noqa: E402
 
 REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
 CONFIGS = {

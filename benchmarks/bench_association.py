@@ -1,4 +1,4 @@
-"""Cost of per-frame mask association per keyframe (core.association); prints one JSON object.
+"""Cost of per-frame mask association per keyframe (core.segments.association); prints one JSON object.
 
     python benchmarks/bench_association.py                       # synthetic room: 140k Gaussians, 616x344
     python benchmarks/bench_association.py --source ../shared/data/replica_office0
@@ -27,8 +27,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from monovoc_ros import offline  # noqa: E402
+from monovoc_ros.core.evaluation.datasets import CorruptedMasks  # noqa: E402
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper  # noqa: E402
-from monovoc_ros.core.segment_noise import CorruptedMasks, parse_mask_noise  # noqa: E402
+from monovoc_ros.core.segments.segment_noise import parse_mask_noise  # noqa: E402
 
 
 def main() -> int:

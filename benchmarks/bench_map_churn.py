@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 
 from monovoc_ros import offline  # noqa: E402
 from monovoc_ros.commands.eval import score  # noqa: E402
-from monovoc_ros.core.keyframe_log import KeyframePoses  # noqa: E402
+from monovoc_ros.core.follow.keyframe_log import KeyframePoses  # noqa: E402
 from monovoc_ros.core.mapping import MapperConfig  # noqa: E402
 from monovoc_ros.synthetic import churn  # noqa: E402
 

@@ -24,7 +24,7 @@ import numpy as np
 # The benchmark runs from a checkout; make the package importable without installing it.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from monovoc_ros.core.quantize import (
+from monovoc_ros.core.evidence.quantize import (
     METRICS,
     distance_matrix_reference,
     quantize,

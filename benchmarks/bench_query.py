@@ -63,9 +63,9 @@ def _percentiles(samples_s: list[float]) -> dict:
 
 
 def build(args):
+    from monovoc_ros.core.evidence.palette import labels_from_entries
     from monovoc_ros.core.map_store import save_snapshot
     from monovoc_ros.core.mapping import SemanticMapper
-    from monovoc_ros.core.palette import labels_from_entries
     from monovoc_ros.embed import load_backend
     from monovoc_ros.objects.database import save_object_index
     from monovoc_ros.objects.index import IndexConfig, ObjectIndex

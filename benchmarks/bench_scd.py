@@ -32,8 +32,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from monovoc_ros.core.camera import Intrinsics  # noqa: E402
-from monovoc_ros.core.gaussians import GaussianMap  # noqa: E402
+from monovoc_ros.core.map.camera import Intrinsics  # noqa: E402
+from monovoc_ros.core.map.gaussians import GaussianMap  # noqa: E402
 
 REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
 RESOLUTIONS = ((616, 344), (1200, 680))
@@ -44,7 +44,7 @@ def replica_scene(n_gaussians: int, width: int, height: int, n_keyframes: int = 
     """(map, intrinsics, [(cam_to_world, mask)]) from Replica office_0 with about `n_gaussians` Gaussians."""
     from PIL import Image
 
-    from monovoc_ros.core.ply import load_ply
+    from monovoc_ros.core.map.ply import load_ply
 
     base = load_ply(REPLICA / "gaussians.ply")
     rng = np.random.default_rng(seed)
@@ -94,7 +94,7 @@ def run_config(scene: str, impl: str, n: int, width: int, height: int, repeats: 
 
     mode "scd" times core.raster.accumulate (color sums); "vote" times core.raster.accumulate_votes on
     the masks' pixel labels (made once per keyframe beforehand, as SemanticMapper does: `labels_ms`)."""
-    from monovoc_ros.core.pixel_labels import mask_labels
+    from monovoc_ros.core.evidence.pixel_labels import mask_labels
     from monovoc_ros.core.raster import accumulate, accumulate_votes
 
     gmap, intrinsics, views = SCENES[scene](n, width, height)
@@ -159,8 +159,8 @@ _COMPILE_SNIPPET = """
 import json, sys, time
 t0 = time.perf_counter()
 import numpy as np
-from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import Intrinsics
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster import accumulate, render
 t1 = time.perf_counter()
 rng = np.random.default_rng(0)

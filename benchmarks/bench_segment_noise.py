@@ -2,7 +2,7 @@
 
 For each source (Replica office_0 when present, the synthetic room), each noise generator and each noise
 model, maps every keyframe with `mask_ids: per_frame` from masks that went through
-`core.segment_noise` (seeded per keyframe), then scores the map against the clean reference masks after
+`core.segments.segment_noise` (seeded per keyframe), then scores the map against the clean reference masks after
 matching its objects to the reference instances (splats protocol, every 3rd keyframe): matched mIoU,
 objects (those leading some evaluated pixel) against the reference instances, merges and splits; beside
 it the same map with global ids.
@@ -29,11 +29,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from monovoc_ros import offline  # noqa: E402
-from monovoc_ros.core.evaluation import render_splat_labels  # noqa: E402
-from monovoc_ros.core.instance_eval import score_matched  # noqa: E402
+from monovoc_ros.core.evaluation.datasets import CorruptedMasks  # noqa: E402
+from monovoc_ros.core.evaluation.evaluation import render_splat_labels  # noqa: E402
+from monovoc_ros.core.evaluation.instance_eval import score_matched  # noqa: E402
+from monovoc_ros.core.evidence.palette import pack_rgb  # noqa: E402
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper  # noqa: E402
-from monovoc_ros.core.palette import pack_rgb  # noqa: E402
-from monovoc_ros.core.segment_noise import CorruptedMasks, NoiseRates  # noqa: E402
+from monovoc_ros.core.segments.segment_noise import NoiseRates  # noqa: E402
 
 REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
 GENERATORS = {"line": (NoiseRates(cut="line"), 0), "voronoi": (NoiseRates(cut="voronoi", pieces=4), 1)}

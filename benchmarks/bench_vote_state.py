@@ -23,7 +23,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from monovoc_ros.core.votes import VoteState  # noqa: E402
+from monovoc_ros.core.evidence.votes import VoteState  # noqa: E402
 
 
 def main() -> int:

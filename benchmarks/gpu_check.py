@@ -22,7 +22,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_scd import REPLICA, SCENES  # noqa: E402
 
-from monovoc_ros.core.pixel_labels import mask_labels  # noqa: E402
+from monovoc_ros.core.evidence.pixel_labels import mask_labels  # noqa: E402
 from monovoc_ros.core.raster import accumulate_votes  # noqa: E402
 
 

@@ -16,11 +16,11 @@ import numpy as np
 
 import msg_adapters as ma
 from monovoc_ros.contract import BAD_MESSAGE, KEYFRAME_ROLES, POSE_MESSAGE_TYPES, SEGMENTS_ROLE
-from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.datasets import instance_palette
+from monovoc_ros.core.evaluation.datasets import instance_palette
+from monovoc_ros.core.evidence.palette import VOID_RGB, pack_rgb
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.palette import VOID_RGB, pack_rgb
-from monovoc_ros.core.segment_labels import SegmentLabel
+from monovoc_ros.core.map.camera import Intrinsics
+from monovoc_ros.core.segments.segment_labels import SegmentLabel
 from monovoc_ros.core.sync import StampSynchronizer, lead_over_others
 
 POSE_TYPES = tuple(POSE_MESSAGE_TYPES)

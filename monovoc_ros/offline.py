@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 
 from tqdm import tqdm
 
-from monovoc_ros.core.datasets import Sequence, open_sequence
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.evaluation.datasets import Sequence, open_sequence
+from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.keyframe_log import KeyframePoses
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.session import DEFAULT_MAX_SHRINK, KeyframeListener, MappingSession, SessionStats
 

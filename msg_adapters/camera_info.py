@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.map.camera import Intrinsics
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import make_header
 

@@ -1,11 +1,11 @@
-"""Colors as messages give them -> packed 0x00RRGGBB uint32 (the object id and RViz's ``rgb``; core.palette
+"""Colors as messages give them -> packed 0x00RRGGBB uint32 (the object id and RViz's ``rgb``; core.evidence.palette
 unpacks them)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from monovoc_ros.core.palette import pack_rgb
+from monovoc_ros.core.evidence.palette import pack_rgb
 from msg_adapters.errors import AdapterError
 
 

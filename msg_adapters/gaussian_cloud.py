@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from monovoc_ros.contract import MAP_FRAME
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.ply import SH_C0
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.ply import SH_C0
 from msg_adapters.errors import AdapterError
 from msg_adapters.point_cloud import FLOATS, INTEGERS, make_cloud, read_fields
 

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from monovoc_ros.contract import CAMERA_FRAME, MAP_FRAME
-from monovoc_ros.core.camera import matrix_to_quat_wxyz, quat_wxyz_to_matrix, validate_pose
-from monovoc_ros.core.keyframe_log import KeyframePoses
+from monovoc_ros.core.follow.keyframe_log import KeyframePoses
+from monovoc_ros.core.map.camera import matrix_to_quat_wxyz, quat_wxyz_to_matrix, validate_pose
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import make_header, time_to_ns
 

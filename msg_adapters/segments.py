@@ -1,5 +1,5 @@
 """``monovoc_interfaces/SegmentArray``: a segmenter's class names for the segments of one mask, to and from
-core.segment_labels.SegmentLabel.
+core.segments.segment_labels.SegmentLabel.
 
 A segment's ``id`` is its value in the mask: the packed 0x00RRGGBB color of a color mask, or the instance id
 of a mono8 / mono16 mask, which the ingest turns into the palette color it gives that id
@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from monovoc_ros.core.segment_labels import SegmentLabel
+from monovoc_ros.core.segments.segment_labels import SegmentLabel
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import make_header
 

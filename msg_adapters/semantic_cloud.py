@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from monovoc_ros.contract import MAP_FRAME
-from monovoc_ros.core.palette import unpack_rgb
+from monovoc_ros.core.evidence.palette import unpack_rgb
 from msg_adapters.colors import rgb_to_packed
 from msg_adapters.errors import AdapterError
 from msg_adapters.point_cloud import FLOAT32, FLOATS, INTEGERS, UINT32, make_cloud, read_fields

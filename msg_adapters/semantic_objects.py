@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from monovoc_ros.core.palette import format_object_id, unpack_rgb
+from monovoc_ros.core.evidence.palette import format_object_id, unpack_rgb
 from msg_adapters.errors import AdapterError
 
 
@@ -25,7 +25,7 @@ def semantic_object(
     num_observations: int = 0,
 ):
     """A ``monovoc_interfaces.msg.SemanticObject``; color and extent are derived from the id and box.
-    ``label_source``: "given", "segments", "guess" or "" (monovoc_ros.core.object_labels)."""
+    ``label_source``: "given", "segments", "guess" or "" (monovoc_ros.core.segments.object_labels)."""
     from geometry_msgs.msg import Point, Vector3
     from std_msgs.msg import ColorRGBA
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from monovoc_ros.core.state import GaussianEvidence
-from monovoc_ros.core.votes import VoteState
+from monovoc_ros.core.evidence.state import GaussianEvidence
+from monovoc_ros.core.evidence.votes import VoteState
 
 
 def assert_same_evidence(

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map_store import save_snapshot
 from monovoc_ros.synthetic import SceneConfig, SyntheticScene, generate_scene
 
@@ -59,7 +59,7 @@ def room() -> SyntheticScene:
 
 
 def room_labels() -> dict[int, str]:
-    from monovoc_ros.core.palette import labels_from_entries
+    from monovoc_ros.core.evidence.palette import labels_from_entries
 
     return labels_from_entries(room().labels())
 

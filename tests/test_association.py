@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from monovoc_ros.core.association import (
+from monovoc_ros.core.evaluation.datasets import CorruptedMasks
+from monovoc_ros.core.evaluation.evaluation import render_splat_labels
+from monovoc_ros.core.evaluation.instance_eval import UNMATCHED_ID, match_instances, renamed, score_matched
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, PaletteBuilder, pack_rgb, unpack_rgb
+from monovoc_ros.core.evidence.votes import VoteState
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.segments.association import (
     AssociationConfig,
     Associator,
     SegmentNames,
@@ -16,13 +22,8 @@ from monovoc_ros.core.association import (
     overlap_counts_reference,
     rendered_object_index,
 )
-from monovoc_ros.core.evaluation import render_splat_labels
-from monovoc_ros.core.instance_eval import UNMATCHED_ID, match_instances, renamed, score_matched
-from monovoc_ros.core.label_render import render_label_weights
-from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, PaletteBuilder, pack_rgb, unpack_rgb
-from monovoc_ros.core.segment_noise import CorruptedMasks, NoiseRates, parse_mask_noise, segment_noise, shuffle_ids
-from monovoc_ros.core.votes import VoteState
+from monovoc_ros.core.segments.label_render import render_label_weights
+from monovoc_ros.core.segments.segment_noise import NoiseRates, parse_mask_noise, segment_noise, shuffle_ids
 from tests.test_raster import SCENES, random_scene
 
 
@@ -50,7 +51,7 @@ def test_label_render_leads_as_render_splat_labels():
 
 @pytest.mark.parametrize("seed", range(3))
 def test_compact_index_matches_reference(seed):
-    from monovoc_ros.core.label_render_kernels import compact_index
+    from monovoc_ros.core.segments.label_render_kernels import compact_index
 
     rng = np.random.default_rng(seed)
     table = np.unique(rng.integers(0, 0xFFFFFE, 40)).astype(np.uint32)
@@ -404,7 +405,7 @@ def test_mapper_per_frame_on_shuffled_masks_matches_global_ids(small_room):
 
 
 def test_label_histogram_leads_merges_and_round_trips():
-    from monovoc_ros.core.segment_labels import LabelHistogram, SegmentLabel
+    from monovoc_ros.core.segments.segment_labels import LabelHistogram, SegmentLabel
 
     h = LabelHistogram()
     h.add_keyframe((SegmentLabel(1, "chair", 0.9), SegmentLabel(2, "table", 0.5), SegmentLabel(9, "x")), {1: 10, 2: 20})
@@ -423,7 +424,7 @@ def test_label_histogram_leads_merges_and_round_trips():
 
 
 def test_segment_labels_follow_shuffled_segments():
-    from monovoc_ros.core.segment_labels import palette_segments, relabel_segments
+    from monovoc_ros.core.segments.segment_labels import palette_segments, relabel_segments
 
     seg = blocks()
     mask = unpack_rgb((0x101010 * (seg + 1)).astype(np.uint32))
@@ -439,7 +440,7 @@ def test_segment_labels_follow_shuffled_segments():
 
 
 def test_mapper_gathers_segment_labels_per_object(small_room):
-    from monovoc_ros.core.segment_noise import PaletteSegments
+    from monovoc_ros.core.evaluation.datasets import PaletteSegments
 
     seq = CorruptedMasks(PaletteSegments(small_room), shuffled=True, seed=2)
     mapper = SemanticMapper(seq.load_gaussians(), MapperConfig(mask_ids="per_frame"))
@@ -508,9 +509,9 @@ def test_a_segment_inside_a_larger_object_continues_the_object_born_there():
 def test_a_fused_segments_class_name_names_neither_object(small_room):
     from dataclasses import replace
 
-    from monovoc_ros.core.association import associate_keyframe
-    from monovoc_ros.core.segment_labels import SegmentLabel, palette_segments
-    from monovoc_ros.core.segment_noise import _adjacent_pairs
+    from monovoc_ros.core.segments.association import associate_keyframe
+    from monovoc_ros.core.segments.segment_labels import SegmentLabel, palette_segments
+    from monovoc_ros.core.segments.segment_noise import _adjacent_pairs
 
     mapper = SemanticMapper(small_room.load_gaussians(), MapperConfig(mask_ids="per_frame"))
     for i in range(6):

@@ -26,9 +26,9 @@ from monovoc_ros.bags.bundled import BUNDLED_DIR, SYNTHETIC_BAG, SYNTHETIC_LABEL
 from monovoc_ros.bags.convert import MIN_START_NS
 from monovoc_ros.bags.schemas import deserialize_rosbags, type_hash
 from monovoc_ros.cli import main as monovoc
-from monovoc_ros.core.datasets import open_sequence
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.evaluation.datasets import open_sequence
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.ingest import IngestConfig, KeyframeAssembler, Rejection
 from monovoc_ros.synthetic import SceneConfig, generate_scene
 
@@ -267,7 +267,7 @@ def test_bundled_labels_file_is_the_bags_labels(tmp_path: Path) -> None:
 
 
 def test_convert_with_mask_noise_renumbers_every_mask(tmp_path: Path) -> None:
-    from monovoc_ros.core.palette import pack_rgb
+    from monovoc_ros.core.evidence.palette import pack_rgb
 
     out = tmp_path / "pf.mcap"
     args = [

@@ -19,8 +19,8 @@ from monovoc_interfaces.msg import SemanticObjectArray
 from monovoc_ros.bags import BagError, BagWriter, bag_info, bag_metadata, iter_messages
 from monovoc_ros.bags.qos import OfferedQos
 from monovoc_ros.bags.schemas import UnknownTypeError, canonical_cdr, message_definition, normalize_type_name
-from monovoc_ros.core.camera import Intrinsics, quat_wxyz_to_matrix
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import Intrinsics, quat_wxyz_to_matrix
+from monovoc_ros.core.map.gaussians import GaussianMap
 from msg_adapters import (
     camera_info_to_intrinsics,
     cloud_to_gaussian_map,

@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from monovoc_ros.core.camera import matrix_to_quat_wxyz
-from monovoc_ros.core.datasets import (
+from monovoc_ros.core.evaluation.datasets import (
     REPLICA_INTRINSICS,
     HiSlam2Sequence,
     NiceSlamSequence,
@@ -22,7 +21,8 @@ from monovoc_ros.core.datasets import (
     open_sequence,
     write_plain,
 )
-from monovoc_ros.core.ply import save_ply
+from monovoc_ros.core.map.camera import matrix_to_quat_wxyz
+from monovoc_ros.core.map.ply import save_ply
 from monovoc_ros.synthetic import SceneConfig, SyntheticScene, generate_scene
 
 MASK_SIZE = (154, 86)

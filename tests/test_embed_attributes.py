@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from monovoc_ros.core.color import srgb_to_lab
+from monovoc_ros.core.evidence.color import srgb_to_lab
 from monovoc_ros.embed.attributes import (
     ALWAYS_BLACK_BELOW_L,
     BASIC_COLORS,

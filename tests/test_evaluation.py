@@ -8,15 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from monovoc_ros.core.camera import Intrinsics, invert_pose, pose_from_translation_quat
-from monovoc_ros.core.evaluation import (
+from monovoc_ros.core.evaluation.evaluation import (
     SegmentationEvaluator,
     render_point_labels,
     render_point_labels_reference,
     render_splat_labels,
-    resize_nearest,
 )
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, pack_rgb
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, pack_rgb
+from monovoc_ros.core.map.camera import Intrinsics, invert_pose, pose_from_translation_quat, resize_nearest
 
 CAM = Intrinsics(100.0, 100.0, 10.0, 10.0, 21, 21)
 EYE = np.eye(4)
@@ -162,7 +161,7 @@ def test_replica_protocol_separates_right_from_wrong_labels(replica_office0):
     """Label each Gaussian centre with the mask pixel it projects to in the even keyframes, render it
     into odd keyframes: the error is the protocol's own floor (0.05 m discs bleed over edges), far
     below what shuffled labels give. Also pins the pose and pixel-centre conventions on real data."""
-    from monovoc_ros.core.ply import load_ply
+    from monovoc_ros.core.map.ply import load_ply
 
     intr = json.loads((replica_office0 / "intrinsics.json").read_text())
     intr = Intrinsics(intr["fx"], intr["fy"], intr["cx"], intr["cy"], intr["width"], intr["height"])
@@ -197,7 +196,7 @@ def test_replica_protocol_separates_right_from_wrong_labels(replica_office0):
 
 def test_render_splat_labels_matches_argmax_of_reference_weights():
     """Each pixel takes the label with the largest summed compositing weight (void = the rest)."""
-    from monovoc_ros.core.gaussians import GaussianMap
+    from monovoc_ros.core.map.gaussians import GaussianMap
     from monovoc_ros.core.raster.reference import pixel_weights
 
     rng = np.random.default_rng(3)

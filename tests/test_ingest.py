@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.core.camera import Intrinsics, pose_from_translation_quat
+from monovoc_ros.core.map.camera import Intrinsics, pose_from_translation_quat
 from monovoc_ros.ingest import IngestConfig, KeyframeAssembler
 
 CAM = Intrinsics(80.0, 80.0, 39.5, 29.5, 80, 60)
@@ -135,9 +135,9 @@ def test_body_frame_convention_and_pose_types():
 
 
 def test_segments_wait_for_their_mask_and_follow_instance_ids():
-    from monovoc_ros.core.datasets import instance_palette
-    from monovoc_ros.core.palette import pack_rgb
-    from monovoc_ros.core.segment_labels import SegmentLabel
+    from monovoc_ros.core.evaluation.datasets import instance_palette
+    from monovoc_ros.core.evidence.palette import pack_rgb
+    from monovoc_ros.core.segments.segment_labels import SegmentLabel
 
     asm = KeyframeAssembler(IngestConfig(use_segments=True))
     assert asm.roles[-1] == "segments"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.reorder import StampReorder
 from tests.test_ingest import CAM, MS, feed, mask, messages

@@ -176,7 +176,7 @@ def test_segment_array_round_trips_through_cdr() -> None:
 
     import msg_adapters as ma
     from monovoc_interfaces.msg import SegmentArray
-    from monovoc_ros.core.segment_labels import SegmentLabel
+    from monovoc_ros.core.segments.segment_labels import SegmentLabel
 
     labels = (SegmentLabel(0x00AA11, "chair", 0.75), SegmentLabel(3, "lamp", 1.0))
     msg = ma.segment_array(labels, frame_id="camera_optical_frame", stamp=5_000_000_123)

@@ -1,5 +1,5 @@
-"""The import graph: core/ is the engine (no ROS, nothing from the layers above it), and no module-level
-import cycles anywhere in the package."""
+"""The import graph: core/ is the engine (no ROS, nothing from the layers above it), its stages import
+only from the stages before them, and no module-level import cycles anywhere in the package."""
 
 from __future__ import annotations
 
@@ -40,6 +40,27 @@ def test_core_imports_only_core():
         if name.startswith("monovoc_ros.core"):
             above = {m for m in _imports(path, top_level_only=False) if not m.startswith("monovoc_ros.core")}
             assert not above, f"{name} imports {sorted(above)}"
+
+
+# core's stages in import order (monovoc_ros/core/__init__.py). At core's root, keyframe and sync come right
+# after map/ (every stage may take them); the rest of the root sits above every stage.
+CORE_STAGES = ("map", "keyframe", "sync", "raster", "evidence", "segments", "follow", "evaluation")
+
+
+def _core_rank(name: str) -> int:
+    part = name.split(".")[2]
+    return CORE_STAGES.index(part) if part in CORE_STAGES else len(CORE_STAGES)
+
+
+def test_core_stages_import_downward():
+    modules = _modules()
+    for name, path in modules.items():
+        if name.startswith("monovoc_ros.core."):
+            rank = _core_rank(name)
+            found = _imports(path, top_level_only=False, modules=frozenset(modules))
+            later = {m for m in found if m.startswith("monovoc_ros.core.")}
+            later = {m for m in later if _core_rank(m) > rank}
+            assert not later, f"{name} imports {sorted(later)} from a later stage"
 
 
 def test_no_module_level_import_cycles():

@@ -1,4 +1,4 @@
-"""Registration of two map versions (core.map_motion) and the per-Gaussian transfer (core.map_follow)."""
+"""Registration of two map versions (core.follow.map_motion) and the per-Gaussian transfer (core.follow.map_follow)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.map_follow import GRID_CELL_M, FollowConfig, follow_map, nearest_within
-from monovoc_ros.core.map_motion import MapMotion, estimate_motion, kabsch
+from monovoc_ros.core.follow.map_follow import GRID_CELL_M, FollowConfig, follow_map, nearest_within
+from monovoc_ros.core.follow.map_motion import MapMotion, estimate_motion, kabsch
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.mapping import MapMotionError, SemanticMapper
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.synthetic import churn
@@ -116,7 +116,7 @@ def test_absurd_motions_are_refused():
 
 
 def replace_motion(**changes):
-    from monovoc_ros.core.map_motion import MotionConfig
+    from monovoc_ros.core.follow.map_motion import MotionConfig
 
     return replace(MotionConfig(), **changes)
 
@@ -157,8 +157,8 @@ def test_mapper_refuses_an_absurd_update_and_keeps_its_state():
 
 
 def test_kernels_equal_their_plain_twins():
-    from monovoc_ros.core.gaussians import covariances_reference
-    from monovoc_ros.core.map_follow import nearest_within_reference
+    from monovoc_ros.core.follow.map_follow import nearest_within_reference
+    from monovoc_ros.core.map.gaussians import covariances_reference
 
     rng = np.random.default_rng(7)
     pts = rng.uniform(-1, 1, (20000, 3))

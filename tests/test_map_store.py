@@ -12,9 +12,9 @@ import time
 import numpy as np
 import pytest
 
+from monovoc_ros.core.map.ply import read_ply_vertices
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot, save_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
-from monovoc_ros.core.ply import read_ply_vertices
 from monovoc_ros.synthetic import SceneConfig, generate_scene
 from tests.evidence import assert_same_evidence
 

@@ -17,8 +17,8 @@ from rclpy.serialization import serialize_message
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from monovoc_interfaces.msg import SemanticObjectArray
-from monovoc_ros.core.camera import Intrinsics, quat_wxyz_to_matrix
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import Intrinsics, quat_wxyz_to_matrix
+from monovoc_ros.core.map.gaussians import GaussianMap
 from msg_adapters import (
     camera_info_to_intrinsics,
     cloud_to_gaussian_map,

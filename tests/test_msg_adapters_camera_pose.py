@@ -11,7 +11,7 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo
 
-from monovoc_ros.core.camera import Intrinsics, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from monovoc_ros.core.map.camera import Intrinsics, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from msg_adapters import (
     R_BODY_OPTICAL,
     AdapterError,

@@ -12,8 +12,8 @@ from sensor_msgs.msg import PointCloud2, PointField
 from visualization_msgs.msg import Marker, MarkerArray
 
 from monovoc_interfaces.msg import SemanticObject
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.ply import SH_C0
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.ply import SH_C0
 from msg_adapters import (
     AdapterError,
     cloud_to_gaussian_map,

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
+from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map_store import load_snapshot
-from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.ros_harness import (

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels
-from monovoc_ros.core.palette import UNOBSERVED_ID, pack_rgb
+from monovoc_ros.core.evaluation.evaluation import SegmentationEvaluator, render_point_labels
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, pack_rgb
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.ros_harness import (

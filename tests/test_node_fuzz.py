@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.ros_harness import (

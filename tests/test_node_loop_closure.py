@@ -15,7 +15,7 @@ from monovoc_ros.bags import BagWriter
 from monovoc_ros.bags.qos import OfferedQos
 from monovoc_ros.cli import main
 from monovoc_ros.contract import KEYFRAME_POSES_TYPE, message_class, topic_names
-from monovoc_ros.core.keyframe_log import KeyframePoses
+from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import ROLE_ORDER, KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import input_qos

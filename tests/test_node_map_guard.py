@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from monovoc_ros.ros_harness import (

@@ -11,9 +11,9 @@ import msg_adapters as ma
 from monovoc_ros.bags import bag_events, bag_info, iter_messages, topic_names
 from monovoc_ros.bags.bundled import PER_FRAME_BAG, bundled_bag, make_per_frame_bag
 from monovoc_ros.cli import main
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map_store import load_snapshot
-from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, MessageCollector, NodeProcess, ros_args, wait_until
 from tests.node_scene import NODE

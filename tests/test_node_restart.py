@@ -14,8 +14,8 @@ import signal
 import numpy as np
 import pytest
 
+from monovoc_ros.core.evidence.votes import VoteState
 from monovoc_ros.core.map_store import current_snapshot, load_snapshot
-from monovoc_ros.core.votes import VoteState
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from monovoc_ros.ros_harness import (
     ClientNode,

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.camera import Intrinsics
+from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog

@@ -1,4 +1,4 @@
-"""One label per object (core.object_labels): the precedence and display rules, and the object index and
+"""One label per object (core.segments.object_labels): the precedence and display rules, and the object index and
 objects.db following them (given, segments and guessed labels, a round trip, databases of before)."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import sqlite3
 
 import pytest
 
-from monovoc_ros.core.object_labels import (
+from monovoc_ros.core.segments.object_labels import (
     GIVEN,
     GUESS,
     SEGMENTS,

@@ -1,14 +1,14 @@
-"""Object geometry (core.objects): percentile boxes, the main-cluster filter, one geometry per result."""
+"""Object geometry (core.object_geometry): percentile boxes, the main-cluster filter, one geometry per result."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, Palette
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.mapping import SemanticResult
-from monovoc_ros.core.objects import main_cluster_ids, object_geometry, percentile_boxes
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, Palette
+from monovoc_ros.core.object_geometry import main_cluster_ids, object_geometry, percentile_boxes
 
 A, B = 0x112233, 0x445566
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros.cli import main as cli_main
-from monovoc_ros.core.palette import pack_rgb, read_labels
+from monovoc_ros.core.evidence.palette import pack_rgb, read_labels
 from monovoc_ros.embed import imgviz_eval
 from monovoc_ros.embed.crops import crop_object
 from monovoc_ros.embed.retrieval import rank, topk_accuracy
@@ -114,7 +114,7 @@ def test_queries_files_parse_and_resolve():
 
 
 def test_replica_office0_retrieval(replica_office0, tmp_path):
-    from monovoc_ros.core.datasets import open_sequence
+    from monovoc_ros.core.evaluation.datasets import open_sequence
     from monovoc_ros.objects.build import map_with_objects
     from monovoc_ros.objects.database import save_object_index
     from monovoc_ros.objects.index import IndexConfig

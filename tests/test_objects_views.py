@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from monovoc_ros.core.palette import pack_rgb
+from monovoc_ros.core.evidence.palette import pack_rgb
 from monovoc_ros.embed.crops import crop_object, resize_mask
 from monovoc_ros.objects.views import ObjectViews, ViewConfig
 from tests.object_room import make_keyframe
@@ -137,7 +137,7 @@ def test_bad_view_config(bad):
 
 @pytest.mark.parametrize("seed", range(3))
 def test_view_kernels_match_their_plain_twins(seed):
-    from monovoc_ros.core.palette import pack_rgb
+    from monovoc_ros.core.evidence.palette import pack_rgb
     from monovoc_ros.objects import views_kernels as vk
     from monovoc_ros.objects.views import boxes_reference, label_image_reference
 

@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 
 from monovoc_ros.cli import main
-from monovoc_ros.core.datasets import write_plain
+from monovoc_ros.core.evaluation.datasets import CorruptedMasks, write_plain
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.mapping import MapperConfig
-from monovoc_ros.core.segment_noise import CorruptedMasks
 from monovoc_ros.ingest import Rejection
 from monovoc_ros.offline import map_events, map_sequence
 from monovoc_ros.synthetic import SceneConfig, generate_scene
@@ -141,8 +140,8 @@ def test_map_per_frame_on_shuffled_masks_and_eval_matches_instances(scene, tmp_p
 
 
 def test_segment_labels_from_a_folder_and_from_labels_reach_the_snapshot(scene, tmp_path):
-    from monovoc_ros.core.datasets import open_sequence
-    from monovoc_ros.core.segment_labels import SegmentLabel, write_segments
+    from monovoc_ros.core.evaluation.datasets import open_sequence
+    from monovoc_ros.core.segments.segment_labels import SegmentLabel, write_segments
 
     data = tmp_path / "seq"
     write_plain(scene, data)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from monovoc_ros.core.palette import (
+from monovoc_ros.core.evidence.palette import (
     UNOBSERVED_ID,
     VOID_ID,
     VOID_RGB,
@@ -24,7 +24,7 @@ from monovoc_ros.core.palette import (
     region_counts_reference,
     unpack_rgb,
 )
-from monovoc_ros.core.palette_kernels import region_counts
+from monovoc_ros.core.evidence.palette_kernels import region_counts
 
 WALL, TABLE, CHAIR, CUP, CABLE = (0, 170, 255), (221, 255, 0), (255, 0, 153), (68, 170, 85), (255, 119, 0)
 REAL = {int(pack_rgb(np.array(c, np.uint8))) for c in (WALL, TABLE, CHAIR, CUP, CABLE)}

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.ply import PlyError, load_ply, save_ply
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.ply import PlyError, load_ply, save_ply
 
 SH_C0 = 0.28209479177387814
 N = 50
@@ -27,7 +27,7 @@ def raw_columns(rest: int = 0, semantics: bool = False, seed: int = 0) -> dict[s
 
 
 def write_ply(path, cols: dict[str, np.ndarray], fmt: str = "binary_little_endian", count: int | None = None):
-    """A PLY written independently of monovoc_ros.core.ply (as other tools write them)."""
+    """A PLY written independently of monovoc_ros.core.map.ply (as other tools write them)."""
     names = list(cols)
     header = ["ply", f"format {fmt} 1.0", "comment written by the test", f"element vertex {count or N}"]
     header += [f"property float {name}" for name in names] + ["end_header"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from monovoc_ros.core.ply import PlyError, load_ply
+from monovoc_ros.core.map.ply import PlyError, load_ply
 from tests.test_ply import N, raw_columns, write_ply
 
 HEADER = b"ply\nformat binary_little_endian 1.0\n"

@@ -6,8 +6,8 @@ import colour
 import numpy as np
 import pytest
 
-from monovoc_ros.core import quantize_kernels as kernels
-from monovoc_ros.core.quantize import (
+from monovoc_ros.core.evidence import quantize_kernels as kernels
+from monovoc_ros.core.evidence.quantize import (
     METRICS,
     Quantization,
     confidence,

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.core.object_labels import ObjectLabel, display
-from monovoc_ros.core.palette import format_object_id
+from monovoc_ros.core.evidence.palette import format_object_id
+from monovoc_ros.core.segments.object_labels import ObjectLabel, display
 from monovoc_ros.embed import default_model_dir
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
@@ -179,9 +179,9 @@ def _label_disagreements(objects, markers, answer) -> list[str]:
 
 @pytest.mark.parametrize("labels", ["restored", "guessed"])
 def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path, labels):
-    """One object geometry (core.objects): a resumed map's objects topic and its markers (computed by the
+    """One object geometry (core.object_geometry): a resumed map's objects topic and its markers (computed by the
     mapping worker from the resumed result) and the answers (restored from objects.db) agree everywhere.
-    One label (core.object_labels) too, without a labels_file: "restored", the names objects.db was
+    One label (core.segments.object_labels) too, without a labels_file: "restored", the names objects.db was
     written with; "guessed", a database without names (written before label sources had names), whose
     objects the component names by the model's guess after the first result was published."""
     from visualization_msgs.msg import MarkerArray

@@ -7,8 +7,8 @@ import threading
 import numpy as np
 import pytest
 
-from monovoc_ros.core.camera import Intrinsics, pose_from_translation_quat
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import Intrinsics, pose_from_translation_quat
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster import IMPLEMENTATIONS, Evidence, Rendering, accumulate, render
 from monovoc_ros.core.raster.reference import pixel_weights
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.ply import load_ply
+from monovoc_ros.core.map.camera import Intrinsics
+from monovoc_ros.core.map.ply import load_ply
 from monovoc_ros.core.raster import accumulate, render
 
 

@@ -1,4 +1,4 @@
-"""The keyframe log (core.keyframe_log) and re-integration (core.session): exact, interleavable, persistent."""
+"""The keyframe log (core.follow.keyframe_log) and re-integration (core.session): exact, interleavable, persistent."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from monovoc_ros import offline
-from monovoc_ros.core.keyframe_log import KeyframeLog, KeyframePoses, decode_mask, encode_mask
+from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, decode_mask, encode_mask
 from monovoc_ros.core.map_store import load_snapshot, save_snapshot
-from monovoc_ros.core.segment_labels import SegmentLabel
+from monovoc_ros.core.segments.segment_labels import SegmentLabel
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.synthetic import churn
 from tests.node_scene import assemble, scene_messages, small_scene

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID
-from monovoc_ros.core.ply import read_semantic_ply, save_semantic_ply
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID
+from monovoc_ros.core.map_store import read_semantic_ply, save_semantic_ply
 
 IDS = np.array([0x00CC99, UNOBSERVED_ID, 0xFF0000, VOID_ID, 0, UNOBSERVED_ID], np.uint32)
 

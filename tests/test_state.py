@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from monovoc_ros.core.state import SemanticState
+from monovoc_ros.core.evidence.state import SemanticState
 
 
 @dataclass

@@ -7,9 +7,9 @@ import itertools
 import numpy as np
 import pytest
 
-from monovoc_ros.core.camera import quat_wxyz_to_matrix
-from monovoc_ros.core.color import srgb_to_lab
-from monovoc_ros.core.datasets import Sequence
+from monovoc_ros.core.evaluation.datasets import Sequence
+from monovoc_ros.core.evidence.color import srgb_to_lab
+from monovoc_ros.core.map.camera import quat_wxyz_to_matrix
 from monovoc_ros.synthetic import (
     FLOATER,
     UNLABELLED,

@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, Palette, pack_rgb
-from monovoc_ros.core.pixel_labels import pixel_labels
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, Palette, pack_rgb
+from monovoc_ros.core.evidence.pixel_labels import pixel_labels
+from monovoc_ros.core.evidence.vote_kernels import merge_slots
+from monovoc_ros.core.evidence.votes import EMPTY_SLOT, VoteState, merge_slots_reference
 from monovoc_ros.core.raster import accumulate_votes
 from monovoc_ros.core.raster.numba_impl import tile_slots
 from monovoc_ros.core.raster.reference import dense_votes, pixel_weights
 from monovoc_ros.core.raster.vote_tables import OTHER_LABEL, tile_slots_reference
-from monovoc_ros.core.vote_kernels import merge_slots
-from monovoc_ros.core.votes import EMPTY_SLOT, VoteState, merge_slots_reference
 from tests.test_raster import SCENES, random_scene
 
 TOL = 1e-4  # of the largest vote, float32 kernels against the float64 reference
@@ -192,7 +192,7 @@ def test_save_load_round_trip_and_foreign_files(tmp_path):
     back = VoteState.load(tmp_path / "votes.npz")
     for name in (*state.ARRAYS, "ids", "stamps_ns"):
         np.testing.assert_array_equal(getattr(back, name), getattr(state, name))
-    from monovoc_ros.core.state import SemanticState
+    from monovoc_ros.core.evidence.state import SemanticState
 
     SemanticState.zeros(3).save(tmp_path / "scd.npz")
     with pytest.raises(ValueError, match="not a vote state file"):

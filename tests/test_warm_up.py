@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
-from monovoc_ros.core.palette import UNOBSERVED_ID
 from monovoc_ros.core.warm_up import warm_up, warm_up_scene
 
 

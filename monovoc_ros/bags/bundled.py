@@ -50,9 +50,9 @@ def write_labels_file(bag: str | os.PathLike, path: str | os.PathLike) -> Path:
 
 def per_frame_scene():
     """The scene of the per-frame bag: a small synthetic room (30k Gaussians, 20 keyframes at 308x172)
-    whose every mask is renumbered at random (core.segment_noise, seed 0): segment ids hold per frame; each
+    whose every mask is renumbered at random (core.segments.segment_noise, seed 0): segment ids hold per frame; each
     mask's segments carry the class names a perfect segmenter would give (the `segments` topic)."""
-    from monovoc_ros.core.segment_noise import CorruptedMasks, PaletteSegments
+    from monovoc_ros.core.evaluation.datasets import CorruptedMasks, PaletteSegments
     from monovoc_ros.synthetic import SceneConfig, generate_scene
 
     scene = generate_scene(SceneConfig.at_resolution(308, 172, n_gaussians=30_000, n_keyframes=20))
@@ -71,7 +71,7 @@ def make_replica_bag(
     max_keyframes: int | None = None,
     progress: bool = False,
 ) -> ConvertReport:
-    from monovoc_ros.core.datasets import open_sequence
+    from monovoc_ros.core.evaluation.datasets import open_sequence
 
     sequence = open_sequence(source, layout="plain")
     return sequence_to_bag(sequence, Path(out_dir) / REPLICA_BAG, max_keyframes=max_keyframes, progress=progress)

@@ -35,9 +35,9 @@ from monovoc_ros.contract import (
     SOURCE_METADATA,
     topic_names,
 )
-from monovoc_ros.core.datasets import Sequence
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.evaluation.datasets import Sequence
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.gaussians import GaussianMap
 
 RGB_FORMATS = ("jpeg", "png", "raw")
 MASK_FORMATS = ("png", "raw")

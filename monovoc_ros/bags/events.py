@@ -20,9 +20,9 @@ from monovoc_ros.contract import (
     SEGMENTS_ROLE,
     topic_names,
 )
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.keyframe_log import KeyframePoses
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.ingest import IngestConfig, KeyframeAssembler, Rejection
 
 BAD_GAUSSIANS = "bad_gaussians"  # as the live node counts an unreadable map

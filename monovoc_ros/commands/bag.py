@@ -68,7 +68,7 @@ def register(subparsers) -> None:
 
 def run_convert(args: argparse.Namespace) -> int:
     from monovoc_ros.bags.convert import sequence_to_bag
-    from monovoc_ros.core.datasets import SequenceError
+    from monovoc_ros.core.evaluation.datasets import SequenceError
 
     try:
         sequence = open_source_args(args)
@@ -119,7 +119,7 @@ def run_info(args: argparse.Namespace) -> int:
 
 def run_make_bundled(args: argparse.Namespace) -> int:
     from monovoc_ros.bags import bundled
-    from monovoc_ros.core.datasets import SequenceError
+    from monovoc_ros.core.evaluation.datasets import SequenceError
 
     out_dir = Path(args.out_dir) if args.out_dir else bundled.BUNDLED_DIR
     reports = []

@@ -225,8 +225,8 @@ def _session(node, mapper, bag, out, n_keyframes, queries, rate, top_k, timeout)
 
 
 def _print_answer(text: str, answer: Any) -> dict:
-    from monovoc_ros.core.object_labels import ObjectLabel, display
-    from monovoc_ros.core.palette import format_object_id
+    from monovoc_ros.core.evidence.palette import format_object_id
+    from monovoc_ros.core.segments.object_labels import ObjectLabel, display
 
     print(f"\nquery: {text!r} -> {answer.message}")
     found = []
@@ -257,8 +257,8 @@ def _render(bag: Path, cloud: Any, map_dir: Path, out: Path) -> dict:
 
     from monovoc_ros.bags import bag_labels
     from monovoc_ros.commands.eval import bag_frames, score, write_figure
+    from monovoc_ros.core.evidence.palette import labels_from_entries
     from monovoc_ros.core.map_store import load_snapshot
-    from monovoc_ros.core.palette import labels_from_entries
 
     frames = bag_frames(bag, every=3)
     points = types.SimpleNamespace(means=cloud.points)  # all that the points protocol reads of a map

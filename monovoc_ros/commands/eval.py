@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
-from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
-from monovoc_ros.core.instance_eval import renamed, score_matched
+from monovoc_ros.core.evaluation.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
+from monovoc_ros.core.evaluation.instance_eval import renamed, score_matched
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, labels_from_entries, pack_rgb
+from monovoc_ros.core.evidence.quantize import METRICS
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.core.mapping import label_gaussians
-from monovoc_ros.core.palette import UNOBSERVED_ID, labels_from_entries, pack_rgb
-from monovoc_ros.core.quantize import METRICS
 
 PROTOCOLS = ("points", "splats")
 
@@ -92,7 +92,7 @@ def score(gaussians, object_ids, frames, protocol: str, point_size: float) -> tu
 
 
 def _instances(match, object_ids: np.ndarray) -> dict:
-    """The instance-matching figures of a per-frame map (core.instance_eval)."""
+    """The instance-matching figures of a per-frame map (core.evaluation.instance_eval)."""
     return {
         "matched_objects": len(match.mapping),
         "map_objects": match.objects,
@@ -196,7 +196,7 @@ def write_figure(path: Path, frames, rows, names: dict[int, str], metric: str) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from monovoc_ros.core.palette import unpack_rgb
+    from monovoc_ros.core.evidence.palette import unpack_rgb
 
     protocol, rendered, scores = rows
     picks = np.linspace(0, len(frames) - 1, min(3, len(frames))).astype(int)

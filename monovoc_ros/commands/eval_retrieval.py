@@ -67,16 +67,16 @@ def _switches(text: str, what: str) -> list[bool]:
 
 
 def matched_queries(map_dir: str, source: str, queries: list):
-    """Queries and ground truth translated to a per-frame map's own object ids (core.instance_eval):
+    """Queries and ground truth translated to a per-frame map's own object ids (core.evaluation.instance_eval):
     (queries with palette ids renamed, {map id: reference class name}, {map id: the map's label})."""
     import dataclasses
 
     from monovoc_ros import offline
     from monovoc_ros.commands.eval import sequence_frames
-    from monovoc_ros.core.evaluation import render_splat_labels
-    from monovoc_ros.core.instance_eval import match_instances
+    from monovoc_ros.core.evaluation.evaluation import render_splat_labels
+    from monovoc_ros.core.evaluation.instance_eval import match_instances
+    from monovoc_ros.core.evidence.palette import format_object_id, pack_rgb, parse_object_id
     from monovoc_ros.core.map_store import load_snapshot
-    from monovoc_ros.core.palette import format_object_id, pack_rgb, parse_object_id
 
     mapper = load_snapshot(Path(map_dir) if Path(map_dir).is_dir() else Path(map_dir).parent)
     seq = offline.open_source(source)
@@ -99,7 +99,7 @@ def matched_queries(map_dir: str, source: str, queries: list):
 
 
 def run(args: argparse.Namespace) -> int:
-    from monovoc_ros.core.palette import read_labels
+    from monovoc_ros.core.evidence.palette import read_labels
     from monovoc_ros.embed.backend import load_backend
     from monovoc_ros.embed.model_store import ModelMissingError
     from monovoc_ros.objects.database import ObjectDatabase, ObjectDatabaseError, database_path

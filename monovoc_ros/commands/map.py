@@ -8,12 +8,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
-from monovoc_ros.core.association import MASK_ID_MODES
+from monovoc_ros.core.evidence.palette import labels_from_entries
+from monovoc_ros.core.evidence.quantize import METRICS
 from monovoc_ros.core.map_store import save_snapshot
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
-from monovoc_ros.core.palette import labels_from_entries
-from monovoc_ros.core.quantize import METRICS
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
+from monovoc_ros.core.segments.association import MASK_ID_MODES
 
 
 def add_mapper_options(parser: argparse.ArgumentParser) -> None:

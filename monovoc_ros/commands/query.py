@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print(answer: dict, as_json: bool) -> None:
-    from monovoc_ros.core.object_labels import ObjectLabel, display
+    from monovoc_ros.core.segments.object_labels import ObjectLabel, display
 
     if as_json:
         print(json.dumps(answer, indent=1))

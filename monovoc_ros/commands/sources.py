@@ -20,7 +20,7 @@ def add_sequence_options(parser: argparse.ArgumentParser, noise_note: str) -> No
         "--mask-noise",
         default=None,
         help="corrupt the input masks as a segmenter would: 'shuffled' (every mask renumbered), merge=P, "
-        f"split=P, drop=P, small=F, comma-separated (core.segment_noise; {noise_note})",
+        f"split=P, drop=P, small=F, comma-separated (core.segments.segment_noise; {noise_note})",
     )
     parser.add_argument("--noise-seed", type=int, default=0, help="seed of --mask-noise (default 0)")
 
@@ -69,11 +69,12 @@ def open_source_args(args: argparse.Namespace):
 
     sequence = offline.open_source(args.source, args.layout, **source_options(args))
     if getattr(args, "segments_from_labels", False):
-        from monovoc_ros.core.segment_noise import PaletteSegments
+        from monovoc_ros.core.evaluation.datasets import PaletteSegments
 
         sequence = PaletteSegments(sequence)
     if args.mask_noise:
-        from monovoc_ros.core.segment_noise import CorruptedMasks, parse_mask_noise
+        from monovoc_ros.core.evaluation.datasets import CorruptedMasks
+        from monovoc_ros.core.segments.segment_noise import parse_mask_noise
 
         shuffled, rates = parse_mask_noise(args.mask_noise)
         sequence = CorruptedMasks(sequence, shuffled=shuffled, rates=rates, seed=args.noise_seed)

@@ -1,1 +1,15 @@
-"""The ROS-free core: Gaussian maps, the SCD rasterizer, semantic state, palettes, evaluation."""
+"""The ROS-free core, grouped by the method's stages (docs/architecture.md), in import order:
+
+- ``map/``: the SLAM's geometry (the Gaussian map, PLY files, cameras and poses);
+- ``raster/``: the rasterizer (evidence sums, votes and rendering, three implementations);
+- ``evidence/``: what a keyframe adds per Gaussian (votes, the SCD state, pixel labels, palettes, quantization);
+- ``segments/``: masks numbered per frame and segmenters' names (association, label rendering, object labels);
+- ``follow/``: following the SLAM's map (its motion, the evidence each new Gaussian takes, the keyframe log);
+- ``evaluation/``: scoring and the dataset readers.
+
+A stage imports from itself and from the stages listed before it, never from one after it. At the root:
+``keyframe`` and ``sync`` (a keyframe, and pairing messages into keyframes) import nothing from core but
+``map/`` and every stage may take them; ``mapping`` (SemanticMapper), ``session`` (its life), ``map_store`` (crash-safe
+snapshots), ``warm_up`` and ``object_geometry`` (an object's one geometry) sit above every stage and may
+import all of them. Nothing in core imports from outside it (tests/test_layering.py holds both rules).
+"""

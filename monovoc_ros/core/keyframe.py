@@ -6,18 +6,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.map.camera import Intrinsics
 
 
 @dataclass
 class Keyframe:
     index: int  # position in its sequence (0-based)
     stamp_ns: int  # acquisition time, nanoseconds
-    cam_to_world: np.ndarray  # (4, 4) float64, OpenCV optical camera frame (see core.camera)
+    cam_to_world: np.ndarray  # (4, 4) float64, OpenCV optical camera frame (see core.map.camera)
     intrinsics: Intrinsics  # for the mask's resolution
     mask: np.ndarray  # (H, W, 3) uint8 palette-colored segmentation; (255, 255, 255) = void
     rgb: np.ndarray | None = None  # (H', W', 3) uint8 RGB image, may differ in size from the mask
-    # Class names a segmenter gave the mask's segments (core.segment_labels.SegmentLabel), if any.
+    # Class names a segmenter gave the mask's segments (core.segments.segment_labels.SegmentLabel), if any.
     segments: tuple | None = None
 
     def __post_init__(self) -> None:

@@ -4,6 +4,7 @@ Layout of a map directory:
     CURRENT               name of the newest complete snapshot (replaced atomically)
     snap-000007/          one complete snapshot: gaussians.npz, state.npz, palette.npz, meta.json
     semantic.ply          the latest quantized cloud (x y z rgb object_id confidence), for viewers
+                          (save_semantic_ply / read_semantic_ply)
 
 A snapshot is written into a fresh directory, fsynced, and only then published by atomically replacing
 CURRENT. A process killed at any moment (SIGKILL included) therefore leaves CURRENT naming a complete
@@ -24,15 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.core.association import Associator
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.keyframe_log import KeyframeLog
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, PaletteBuilder
+from monovoc_ros.core.evidence.state import SemanticState
+from monovoc_ros.core.evidence.votes import VoteState
+from monovoc_ros.core.follow.keyframe_log import KeyframeLog
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.ply import PlyError, read_ply_vertices, write_ply_vertices
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, evidence_mismatch
-from monovoc_ros.core.palette import PaletteBuilder
-from monovoc_ros.core.ply import save_semantic_ply
-from monovoc_ros.core.segment_labels import LabelHistogram
-from monovoc_ros.core.state import SemanticState
-from monovoc_ros.core.votes import VoteState
+from monovoc_ros.core.segments.association import Associator
+from monovoc_ros.core.segments.segment_labels import LabelHistogram
 
 FORMAT_VERSION = 1
 _KEEP = 2
@@ -252,3 +253,57 @@ def export_semantic_ply(mapper: SemanticMapper, path: str | os.PathLike) -> None
     """The quantized map as a colored point cloud (Gaussian centres) for any PLY viewer."""
     result = mapper.result()
     save_semantic_ply(path, mapper.gaussians.means, result.object_rgb(), result.object_ids, result.confidence)
+
+
+SEMANTIC_UNOBSERVED = -1  # object_id of a Gaussian with no evidence in semantic.ply (palette.UNOBSERVED_ID)
+
+
+def save_semantic_ply(
+    path: str | os.PathLike,
+    points: np.ndarray,
+    rgb: np.ndarray,
+    object_id: np.ndarray,
+    confidence: np.ndarray | None = None,
+) -> None:
+    """A colored point cloud viewable in any PLY viewer: x y z red green blue object_id [confidence].
+
+    ``object_id`` (N,) uint32 packed palette colors, ``UNOBSERVED_ID`` (0xFFFFFFFF) for unobserved
+    Gaussians. It is written as ``int`` (int32), with -1 for unobserved: Open3D skips ``uint``
+    properties, and every id that is a color (<= 0xFFFFFF) fits in int32 unchanged.
+    """
+    points = np.asarray(points, np.float32)  # (N, 3)
+    rgb = np.asarray(rgb, np.uint8)  # (N, 3)
+    ids = np.asarray(object_id, np.int64)  # (N,)
+    unobserved = ids == UNOBSERVED_ID
+    bad = ~unobserved & ((ids < 0) | (ids > 0xFFFFFF))
+    if bad.any():
+        raise ValueError(f"{path}: object ids must be packed colors 0..0xFFFFFF or UNOBSERVED_ID, got {ids[bad][:3]}")
+    cols: dict[str, np.ndarray] = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}
+    cols.update(red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
+    cols["object_id"] = np.where(unobserved, SEMANTIC_UNOBSERVED, ids).astype(np.int32)
+    if confidence is not None:
+        cols["confidence"] = np.asarray(confidence, np.float32)
+    write_ply_vertices(Path(path), cols, comment="monovoc_ros semantic map")
+
+
+def read_semantic_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """A semantic.ply back as ``points`` (N, 3) float32, ``rgb`` (N, 3) uint8, ``object_id`` (N,) uint32
+    (UNOBSERVED_ID for unobserved) and ``confidence`` (N,) float32 when present.
+
+    Reads both layouts: ``int`` object_id with -1 (written since Open3D compatibility) and the older
+    ``uint`` one with 0xFFFFFFFF.
+    """
+    v = read_ply_vertices(path)
+    missing = [n for n in ("x", "y", "z", "red", "green", "blue", "object_id") if n not in v.dtype.names]
+    if missing:
+        raise PlyError(f"{path}: not a semantic PLY, missing vertex properties {missing}")
+    ids = v["object_id"].astype(np.int64)
+    ids[ids == SEMANTIC_UNOBSERVED] = UNOBSERVED_ID
+    out = {
+        "points": np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32),
+        "rgb": np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8),
+        "object_id": ids.astype(np.uint32),
+    }
+    if "confidence" in v.dtype.names:
+        out["confidence"] = v["confidence"].astype(np.float32)
+    return out

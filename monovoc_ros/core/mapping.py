@@ -1,8 +1,8 @@
 """The semantic mapper: keyframes in, per-Gaussian object labels out (no ROS).
 
 One class drives the whole method for a Gaussian map: per keyframe either per-object votes
-(`semantic_mode` "vote", the default: core.votes) or the paper's SCD color sums with palette
-quantization ("scd": core.state, core.quantize), the palette seen so far, and map updates from the
+(`semantic_mode` "vote", the default: core.evidence.votes) or the paper's SCD color sums with palette
+quantization ("scd": core.evidence.state, core.evidence.quantize), the palette seen so far, and map updates from the
 SLAM front-end. The offline `monovoc map` command and the
 live `semantic_mapper` node both wrap this class, so a bag processed offline and the same bag replayed
 through the node give the same semantic map.
@@ -17,26 +17,26 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from monovoc_ros.core.association import (
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
+from monovoc_ros.core.evidence.pixel_labels import mask_labels
+from monovoc_ros.core.evidence.quantize import METRICS, Quantization, confidence, quantize
+from monovoc_ros.core.evidence.state import GaussianEvidence, SemanticState
+from monovoc_ros.core.evidence.votes import DEFAULT_SLOTS, VoteState
+from monovoc_ros.core.follow.keyframe_log import DEFAULT_MAX_BYTES, KeyframeLog, LoggedKeyframe
+from monovoc_ros.core.follow.map_follow import FollowConfig, follow_map
+from monovoc_ros.core.follow.map_motion import MapMotion
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.object_geometry import ObjectGeometry, object_geometry
+from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS, accumulate, accumulate_votes
+from monovoc_ros.core.segments.association import (
     MASK_ID_MODES,
     Association,
     AssociationConfig,
     Associator,
     associate_keyframe,
 )
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.keyframe_log import DEFAULT_MAX_BYTES, KeyframeLog, LoggedKeyframe
-from monovoc_ros.core.map_follow import FollowConfig, follow_map
-from monovoc_ros.core.map_motion import MapMotion
-from monovoc_ros.core.objects import ObjectGeometry, object_geometry
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
-from monovoc_ros.core.pixel_labels import mask_labels
-from monovoc_ros.core.quantize import METRICS, Quantization, confidence, quantize
-from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS, accumulate, accumulate_votes
-from monovoc_ros.core.segment_labels import LabelHistogram
-from monovoc_ros.core.state import GaussianEvidence, SemanticState
-from monovoc_ros.core.votes import DEFAULT_SLOTS, VoteState
+from monovoc_ros.core.segments.segment_labels import LabelHistogram
 
 VOID_POLICIES = ("skip", "include")
 # Metres: a map update bending the map this much re-integrates (its evidence was rendered on the unbent map).
@@ -63,12 +63,12 @@ class DuplicateKeyframeError(ValueError):
 class MapperConfig:
     impl: str = "numba"  # rasterizer implementation (core.raster.IMPLEMENTATIONS)
     device: str | None = None  # torch device when impl == "torch"
-    metric: str = "cmc"  # palette quantization metric (core.quantize.METRICS)
+    metric: str = "cmc"  # palette quantization metric (core.evidence.quantize.METRICS)
     # Void (pure white) mask pixels: "skip" adds no evidence from them (they are "don't know", not an
     # object); "include" treats white like a color, pulling partly-void Gaussians toward white.
     void_policy: str = "skip"
     # Map updates: a new Gaussian without an old id takes the evidence of the nearest old Gaussian (moved
-    # by the map's estimated motion) within this distance plus its own largest scale (metres; core.map_follow).
+    # by the map's estimated motion) within this distance plus its own largest scale (metres; core.follow.map_follow).
     reassociation_tolerance: float = 0.03
     # Exponent k of the evidence weights w_ip^k (core.raster.WEIGHT_POWERS): 1 is the paper's SCD; 4 cut
     # the labelling errors at object boundaries most (README, "Choices").
@@ -85,14 +85,14 @@ class MapperConfig:
     # which is what lossy (JPEG) masks need, whose flat regions drift off the true colors.
     object_colors: tuple[int, ...] = ()
     # "global": a mask color names the same object in every keyframe; "per_frame": segment ids hold for
-    # one mask only and are associated with the map's objects (core.association; vote mode only).
+    # one mask only and are associated with the map's objects (core.segments.association; vote mode only).
     mask_ids: str = "global"
     # per_frame: overlaps are counted on the map rendered at 1/association_scale of the mask resolution.
     association_scale: int = 2
-    # Bytes the keyframe log (core.keyframe_log: masks, poses, segments for re-integration) may hold.
+    # Bytes the keyframe log (core.follow.keyframe_log: masks, poses, segments for re-integration) may hold.
     keyframe_log_bytes: int = DEFAULT_MAX_BYTES
     # A map update that carries the evidence of less than this share of the labelled Gaussians, or that
-    # bends the map (core.map_motion: a field offset of REINTEGRATE_BEND_M or more), is followed by a
+    # bends the map (core.follow.map_motion: a field offset of REINTEGRATE_BEND_M or more), is followed by a
     # re-integration of the logged keyframes with their poses moved with the map; 0: never.
     reintegrate_below: float = 0.9
 
@@ -129,7 +129,7 @@ class MapperConfig:
             raise ValueError("mask_ids 'per_frame' cannot take object_colors: per-frame mask colors name no object")
 
     def follow(self) -> FollowConfig:
-        """How map updates carry evidence over (core.map_follow)."""
+        """How map updates carry evidence over (core.follow.map_follow)."""
         return FollowConfig(radius=self.reassociation_tolerance)
 
     def evidence_settings(self) -> dict:
@@ -169,7 +169,7 @@ class SemanticResult:
     _objects_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
 
     def objects(self, gaussians: GaussianMap) -> ObjectGeometry:
-        """The objects' geometry in ``gaussians``, the map this result labels (core.objects.object_geometry).
+        """The objects' geometry in ``gaussians``, the map this result labels (core.object_geometry.object_geometry).
 
         Computed once per result (~20-80 ms) and shared by everything that reports objects (the objects
         topic and its markers on the worker thread, the object index and objects.db on theirs), so they agree."""
@@ -187,7 +187,7 @@ class SemanticResult:
 
 
 class MapMotionError(ValueError):
-    """A map update whose motion is not believable (core.map_follow): refused, the map in use is kept."""
+    """A map update whose motion is not believable (core.follow.map_follow): refused, the map in use is kept."""
 
 
 @dataclass
@@ -197,7 +197,7 @@ class MapUpdateReport:
     gaussians: int  # size of the new map
     by_id: int  # new Gaussians that took their evidence by id
     by_position: int  # new Gaussians that took it by the moved position
-    motion: MapMotion  # how the map moved (core.map_motion)
+    motion: MapMotion  # how the map moved (core.follow.map_motion)
     seconds: float = 0.0
 
     @property
@@ -296,7 +296,7 @@ class SemanticMapper:
 
     def _associate(self, keyframe: Keyframe) -> tuple[Keyframe, Association]:
         """Per-frame mask ids: the keyframe with its segments in the colors of the objects they were
-        associated with (core.association), after merging the objects the association found to be one."""
+        associated with (core.segments.association), after merging the objects the association found to be one."""
         ids, conf = self._vote_labels()
         keyframe, association = associate_keyframe(
             self.associator, self.gaussians, ids, keyframe,
@@ -386,7 +386,7 @@ class SemanticMapper:
         )
 
     def object_labels(self) -> dict[int, str]:
-        """Object id -> the leading class name its segments were given (core.segment_labels)."""
+        """Object id -> the leading class name its segments were given (core.segments.segment_labels)."""
         return self.segment_labels.leading()
 
     def result(self) -> SemanticResult:
@@ -422,7 +422,7 @@ class SemanticMapper:
         return out
 
     def update_gaussians(self, gaussians: GaussianMap) -> MapUpdateReport:
-        """Swaps in a new map from the SLAM front-end, carrying accumulated evidence over (core.map_follow:
+        """Swaps in a new map from the SLAM front-end, carrying accumulated evidence over (core.follow.map_follow:
         by id where the maps share ids, else by the map's estimated motion). Raises MapMotionError, with
         nothing changed, when the motion is not believable."""
         start = time.perf_counter()

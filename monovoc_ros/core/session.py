@@ -8,7 +8,7 @@ changes it:
   there is one. A stamp already in the map is refused (duplicate_stamp), as is a keyframe the
   rasterizer refuses (integration_error); both leave the state untouched.
 * Gaussian maps from the SLAM front-end: the first creates the mapper; a later one is a map update,
-  skipped when it is the same map again (core.gaussians.same_geometry) and refused when it is empty
+  skipped when it is the same map again (core.map.gaussians.same_geometry) and refused when it is empty
   (empty_gaussians) or removes more than `max_shrink` of the Gaussians (map_shrink): one empty cloud
   must not wipe the map.
 * reset, save and load, with their listeners and load checks.
@@ -30,10 +30,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from monovoc_ros.core.camera import validate_pose
-from monovoc_ros.core.gaussians import GaussianMap, removed_gaussians, same_geometry
+from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.keyframe_log import KeyframePoses
+from monovoc_ros.core.map.camera import validate_pose
+from monovoc_ros.core.map.gaussians import GaussianMap, removed_gaussians, same_geometry
+from monovoc_ros.core.map.ply import load_ply
 from monovoc_ros.core.map_store import SnapshotInfo, load_snapshot, save_snapshot
 from monovoc_ros.core.mapping import (
     DuplicateKeyframeError,
@@ -42,7 +43,6 @@ from monovoc_ros.core.mapping import (
     MapperConfig,
     SemanticMapper,
 )
-from monovoc_ros.core.ply import load_ply
 
 # A map update removing a larger share of the Gaussians is refused; 1.0 allows every update.
 DEFAULT_MAX_SHRINK = 0.5
@@ -51,7 +51,7 @@ DEFAULT_MAX_SHRINK = 0.5
 #   integration_error   the rasterizer refused a keyframe (state untouched)
 #   empty_gaussians     a Gaussian map without a single Gaussian (the map in use is kept)
 #   map_shrink          a map update that would remove more than max_shrink of the Gaussians
-#   map_motion          a map update whose estimated motion is not believable (core.map_follow)
+#   map_motion          a map update whose estimated motion is not believable (core.follow.map_follow)
 #   bad_keyframe_poses  corrected keyframe poses that are not rigid, not finite, or move a keyframe > 10 m
 #   reintegration_incomplete_log  a re-integration skipped: the keyframe log lacks some integrated keyframes
 SESSION_REASONS = (

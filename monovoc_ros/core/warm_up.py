@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.camera import Intrinsics
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 
 

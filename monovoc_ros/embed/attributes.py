@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from monovoc_ros.core.color import srgb_to_lab
+from monovoc_ros.core.evidence.color import srgb_to_lab
 from monovoc_ros.embed.arrays import l2_normalize
 
 BASIC_COLORS = ("black", "white", "gray", "red", "orange", "yellow", "green", "blue", "purple", "pink", "brown")

@@ -62,7 +62,7 @@ class MappingHost:
     add_save_listener: Callable[[SaveListener], None]  # fn(directory, info, mapper) after every snapshot
     add_load_check: Callable[[LoadCheck], None]  # see MapWorker.add_load_check
     add_diagnostics_source: Callable[[Callable[[], dict[str, Any]]], None]  # fn() -> pairs for /diagnostics
-    # Object labels (core.object_labels): set_label_provider(fn), fn() -> {object id: ObjectLabel}, gives the
+    # Object labels (core.segments.object_labels): set_label_provider(fn), fn() -> {object id: ObjectLabel}, gives the
     # objects topic and its markers the labels a component knows (after labels_file and segment labels; one
     # provider; fn runs on the worker thread, so it returns a ready mapping). republish_objects() asks for
     # the last objects and markers again with the current labels (queued on the worker thread; when a

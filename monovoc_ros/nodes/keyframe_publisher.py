@@ -22,8 +22,8 @@ from monovoc_ros.contract import (
     keyframe_types,
     message_class,
 )
-from monovoc_ros.core.gaussians import GaussianMap
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.nodes.qos import input_qos, latched_qos
 
 ROLE_ORDER = ("pose", "camera_info", "image", SEGMENTS_ROLE, "mask")  # the mask (the synchronizer's pivot) last

@@ -48,9 +48,9 @@ from monovoc_ros.contract import (
     keyframe_types,
     message_class,
 )
+from monovoc_ros.core.map.ply import load_ply
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
-from monovoc_ros.core.ply import load_ply
 from monovoc_ros.core.session import KeyframeListener
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.component import Component, MappingHost

@@ -22,7 +22,7 @@ only hands the newest result over; this component's own thread refreshes summari
 objects in bounded chunks (``objects.max_objects_per_refresh``), so the worker never waits for the image
 encoder. A reset clears the objects; a load_map restores those saved with that map (if any). Geometry
 (centroids, boxes) is the mapping result's own (``SemanticResult.objects``): the objects topic, its markers
-and the answers agree. So do labels (core.object_labels): this component gives the host the labels its
+and the answers agree. So do labels (core.segments.object_labels): this component gives the host the labels its
 records carry (``MappingHost.set_label_provider``: restored names and the embedding model's guesses, which
 exist only after embedding) and asks for the objects and markers again when they change.
 """
@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 import msg_adapters as ma
-from monovoc_ros.core.object_labels import ObjectLabel, display
+from monovoc_ros.core.segments.object_labels import ObjectLabel, display
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
 from monovoc_ros.nodes.object_query_params import PARAMETERS

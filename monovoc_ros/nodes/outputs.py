@@ -3,7 +3,7 @@
 Everything published is derived from one `SemanticResult`, so cloud, markers and objects always agree; the
 objects and markers report the result's one object geometry (`SemanticResult.objects`), as do the query
 answers and objects.db.
-Labels follow core.object_labels: labels_file, then the segmenter's class names, then what a label
+Labels follow core.segments.object_labels: labels_file, then the segmenter's class names, then what a label
 provider knows (the object-query component: names restored from objects.db and the embedding model's
 guesses, which exist only once objects are embedded). When those change, `republish_objects` sends the
 objects and markers of the last result again with the new labels (on the worker thread, like `publish`).
@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 import msg_adapters as ma
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
-from monovoc_ros.core.object_labels import ObjectLabel, display, label_fields, resolve
-from monovoc_ros.core.objects import ObjectSummary
-from monovoc_ros.core.palette import UNOBSERVED_ID
+from monovoc_ros.core.object_geometry import ObjectSummary
+from monovoc_ros.core.segments.object_labels import ObjectLabel, display, label_fields, resolve
 from monovoc_ros.nodes.qos import latched_qos
 
 # fn() -> object id -> label, consulted after labels_file and segment labels (called on the worker thread).

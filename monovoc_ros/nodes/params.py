@@ -15,11 +15,11 @@ from pathlib import Path
 from typing import Any
 
 from monovoc_ros.contract import IMAGE_MESSAGE_TYPES, MAP_FRAME
-from monovoc_ros.core.association import MASK_ID_MODES
+from monovoc_ros.core.evidence.palette import read_labels
+from monovoc_ros.core.evidence.quantize import METRICS
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
-from monovoc_ros.core.palette import read_labels
-from monovoc_ros.core.quantize import METRICS
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
+from monovoc_ros.core.segments.association import MASK_ID_MODES
 from monovoc_ros.ingest import FRAME_CONVENTIONS, POSE_TYPES, IngestConfig
 from monovoc_ros.nodes.param_spec import Param, ParameterError, defaults, validate
 from monovoc_ros.nodes.worker import WorkerSettings

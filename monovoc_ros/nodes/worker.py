@@ -37,9 +37,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.keyframe_log import KeyframePoses
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map_store import SnapshotInfo
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
 from monovoc_ros.core.session import (

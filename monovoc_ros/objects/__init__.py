@@ -4,7 +4,7 @@
 - ``index``: one embedding per object, incremental refresh, text queries (``records``: what it returns).
 - ``geometry``: which Gaussians shape an object (confident ones in its main spatial cluster).
 - ``upright``: sizes and heights in a gravity-aligned frame; the up direction of a map.
-- ``labels``: class names as nouns for descriptions (ids and labels.json: ``core.palette``).
+- ``labels``: class names as nouns for descriptions (ids and labels.json: ``core.evidence.palette``).
 - ``database``: the SQLite object database (``objects.db`` in the map directory).
 - ``build``: building an index offline from a mapper and keyframes.
 - ``evaluation``: the paper's retrieval protocol (top-1 / top-3 of text queries).

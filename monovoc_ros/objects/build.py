@@ -9,8 +9,8 @@ import sys
 
 from tqdm import tqdm
 
+from monovoc_ros.core.evidence.palette import labels_from_entries
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
-from monovoc_ros.core.palette import labels_from_entries
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 
 
@@ -25,7 +25,7 @@ def map_with_objects(
     use_labels: bool = True,
     progress: bool = False,
 ) -> tuple[SemanticMapper, ObjectIndex]:
-    """Maps a ``core.datasets.Sequence`` (every ``stride``-th keyframe) and indexes its objects as the
+    """Maps a ``core.evaluation.datasets.Sequence`` (every ``stride``-th keyframe) and indexes its objects as the
     live node does (views offered after each integration). ``use_labels``: take class names from the
     sequence's labels (labels.json) unless ``index_config`` has its own."""
     gaussians = sequence.load_gaussians()

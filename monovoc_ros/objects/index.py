@@ -29,11 +29,11 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.evidence.palette import format_object_id, parse_object_id
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.object_labels import GIVEN, GUESS, SEGMENTS, ObjectLabel, resolve
-from monovoc_ros.core.objects import ObjectSummary
-from monovoc_ros.core.palette import format_object_id, parse_object_id
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.object_geometry import ObjectSummary
+from monovoc_ros.core.segments.object_labels import GIVEN, GUESS, SEGMENTS, ObjectLabel, resolve
 from monovoc_ros.embed.arrays import l2_normalize
 from monovoc_ros.embed.attributes import best_class_name, combine, describe, dominant_color_name
 from monovoc_ros.embed.crops import crop_object
@@ -297,7 +297,7 @@ class ObjectIndex:
         key = (id(gaussians), id(result))
         if key == self._geometry_key:
             return
-        # The result's one geometry (core.objects): the objects topic and its markers report the same.
+        # The result's one geometry (core.object_geometry): the objects topic and its markers report the same.
         geometry = result.objects(gaussians)
         self._summaries = {s.id: s for s in geometry.objects}
         if self.config.up_axis == "auto" and self._up_key != id(gaussians):
@@ -335,7 +335,7 @@ class ObjectIndex:
         return len(todo)
 
     def _label(self, oid: int, backend) -> ObjectLabel:
-        """The one rule (core.object_labels.resolve), with the model's guess last."""
+        """The one rule (core.segments.object_labels.resolve), with the model's guess last."""
         label = resolve(oid, self.config.labels or {}, self.segment_labels, self._restored_label)
         if label is not None:
             return label

@@ -1,4 +1,4 @@
-"""Class names as words: the noun phrase of a labels.json class name (ids and labels.json: core.palette)."""
+"""Class names as words: the noun phrase of a labels.json class name (ids and labels.json: core.evidence.palette)."""
 
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 PAPER_BYTES_PER_SCENE = 14_000_000  # MonoVoc: 14 MB per scene of ~140k Gaussians
 PAPER_GAUSSIANS = 140_000
 TARGET_SEMANTIC_BYTES = 1_000_000  # this project's target for 140k Gaussians and 100 objects
-# The default vote state (core.votes): 4 slots of (uint32 object id, float64 votes) + float64 "other".
+# The default vote state (core.evidence.votes): 4 slots of (uint32 object id, float64 votes) + float64 "other".
 ACCUMULATOR_BYTES_PER_GAUSSIAN = 4 * (4 + 8) + 8
 _RECORD_FIXED_BYTES = 9 * 8 + 4 * 8  # centroid + box (9 float64) + id and 3 counts (int64)
 _TEXT_BYTES = 64  # label + description, typical ("a small brown box, 0.36 m wide, 0.76 m above the floor")

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from monovoc_ros.core.palette import format_object_id, unpack_rgb
+from monovoc_ros.core.evidence.palette import format_object_id, unpack_rgb
 
 
 class QueryError(ValueError):
@@ -18,10 +18,10 @@ class QueryError(ValueError):
 @dataclass(eq=False)
 class ObjectRecord:
     id: int  # packed palette color r << 16 | g << 8 | b
-    # The object's one label (core.object_labels): labels_file, a segmenter's class, a restored name, else
+    # The object's one label (core.segments.object_labels): labels_file, a segmenter's class, a restored name, else
     # the embedding model's best class for its image embedding.
     label: str
-    label_source: str  # "given", "segments" or "guess" (core.object_labels.SOURCES)
+    label_source: str  # "given", "segments" or "guess" (core.segments.object_labels.SOURCES)
     description: str  # attribute description, e.g. "a blue chair, 0.97 m tall"
     color_name: str  # dominant basic color term of the object's pixels in its views
     centroid: np.ndarray  # (3,) float64, map frame, metres

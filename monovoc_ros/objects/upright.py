@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.objects import ObjectGeometry, percentile_boxes
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.object_geometry import ObjectGeometry, percentile_boxes
 
 AXES = {"+x": (0, 1.0), "-x": (0, -1.0), "+y": (1, 1.0), "-y": (1, -1.0), "+z": (2, 1.0), "-z": (2, -1.0)}
 
@@ -38,7 +38,7 @@ def camera_up(cam_to_world: np.ndarray) -> np.ndarray:
 
 def estimate_up(gaussians: GaussianMap, hint: np.ndarray, max_samples: int = 50_000) -> np.ndarray:
     """Refines an up direction ``hint`` (e.g. the mean camera up) with the normals of flat Gaussians."""
-    from monovoc_ros.core.camera import quat_wxyz_to_matrix
+    from monovoc_ros.core.map.camera import quat_wxyz_to_matrix
 
     up = np.asarray(hint, np.float64)
     up = up / np.linalg.norm(up)

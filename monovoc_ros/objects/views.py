@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.palette import VOID_ID, pack_rgb
 from monovoc_ros.objects import views_kernels as vk
 
 

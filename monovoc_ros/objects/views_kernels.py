@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from monovoc_ros.core.palette_kernels import lower_bound
+from monovoc_ros.core.evidence.palette_kernels import lower_bound
 
 
 @njit(parallel=True, cache=True)

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from monovoc_ros.core.camera import quat_wxyz_to_matrix
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import quat_wxyz_to_matrix
+from monovoc_ros.core.map.gaussians import GaussianMap
 
 PoseMover = Callable[[np.ndarray], np.ndarray]  # (4, 4) cam_to_world -> (4, 4) corrected
 

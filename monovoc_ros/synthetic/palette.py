@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from monovoc_ros.core.color import srgb_to_lab
+from monovoc_ros.core.evidence.color import srgb_to_lab
 from monovoc_ros.synthetic.errors import SyntheticError
 
 VOID_RGB = np.array([255, 255, 255], dtype=np.uint8)

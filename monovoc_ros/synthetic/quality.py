@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
-from monovoc_ros.core.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
-from monovoc_ros.core.palette import VOID_ID, pack_rgb
+from monovoc_ros.core.evaluation.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
+from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb
 from monovoc_ros.synthetic.raycast import bounding_spheres
 from monovoc_ros.synthetic.scene import FLOATER, SceneConfig, SyntheticScene, generate_scene
 from monovoc_ros.synthetic.visibility import observed_views
@@ -101,7 +101,7 @@ def map_statistics(scene: SyntheticScene) -> dict:
 
 def _surface_normals(scene: SyntheticScene) -> np.ndarray:
     """The thin (third) axis of each Gaussian, turned to face out of its primitive."""
-    from monovoc_ros.core.camera import quat_wxyz_to_matrix
+    from monovoc_ros.core.map.camera import quat_wxyz_to_matrix
 
     g = scene.gaussians
     n = quat_wxyz_to_matrix(g.quats)[:, :, 2].astype(np.float64)

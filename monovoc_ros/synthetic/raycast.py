@@ -17,7 +17,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.synthetic.errors import SyntheticError
 from monovoc_ros.synthetic.primitives import KIND_BOX, KIND_CYLINDER, KIND_PLANE, KIND_SPHERE
 

@@ -11,10 +11,10 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.datasets import Sequence
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.evaluation.datasets import Sequence
 from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.camera import Intrinsics
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.synthetic import corruption
 from monovoc_ros.synthetic.appearance import Appearance
 from monovoc_ros.synthetic.errors import SyntheticError

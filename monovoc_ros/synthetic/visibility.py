@@ -17,7 +17,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
+from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.synthetic.raycast import (
     _box,
     _cylinder,

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import Intrinsics
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster.inputs import (
     check_background,
     check_colors,

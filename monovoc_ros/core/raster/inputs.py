@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics, invert_pose, validate_pose
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import Intrinsics, invert_pose, validate_pose
+from monovoc_ros.core.map.gaussians import GaussianMap
 
 
 @dataclass(frozen=True)

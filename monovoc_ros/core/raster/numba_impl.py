@@ -20,7 +20,7 @@ import numba
 import numpy as np
 import threadpoolctl
 
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster import numba_kernels as nk
 from monovoc_ros.core.raster.inputs import View
 from monovoc_ros.core.raster.projection import jacobian_limits, tile_grid

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics, quat_wxyz_to_matrix
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import Intrinsics, quat_wxyz_to_matrix
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster.constants import ALPHA_MAX, ALPHA_MIN, DEPTH_MIN_COVERAGE, T_MIN, TILE
 from monovoc_ros.core.raster.inputs import View, check_view
 from monovoc_ros.core.raster.projection import Projection, project

@@ -17,7 +17,7 @@ import weakref
 import numpy as np
 import torch
 
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster.constants import (
     ALPHA_MAX,
     ALPHA_MIN,

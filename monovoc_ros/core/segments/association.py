@@ -2,7 +2,7 @@
 
 SAM-style segmenters, detectors with masks and panoptic networks number their segments per image
 (METHOD.md section 9). Per keyframe, the map's current object labels are rendered into the view in
-one pass (core.label_render: per pixel the leading object, void included), and for every segment s
+one pass (core.segments.label_render: per pixel the leading object, void included), and for every segment s
 and rendered object o the overlap C[s, o] (pixels of s where o leads) is counted over the pixels
 that both a segment and an object claim. Then:
 
@@ -34,7 +34,7 @@ that both a segment and an object claim. Then:
    pixels add nothing. Given to one object, the fused segment's pixels were voted into the other in
    every frame that fused them. A split segment's class name (segment labels) is dropped: it names one
    of the objects, not which.
-7. Where the segments carry class names (segment labels, core.segment_labels), an object whose names add
+7. Where the segments carry class names (segment labels, core.segments.segment_labels), an object whose names add
    up to `name_min_score` is named, and a segment whose name holds less than `name_share` of an object's
    names is another object: its pixels where the map renders that object count as unclaimed (as void) in
    stages 1, 2 and 5, so it is never matched to it, and two objects named differently are never merged.
@@ -59,8 +59,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, pack_rgb, unpack_rgb
-from monovoc_ros.core.segment_labels import SegmentLabel, leading_name
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, pack_rgb, unpack_rgb
+from monovoc_ros.core.segments.segment_labels import SegmentLabel, leading_name
 
 MASK_ID_MODES = ("global", "per_frame")
 # Colors never issued to a new object: void white, black and the grey unobserved points are drawn in.
@@ -421,7 +421,7 @@ def rendered_object_index(gaussian_ids: np.ndarray, issued: list[int]) -> tuple[
 
     With every id among `issued` (the per-frame case) a binary search over the issued ids replaces
     sorting the Gaussians' ids."""
-    from monovoc_ros.core.label_render_kernels import compact_index
+    from monovoc_ros.core.segments.label_render_kernels import compact_index
 
     gaussian_ids = np.ascontiguousarray(gaussian_ids, np.uint32)
     table = np.unique(np.asarray(issued, np.uint32))
@@ -452,7 +452,7 @@ def associate_keyframe(
     runner_up_ids: Callable[[], np.ndarray] | None = None,
     object_names: Mapping[int, Mapping[str, float]] | None = None,
 ):
-    """One keyframe of per-frame segments: its segments (the mask's own palette, core.pixel_labels),
+    """One keyframe of per-frame segments: its segments (the mask's own palette, core.evidence.pixel_labels),
     the map's labels `gaussian_ids` (N,) rendered into its view, the association, and the keyframe
     with its mask relabeled in object colors. `runner_up_ids()`: (N,) each Gaussian's runner-up object
     (VoteState.runner_up), rendered only when the association needs it. `object_names`: object id -> class
@@ -460,9 +460,9 @@ def associate_keyframe(
     (keyframe, Association)."""
     from dataclasses import replace
 
-    from monovoc_ros.core.evaluation import resize_nearest
-    from monovoc_ros.core.label_render import render_label_weights
-    from monovoc_ros.core.pixel_labels import mask_labels
+    from monovoc_ros.core.evidence.pixel_labels import mask_labels
+    from monovoc_ros.core.map.camera import resize_nearest
+    from monovoc_ros.core.segments.label_render import render_label_weights
 
     start = time.perf_counter()
     labelled, _ = mask_labels(keyframe.mask, metric, min_snap_margin)

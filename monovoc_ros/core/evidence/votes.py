@@ -12,9 +12,9 @@ the rest: 12 m + 8 bytes per Gaussian (56 at m = 4). Whenever a Gaussian has see
 (nearly all of them: a surface Gaussian sees its object and its neighbours') the state is exact; beyond
 that a rarely seen object can be evicted to "other" and later votes for it restart its count.
 
-Object ids are the packed palette colors (core.palette), so states built from the same masks agree
+Object ids are the packed palette colors (core.evidence.palette), so states built from the same masks agree
 and states of two robots or two bags merge by object id. Stamps, ids, files and map updates behave as
-for the SCD state (core.state.GaussianEvidence).
+for the SCD state (core.evidence.state.GaussianEvidence).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from monovoc_ros.core.palette import UNOBSERVED_ID
-from monovoc_ros.core.state import GaussianEvidence
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
+from monovoc_ros.core.evidence.state import GaussianEvidence
 
 EMPTY_SLOT = UNOBSERVED_ID  # object id of an unused slot
 DEFAULT_SLOTS = 4
@@ -131,7 +131,7 @@ class VoteState(GaussianEvidence):
         self.stamps_ns = np.append(self.stamps_ns, np.int64(stamp_ns))
 
     def _merge(self, rows, objects, votes, other) -> None:
-        from monovoc_ros.core.vote_kernels import merge_slots
+        from monovoc_ros.core.evidence.vote_kernels import merge_slots
 
         merge_slots(self.objects, self.votes, self.other, rows, objects, votes, other)
 
@@ -173,7 +173,7 @@ class VoteState(GaussianEvidence):
     def relabel(self, rows: np.ndarray, ids: np.ndarray, confidence: np.ndarray) -> None:
         """Writes `labels` of the Gaussians `rows` into `ids` (N,) uint32 and `confidence` (N,) float32
         (the numba twin of `labels`, for the few rows a keyframe touched)."""
-        from monovoc_ros.core.vote_kernels import label_rows
+        from monovoc_ros.core.evidence.vote_kernels import label_rows
 
         label_rows(self.objects, self.votes, self.other, np.asarray(rows, np.int64), ids, confidence)
 

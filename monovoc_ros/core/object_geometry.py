@@ -40,8 +40,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID, unpack_rgb
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, unpack_rgb
+from monovoc_ros.core.map.gaussians import GaussianMap
 
 MIN_CONFIDENCE = 0.3
 CLUSTER_VOXEL = 0.25  # metres; 0 keeps every Gaussian of the object (no cluster filter)

@@ -3,7 +3,7 @@
 Sources, strongest first:
 
 * ``given``: ``labels_file`` (labels.json) names the object's color;
-* ``segments``: the leading class a segmenter gave the object's segments (core.segment_labels);
+* ``segments``: the leading class a segmenter gave the object's segments (core.segments.segment_labels);
 * a name restored from objects.db (it was ``given`` or ``segments`` when the database was written, so a
   restart without the labels file keeps it, with its source);
 * ``guess``: the embedding model's best class for the object's image embedding (ImageNet for conse),

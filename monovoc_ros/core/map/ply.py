@@ -1,4 +1,5 @@
-"""PLY files: standard 3DGS Gaussian maps (read and write) and semantic point clouds (write and read).
+"""PLY files: standard 3DGS Gaussian maps (read and write) and any PLY's vertex table (read and write; the
+semantic point cloud of a map directory is core.map_store's).
 
 Gaussian PLYs follow the graphdeco-inria convention (METHOD.md section 1): float vertex properties
 `x y z [nx ny nz] f_dc_0..2 [f_rest_*] opacity scale_0..2 rot_0..3` with `rot_0` = w, opacity as a
@@ -14,8 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.palette import UNOBSERVED_ID
+from monovoc_ros.core.map.gaussians import GaussianMap
 
 SH_C0 = 0.28209479177387814
 
@@ -223,7 +223,7 @@ def _load_ply(path: str | os.PathLike) -> GaussianMap:
         raise PlyError(f"{path}: {exc}") from exc
 
 
-def _write_binary(path: Path, columns: dict[str, np.ndarray], comment: str = "") -> None:
+def write_ply_vertices(path: Path, columns: dict[str, np.ndarray], comment: str = "") -> None:
     """Binary little-endian PLY with one vertex element; written to a temp file then renamed."""
     n = len(next(iter(columns.values())))
     dtype = np.dtype([(name, "<" + col.dtype.str[1:]) for name, col in columns.items()])
@@ -273,58 +273,4 @@ def save_ply(path: str | os.PathLike, gmap: GaussianMap) -> None:
         if gmap.ids.min(initial=0) < 0 or gmap.ids.max(initial=0) > np.iinfo(np.uint32).max:
             raise ValueError(f"{path}: Gaussian ids must fit in uint32 to be written to PLY")
         cols["id"] = gmap.ids.astype(np.uint32)
-    _write_binary(Path(path), cols)
-
-
-SEMANTIC_UNOBSERVED = -1  # object_id of a Gaussian with no evidence in semantic.ply (palette.UNOBSERVED_ID)
-
-
-def save_semantic_ply(
-    path: str | os.PathLike,
-    points: np.ndarray,
-    rgb: np.ndarray,
-    object_id: np.ndarray,
-    confidence: np.ndarray | None = None,
-) -> None:
-    """A colored point cloud viewable in any PLY viewer: x y z red green blue object_id [confidence].
-
-    ``object_id`` (N,) uint32 packed palette colors, ``UNOBSERVED_ID`` (0xFFFFFFFF) for unobserved
-    Gaussians. It is written as ``int`` (int32), with -1 for unobserved: Open3D skips ``uint``
-    properties, and every id that is a color (<= 0xFFFFFF) fits in int32 unchanged.
-    """
-    points = np.asarray(points, np.float32)  # (N, 3)
-    rgb = np.asarray(rgb, np.uint8)  # (N, 3)
-    ids = np.asarray(object_id, np.int64)  # (N,)
-    unobserved = ids == UNOBSERVED_ID
-    bad = ~unobserved & ((ids < 0) | (ids > 0xFFFFFF))
-    if bad.any():
-        raise ValueError(f"{path}: object ids must be packed colors 0..0xFFFFFF or UNOBSERVED_ID, got {ids[bad][:3]}")
-    cols: dict[str, np.ndarray] = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}
-    cols.update(red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
-    cols["object_id"] = np.where(unobserved, SEMANTIC_UNOBSERVED, ids).astype(np.int32)
-    if confidence is not None:
-        cols["confidence"] = np.asarray(confidence, np.float32)
-    _write_binary(Path(path), cols, comment="monovoc_ros semantic map")
-
-
-def read_semantic_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """A semantic.ply back as ``points`` (N, 3) float32, ``rgb`` (N, 3) uint8, ``object_id`` (N,) uint32
-    (UNOBSERVED_ID for unobserved) and ``confidence`` (N,) float32 when present.
-
-    Reads both layouts: ``int`` object_id with -1 (written since Open3D compatibility) and the older
-    ``uint`` one with 0xFFFFFFFF.
-    """
-    v = read_ply_vertices(path)
-    missing = [n for n in ("x", "y", "z", "red", "green", "blue", "object_id") if n not in v.dtype.names]
-    if missing:
-        raise PlyError(f"{path}: not a semantic PLY, missing vertex properties {missing}")
-    ids = v["object_id"].astype(np.int64)
-    ids[ids == SEMANTIC_UNOBSERVED] = UNOBSERVED_ID
-    out = {
-        "points": np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32),
-        "rgb": np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8),
-        "object_id": ids.astype(np.uint32),
-    }
-    if "confidence" in v.dtype.names:
-        out["confidence"] = v["confidence"].astype(np.float32)
-    return out
+    write_ply_vertices(Path(path), cols)

@@ -6,7 +6,7 @@ carries them as `Keyframe.segments`; dataset folders give them as ``segments/<ma
 (``[{"color": [r, g, b], "class_name": "chair", "score": 0.9}, ...]``, or ``"id": 0xRRGGBB`` in
 place of the color). The mapper adds each named segment's score to a per-object histogram under the
 object the segment was integrated as (the segment's own color with global mask ids, its associated
-object with per-frame ids; core.association), and an object's label is its leading class. Merged
+object with per-frame ids; core.segments.association), and an object's label is its leading class. Merged
 objects add their histograms.
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.core.palette import VOID_ID, pack_rgb
+from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Pinhole intrinsics and camera poses.
+"""Pinhole intrinsics, camera poses, and images resampled to another size at pixel centres.
 
 Conventions used everywhere in monovoc_ros (core, adapters, files):
 - Poses are 4x4 float64 camera-to-world matrices ``T_wc`` in the OpenCV *optical* camera frame:
@@ -63,6 +63,15 @@ class Intrinsics:
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in ("width", "height", "fx", "fy", "cx", "cy")}
+
+
+def resize_nearest(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Nearest-neighbour resize that samples the source at the destination's pixel centres (the pixel convention
+    above; the camera of the resized image is `Intrinsics.scaled_to`)."""
+    h, w = image.shape[:2]
+    rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
+    return image[rows[:, None], cols[None, :]]
 
 
 def validate_pose(T: np.ndarray, *, what: str = "pose") -> np.ndarray:

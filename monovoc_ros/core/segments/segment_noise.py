@@ -13,9 +13,8 @@
   * granularity: with probability `granularity` a keyframe is segmented coarser (fusion rate doubled, no
     parts) and with the same probability finer (parts doubled, no fusion), so it changes between
     consecutive frames.
-- `CorruptedMasks`: a sequence wrapper (any dataset folder or the synthetic room) whose keyframe masks
-  went through both, deterministically per keyframe index; `clean_mask` stays the original mask, so
-  evaluation compares with the reference.
+- A sequence whose keyframe masks went through both, deterministically per keyframe index, is
+  `CorruptedMasks` (core.evaluation.datasets).
 
 Void (pure white) pixels stay void; new colors are never white.
 """
@@ -26,8 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from monovoc_ros.core.datasets import SequenceView
-from monovoc_ros.core.palette import VOID_ID, labels_from_entries, pack_rgb, unpack_rgb
+from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb, unpack_rgb
 
 
 def _random_colors(n: int, rng: np.random.Generator, avoid: np.ndarray | None = None) -> np.ndarray:
@@ -181,45 +179,6 @@ def segment_noise(mask: np.ndarray, rates: NoiseRates, rng: np.random.Generator)
     if rates.jitter > 0:
         out = _jittered(out, int(rates.jitter), rng)
     return unpack_rgb(out), counts
-
-
-class CorruptedMasks(SequenceView):
-    """A sequence whose keyframe masks went through `segment_noise` and then (with `shuffled`) a per-frame
-    renumbering, deterministically per keyframe index and `seed`; `clean_mask` is the original."""
-
-    def __init__(self, sequence, *, shuffled: bool = True, rates: NoiseRates | None = None, seed: int = 0) -> None:
-        super().__init__(sequence)
-        self.shuffled, self.rates, self.seed = bool(shuffled), rates or NoiseRates(), int(seed)
-
-    def keyframe(self, i: int):
-        kf = self._seq.keyframe(i)
-        rng = np.random.default_rng([self.seed, i])
-        mask = kf.mask
-        if self.rates.any:
-            mask, _ = segment_noise(mask, self.rates, rng)
-        if self.shuffled:
-            mask = shuffle_ids(mask, rng)
-        segments = kf.segments
-        if segments:  # the segmenter's names follow the renumbered, merged and split segments
-            from monovoc_ros.core.segment_labels import relabel_segments
-
-            segments = relabel_segments(segments, pack_rgb(kf.mask), pack_rgb(mask))
-        return replace(kf, mask=mask, segments=segments)
-
-
-class PaletteSegments(SequenceView):
-    """A sequence whose keyframes carry the segment labels a perfect segmenter would give: every mask
-    color that the sequence's labels.json names gets its class name (score 1)."""
-
-    def __init__(self, sequence) -> None:
-        super().__init__(sequence)
-        self.names = {oid: name for oid, name in labels_from_entries(sequence.labels()).items() if name}
-
-    def keyframe(self, i: int):
-        from monovoc_ros.core.segment_labels import palette_segments
-
-        kf = self._seq.keyframe(i)
-        return replace(kf, segments=palette_segments(kf.mask, self.names))
 
 
 _NUMBERS = {"merge": float, "split": float, "drop": float, "small": float, "pieces": int, "jitter": int,

@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 
+import numba
 import numpy as np
 
-from monovoc_ros.core.camera import quat_wxyz_to_matrix
-from monovoc_ros.core.map_follow_kernels import covariances as kernel_covariances
+from monovoc_ros.core.map.camera import quat_wxyz_to_matrix
 
 
 def _frozen(a: np.ndarray | None, dtype, shape_tail: tuple, name: str, n: int | None) -> np.ndarray | None:
@@ -89,9 +89,10 @@ class GaussianMap:
         """World-frame 3D covariances as (N, 6) float32: xx, xy, xz, yy, yz, zz.
 
         Computed once per map (not per keyframe): Sigma = R S S^T R^T with S = diag(scales), by a numba
-        kernel (core.map_follow_kernels; plain twin `covariances_reference`).
+        kernel (`covariances_kernel`; plain twin `covariances_reference`). At 1M Gaussians on 2 cores the twin
+        (batched numpy 3x3 products) takes 0.64 s, the kernel a few tens of milliseconds.
         """
-        out = kernel_covariances(self.quats, self.scales) if len(self) else np.zeros((0, 6), np.float32)
+        out = covariances_kernel(self.quats, self.scales) if len(self) else np.zeros((0, 6), np.float32)
         out.setflags(write=False)
         return out
 
@@ -109,6 +110,28 @@ def covariances_reference(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
     return np.stack(
         [cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1
     ).astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def covariances_kernel(quats, scales):  # pragma: no cover - numba
+    """(N, 6) float32 xx, xy, xz, yy, yz, zz of R diag(s^2) R^T from (w, x, y, z) unit quaternions (N, 4)."""
+    n = quats.shape[0]
+    out = np.empty((n, 6), np.float32)
+    for i in numba.prange(n):
+        w, x, y, z = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
+        norm = np.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w / norm, x / norm, y / norm, z / norm
+        R = np.empty((3, 3))
+        R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+        R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+        R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+        s0, s1, s2 = float(scales[i, 0]) ** 2, float(scales[i, 1]) ** 2, float(scales[i, 2]) ** 2
+        k = 0
+        for a in range(3):
+            for b in range(a, 3):
+                out[i, k] = R[a, 0] * R[b, 0] * s0 + R[a, 1] * R[b, 1] * s1 + R[a, 2] * R[b, 2] * s2
+                k += 1
+    return out
 
 
 # Ids up to this many times the maps' sizes are looked up in a table (SLAM ids are counters), others sorted.
@@ -161,3 +184,13 @@ def removed_gaussians(old: GaussianMap, new: GaussianMap) -> tuple[int, int]:
     if old.ids is not None and new.ids is not None:
         return int(np.count_nonzero(id_partners(new.ids, old.ids) < 0)), len(old)
     return max(0, len(old) - len(new)), len(old)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def gather_rows(a, rows):  # pragma: no cover - numba
+    """a[rows] for a 2D array (N, C), on every core (a random gather is memory-bound: 2x faster than numpy's)."""
+    out = np.empty((rows.shape[0], a.shape[1]), a.dtype)
+    for i in numba.prange(rows.shape[0]):
+        for c in range(a.shape[1]):
+            out[i, c] = a[rows[i], c]
+    return out

@@ -4,7 +4,7 @@ The map's rendered labels and the reference masks of the evaluated frames give j
 N[p, r] (map object p, reference instance r, over pixels whose reference is not void). Map objects
 and reference instances are matched one to one by IoU (Hungarian, scipy linear_sum_assignment;
 pairs without overlap never match); each matched map object is then renamed to its reference
-instance and the frames are scored as usual (core.evaluation.SegmentationEvaluator: matched mIoU
+instance and the frames are scored as usual (core.evaluation.evaluation.SegmentationEvaluator: matched mIoU
 over the reference instances, an unmatched instance scoring its IoU with nothing, 0). Reported
 beside it:
 
@@ -21,8 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.evaluation import SegmentationEvaluator, resize_nearest
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID
+from monovoc_ros.core.evaluation.evaluation import SegmentationEvaluator
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID
+from monovoc_ros.core.map.camera import resize_nearest
 
 UNMATCHED_ID = 0xFFFFFFFE  # a map object matched to no reference instance (not a 24-bit color)
 

@@ -1,6 +1,8 @@
-"""Sources of keyframes: one ``Sequence`` interface over datasets on disk and generated scenes.
+"""Sources of keyframes: one ``Sequence`` interface over datasets on disk and generated scenes, and views
+of a sequence (``SequenceView``): ``CorruptedMasks`` (its masks through core.segments.segment_noise) and
+``PaletteSegments`` (the class names a perfect segmenter would give).
 
-Layouts read by ``open_sequence`` (conventions in core.camera: poses are camera-to-world, OpenCV axes):
+Layouts read by ``open_sequence`` (conventions in core.map.camera: poses are camera-to-world, OpenCV axes):
 
 ``plain`` (what ``write_plain`` writes; ``../shared/data/replica_office0`` is one)
     rgb/NNNNNN.(jpg|png)   optional; any size (the RGB camera is the mask camera rescaled)
@@ -46,12 +48,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics, pose_from_translation_quat, validate_pose
-from monovoc_ros.core.color import srgb_to_lab
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.evidence.color import srgb_to_lab
+from monovoc_ros.core.evidence.palette import labels_from_entries, pack_rgb, read_label_entries
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.palette import read_label_entries
-from monovoc_ros.core.ply import load_ply, save_ply
+from monovoc_ros.core.map.camera import Intrinsics, pose_from_translation_quat, validate_pose
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.ply import load_ply, save_ply
+from monovoc_ros.core.segments.segment_noise import NoiseRates, segment_noise, shuffle_ids
 
 LAYOUTS = ("plain", "nice-slam", "hislam2")
 REPLICA_INTRINSICS = Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
@@ -80,6 +83,45 @@ class SequenceView:
     def clean_mask(self, i: int) -> np.ndarray:
         clean = getattr(self._seq, "clean_mask", None)
         return clean(i) if clean else self._seq.keyframe(i).mask
+
+
+class CorruptedMasks(SequenceView):
+    """A sequence whose keyframe masks went through `segment_noise` and then (with `shuffled`) a per-frame
+    renumbering, deterministically per keyframe index and `seed`; `clean_mask` is the original."""
+
+    def __init__(self, sequence, *, shuffled: bool = True, rates: NoiseRates | None = None, seed: int = 0) -> None:
+        super().__init__(sequence)
+        self.shuffled, self.rates, self.seed = bool(shuffled), rates or NoiseRates(), int(seed)
+
+    def keyframe(self, i: int):
+        kf = self._seq.keyframe(i)
+        rng = np.random.default_rng([self.seed, i])
+        mask = kf.mask
+        if self.rates.any:
+            mask, _ = segment_noise(mask, self.rates, rng)
+        if self.shuffled:
+            mask = shuffle_ids(mask, rng)
+        segments = kf.segments
+        if segments:  # the segmenter's names follow the renumbered, merged and split segments
+            from monovoc_ros.core.segments.segment_labels import relabel_segments
+
+            segments = relabel_segments(segments, pack_rgb(kf.mask), pack_rgb(mask))
+        return replace(kf, mask=mask, segments=segments)
+
+
+class PaletteSegments(SequenceView):
+    """A sequence whose keyframes carry the segment labels a perfect segmenter would give: every mask
+    color that the sequence's labels.json names gets its class name (score 1)."""
+
+    def __init__(self, sequence) -> None:
+        super().__init__(sequence)
+        self.names = {oid: name for oid, name in labels_from_entries(sequence.labels()).items() if name}
+
+    def keyframe(self, i: int):
+        from monovoc_ros.core.segments.segment_labels import palette_segments
+
+        kf = self._seq.keyframe(i)
+        return replace(kf, segments=palette_segments(kf.mask, self.names))
 
 
 class SequenceError(ValueError):
@@ -358,8 +400,8 @@ class PlainSequence(Sequence):
             i, self.stamps_ns[i], self.poses[i], self.intrinsics, read_mask(mask_path), rgb, mask_path
         )
         segments_path = self.root / "segments" / f"{mask_path.stem}.json"
-        if segments_path.exists():  # a segmenter's class names per segment (core.segment_labels)
-            from monovoc_ros.core.segment_labels import read_segments
+        if segments_path.exists():  # a segmenter's class names per segment (core.segments.segment_labels)
+            from monovoc_ros.core.segments.segment_labels import read_segments
 
             try:
                 keyframe = replace(keyframe, segments=read_segments(segments_path))
@@ -612,10 +654,10 @@ def write_plain(
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise SequenceError(f"{out}: exists and is not empty (pass overwrite=True to replace its sequence)")
-        for sub in ("rgb", "masks"):
+        for sub in ("rgb", "masks", "segments"):
             if (out / sub).is_dir():
                 for p in (out / sub).iterdir():
-                    if p.is_file() and re.fullmatch(r"\d{6}\.(png|jpg)", p.name):
+                    if p.is_file() and re.fullmatch(r"\d{6}\.(png|jpg|json)", p.name):
                         p.unlink()
         for name in ("stamps.txt", "labels.json", "gaussians.ply"):
             (out / name).unlink(missing_ok=True)
@@ -625,6 +667,11 @@ def write_plain(
         if kf.intrinsics != sequence.intrinsics:
             raise SequenceError(f"{out}: keyframe {kf.index} has intrinsics {kf.intrinsics}, not the sequence's")
         write_mask(out / "masks" / f"{kf.index:06d}.png", kf.mask)
+        if kf.segments:  # a segmenter's names, read back by PlainSequence.keyframe
+            from monovoc_ros.core.segments.segment_labels import write_segments
+
+            (out / "segments").mkdir(exist_ok=True)
+            write_segments(out / "segments" / f"{kf.index:06d}.json", kf.segments)
         if kf.rgb is not None:
             (out / "rgb").mkdir(exist_ok=True)
             params = [cv2.IMWRITE_JPEG_QUALITY, 95] if rgb_format == "jpg" else []

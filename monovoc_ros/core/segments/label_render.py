@@ -3,8 +3,8 @@
 Per pixel p and label o the weight is ``W_po = sum_{i: label_i = o} w_ip`` (the rasterizer's
 compositing weights, METHOD.md section 2); unlabeled Gaussians and the final transmittance together
 form "void" with weight ``1 - sum_o W_po``. A pixel's leading label is the heaviest of these, void
-included (the `render_splat_labels` rule of core.evaluation, which needs a pass per three labels).
-This is what per-frame mask association (core.association) measures segment overlap against.
+included (the `render_splat_labels` rule of core.evaluation.evaluation, which needs a pass per three labels).
+This is what per-frame mask association (core.segments.association) measures segment overlap against.
 
 "numba" is the production kernel (label_render_kernels); "reference" is its plain float64 twin from
 the dense weight matrix (tiny scenes only). The numba kernel keeps TILE_LABELS labels per 16x16 tile.
@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics
-from monovoc_ros.core.gaussians import GaussianMap
+from monovoc_ros.core.map.camera import Intrinsics
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster.inputs import check_view
 
 LABEL_IMPLEMENTATIONS = ("numba", "reference")
@@ -55,8 +55,8 @@ def render_label_weights(
         return render_label_weights_reference(gmap, labels, intrinsics, cam_to_world)
     import numba
 
-    from monovoc_ros.core import label_render_kernels as lk
     from monovoc_ros.core.raster import numba_impl
+    from monovoc_ros.core.segments import label_render_kernels as lk
 
     h, w = view.height, view.width
     out_label = np.full((h, w), -1, np.int32)

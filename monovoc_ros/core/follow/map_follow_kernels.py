@@ -1,19 +1,21 @@
 """Numba kernels that keep a map update fast at robot scale (1-2M Gaussians), each with a plain twin that
 tests hold it against:
 
-* `move_points`: the motion of core.map_motion (rigid, then the trilinear field); twin `MapMotion.apply`.
+* `move_points`: the motion of core.follow.map_motion (rigid, then the trilinear field); twin `MapMotion.apply`.
 * `grid_nearest`: per query the nearest point within its own radius, on a sorted uniform grid; twin
   `map_follow.nearest_within_reference` (scipy's cKDTree).
-* `covariances`: Sigma = R S S^T R^T per Gaussian; twin `gaussians.covariances_reference`.
 
-At 1M Gaussians on 2 cores the twins take 0.65 s (the field), ~0.8 s (tree build and query) and 0.64 s
-(batched numpy 3x3 products); the kernels a few tens of milliseconds each (benchmarks/bench_map_churn.py).
+At 1M Gaussians on 2 cores the twins take 0.65 s (the field) and ~0.8 s (tree build and query); the kernels
+a few tens of milliseconds each (benchmarks/bench_map_churn.py). The covariance kernel (Sigma = R S S^T R^T)
+and the parallel row gather (used here and by the evidence stores) are core.map.gaussians'.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+from monovoc_ros.core.map.gaussians import gather_rows
 
 # Grid keys pack three 21-bit cell coordinates (2M cells per axis: 40 km at 2 cm).
 _BITS = 21
@@ -232,36 +234,4 @@ def grid_nearest(points: np.ndarray, queries: np.ndarray, radius: np.ndarray, ce
     )  # fmt: skip
     out = np.empty(len(queries), np.int64)
     out[q_order] = found
-    return out
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def gather_rows(a, rows):  # pragma: no cover - numba
-    """a[rows] for a 2D array (N, C), on every core (a random gather is memory-bound: 2x faster than numpy's)."""
-    out = np.empty((rows.shape[0], a.shape[1]), a.dtype)
-    for i in numba.prange(rows.shape[0]):
-        for c in range(a.shape[1]):
-            out[i, c] = a[rows[i], c]
-    return out
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def covariances(quats, scales):  # pragma: no cover - numba
-    """(N, 6) float32 xx, xy, xz, yy, yz, zz of R diag(s^2) R^T from (w, x, y, z) unit quaternions (N, 4)."""
-    n = quats.shape[0]
-    out = np.empty((n, 6), np.float32)
-    for i in numba.prange(n):
-        w, x, y, z = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
-        norm = np.sqrt(w * w + x * x + y * y + z * z)
-        w, x, y, z = w / norm, x / norm, y / norm, z / norm
-        R = np.empty((3, 3))
-        R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-        R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-        R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
-        s0, s1, s2 = float(scales[i, 0]) ** 2, float(scales[i, 1]) ** 2, float(scales[i, 2]) ** 2
-        k = 0
-        for a in range(3):
-            for b in range(a, 3):
-                out[i, k] = R[a, 0] * R[b, 0] * s0 + R[a, 1] * R[b, 1] * s1 + R[a, 2] * R[b, 2] * s2
-                k += 1
     return out

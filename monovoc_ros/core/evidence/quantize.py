@@ -16,7 +16,7 @@ color's lightness, chroma and hue. As written in METHOD.md and the paper, the de
 reference, ``d_CMC(Lab(s_hat), Lab(c))``, so each sample is judged with tolerances of its own region of
 color space. (CIEDE2000 and the Euclidean metrics are symmetric.)
 
-Distances come from numba kernels (`core.quantize_kernels`): the samples and the palette are each
+Distances come from numba kernels (`core.evidence.quantize_kernels`): the samples and the palette are each
 converted once, then each sample walks the K palette colors; colour's `colour.delta_E` (plain NumPy for
 the Euclidean spaces) is kept as the reference twin (`distance_matrix_reference`, `quantize_reference`).
 
@@ -112,7 +112,7 @@ def quantize(colors: np.ndarray, palette_rgb: np.ndarray, metric: str = "cmc") -
 
     An empty palette gives index -1 and infinite distances for every observed color.
     """
-    from monovoc_ros.core import quantize_kernels as kernels  # deferred: numba compiles/loads on first use
+    from monovoc_ros.core.evidence import quantize_kernels as kernels  # deferred: numba compiles/loads on first use
 
     _check_metric(metric)
     values, observed, palette = _check_inputs(colors, palette_rgb)

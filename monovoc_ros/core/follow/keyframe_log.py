@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 import zstandard
 
-from monovoc_ros.core.camera import Intrinsics, validate_pose
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.segment_labels import segments_from_entries, segments_to_entries
+from monovoc_ros.core.map.camera import Intrinsics, validate_pose
+from monovoc_ros.core.segments.segment_labels import segments_from_entries, segments_to_entries
 
 FORMAT = "monovoc_keyframe_log"
 DEFAULT_MAX_BYTES = 256 * 1024 * 1024

@@ -10,7 +10,7 @@ Keyframes are identified by their stamp: adding a stamp twice would count its ev
 raises, and merging two states that share a stamp raises for the same reason.
 
 When the SLAM front-end publishes a new map, `carried_over` gives the new map's Gaussians the rows
-of the old evidence that core.map_follow chose for them (by id, else by the map's estimated motion).
+of the old evidence that core.follow.map_follow chose for them (by id, else by the map's estimated motion).
 
 Evidence is kept even for keyframes that are later re-posed: SCD weights depend on the pose used at
 integration time, and re-rendering old keyframes is the caller's choice, not this store's.
@@ -28,8 +28,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from monovoc_ros.core.gaussians import id_partners
-from monovoc_ros.core.map_follow_kernels import gather_rows
+from monovoc_ros.core.map.gaussians import gather_rows, id_partners
 
 # Written into every saved file (beside the store's FORMAT) so that a foreign .npz is recognised as such.
 _FORMAT_VERSION = 1
@@ -284,7 +283,7 @@ class SemanticState(GaussianEvidence):
 
 
 def _gathered(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """a[rows] for a 1D or 2D array (the parallel gather of core.map_follow_kernels)."""
+    """a[rows] for a 1D or 2D array (the parallel gather of core.map.gaussians)."""
     out = gather_rows(np.ascontiguousarray(a).reshape(len(a), -1), rows)
     return out.reshape((len(rows), *a.shape[1:]))
 

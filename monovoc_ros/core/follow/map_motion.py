@@ -16,7 +16,7 @@ search and both fits are direct.
 
 The motion moves points (`apply`: old centres to where they are in the new map) and camera poses
 (`move_pose`: the best rigid fit of the motion around the camera, so a keyframe integrated against the
-old map can be re-integrated against the new one). Unbelievable motions are refused by core.map_follow.
+old map can be re-integrated against the new one). Unbelievable motions are refused by core.follow.map_follow.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from monovoc_ros.core.camera import quat_wxyz_to_matrix, validate_pose
-from monovoc_ros.core.map_follow_kernels import move_points
+from monovoc_ros.core.follow.map_follow_kernels import move_points
+from monovoc_ros.core.map.camera import quat_wxyz_to_matrix, validate_pose
 
 
 @dataclass(frozen=True)

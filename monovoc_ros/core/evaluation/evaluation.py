@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from monovoc_ros.core.camera import Intrinsics, invert_pose, validate_pose
-from monovoc_ros.core.evaluation_kernels import splat_discs
-from monovoc_ros.core.gaussians import GaussianMap
-from monovoc_ros.core.palette import UNOBSERVED_ID, VOID_ID
+from monovoc_ros.core.evaluation.evaluation_kernels import splat_discs
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID
+from monovoc_ros.core.map.camera import Intrinsics, invert_pose, resize_nearest, validate_pose
+from monovoc_ros.core.map.gaussians import GaussianMap
 
 NEAR_PLANE = 0.2  # metres; the rasterizer's near plane (METHOD section 2)
 
@@ -150,14 +150,6 @@ def render_splat_labels(
     weights[..., -1] = 1.0 - weights[..., :-1].sum(axis=2)
     table = np.append(classes, np.uint32(background)).astype(np.uint32)
     return table[np.argmax(weights, axis=2)]
-
-
-def resize_nearest(image: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Nearest-neighbour resize that samples the source at the destination's pixel centres."""
-    h, w = image.shape[:2]
-    rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
-    cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
-    return image[rows[:, None], cols[None, :]]
 
 
 class SegmentationEvaluator:

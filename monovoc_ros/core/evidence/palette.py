@@ -28,7 +28,7 @@ sliver, which the resampling itself blends away). Rejected colors and their pixe
 in the `Palette`.
 
 Speed: `update` takes ~4 ms for a 600x340 mask (pack 0.6 ms, np.unique 2 ms, the numba region/blend
-kernel of `core.palette_kernels` 1 ms; its plain twin is `region_counts_reference`).
+kernel of `core.evidence.palette_kernels` 1 ms; its plain twin is `region_counts_reference`).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.core.palette_kernels import region_counts
+from monovoc_ros.core.evidence.palette_kernels import region_counts
 
 VOID_RGB = (255, 255, 255)
 VOID_ID = 0xFFFFFF

@@ -4,7 +4,7 @@
 
 1. Ids win: a new Gaussian whose id is in the old map takes that Gaussian's evidence.
 2. Every other new Gaussian (all of them when a map has no ids) takes the evidence of the old Gaussian
-   nearest to it *after moving the old map by its estimated motion* (core.map_motion: from the id
+   nearest to it *after moving the old map by its estimated motion* (core.follow.map_motion: from the id
    pairs when there are any, else by registering the two maps), provided that one lies within
    ``radius + scale_factor * (its largest scale)`` (capped at max_radius). Nearest, not mutual: both
    children of a split (0.8 of their own sigma from the parent's centre) and every clone inherit their
@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from monovoc_ros.core.gaussians import GaussianMap, id_partners
-from monovoc_ros.core.map_follow_kernels import grid_nearest
-from monovoc_ros.core.map_motion import MapMotion, MotionConfig, estimate_motion
+from monovoc_ros.core.follow.map_follow_kernels import grid_nearest
+from monovoc_ros.core.follow.map_motion import MapMotion, MotionConfig, estimate_motion
+from monovoc_ros.core.map.gaussians import GaussianMap, id_partners
 
 
 @dataclass(frozen=True)

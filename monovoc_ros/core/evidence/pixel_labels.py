@@ -6,7 +6,7 @@ palette color with the configured metric (CMC by default: the paper's quantizati
 pixel) unless the two nearest palette colors are too close to decide (relative margin
 ``(d2 - d1) / (d2 + d1)`` below `min_snap_margin`), in which case it adds no evidence. Void (pure
 white) pixels add no evidence. Colors are handled once per distinct color of the mask, not per pixel.
-`mask_labels` takes the palette of the mask itself (core.palette's region and thin rules).
+`mask_labels` takes the palette of the mask itself (core.evidence.palette's region and thin rules).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monovoc_ros.core.palette import VOID_ID, MaskColors, Palette, PaletteBuilder, mask_colors, unpack_rgb
-from monovoc_ros.core.quantize import confidence, quantize
+from monovoc_ros.core.evidence.palette import VOID_ID, MaskColors, Palette, PaletteBuilder, mask_colors, unpack_rgb
+from monovoc_ros.core.evidence.quantize import confidence, quantize
 
 # A thin color (no 3x3 region in the mask) is an object of that mask from this many pixels on, when it
 # is no blend of its neighbours (PaletteBuilder's thin rule, applied to one mask).
