@@ -45,6 +45,8 @@ setup(
             "semantic_mapper = monovoc_ros.nodes.semantic_mapper:main",
             # the mapping node alone, without objects and embeddings (no models needed)
             "mapping_node = monovoc_ros.nodes.mapping_node:main",
+            # keyframe images -> per-frame instance masks + class names (a robot with only a camera)
+            "segmenter = monovoc_ros.nodes.segmenter:main",
         ],
     },
 )

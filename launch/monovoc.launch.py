@@ -1,8 +1,12 @@
 """ros2 launch monovoc_ros monovoc.launch.py [ARG:=VALUE ...]
 
 Starts the semantic_mapper node (or mapping_node: mapping only, no objects, no models) with both parameter files,
-in a namespace, with the seven inputs remapped by launch arguments; optionally replays a bag into it
-(`monovoc replay`, publishing /clock) and opens RViz with rviz/monovoc.rviz.
+in a namespace, with the seven inputs remapped by launch arguments; optionally the segmenter node, whose
+per-frame masks and class names then feed the mapper (a robot with only a camera and a 3DGS SLAM), replays a
+bag into it (`monovoc replay`, publishing /clock) and opens RViz with rviz/monovoc.rviz.
+
+    ros2 launch monovoc_ros monovoc.launch.py segmenter:=true image:=/camera/color/image_raw/compressed \\
+        camera_info:=/camera/color/camera_info pose:=/slam/camera_pose gaussians:=/slam/gaussians
 
     ros2 launch monovoc_ros monovoc.launch.py image:=/camera/color/image_raw/compressed \\
         mask:=/segmentation/mask camera_info:=/camera/color/camera_info pose:=/slam/camera_pose \\
@@ -17,7 +21,7 @@ tests/test_colcon.py that every executable and file it names is installed by col
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, ExecuteProcess
-from launch.conditions import IfCondition
+from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
@@ -66,6 +70,16 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument(
             "use_segments", default_value="false", description="subscribe to `segments` (a segmenter's class names)"
         ),
+        DeclareLaunchArgument(
+            "segmenter",
+            default_value="false",
+            description="start the segmenter node on `image` and map its masks (mask_ids per_frame, use_segments)",
+        ),
+        DeclareLaunchArgument(
+            "segmenter_model",
+            default_value="yolov5s-seg",
+            description="the segmenter's model: yolov5s-seg, yolov7-seg or a YOLO-seg .onnx file",
+        ),
         DeclareLaunchArgument("use_sim_time", default_value="false", description="stamp by /clock (bag replay)"),
         DeclareLaunchArgument("bag", default_value="", description="MCAP bag to replay into the node ('' = none)"),
         DeclareLaunchArgument("bag_rate", default_value="1.0", description="replay speed, multiple of the recorded"),
@@ -73,32 +87,58 @@ def generate_launch_description() -> LaunchDescription:
     ]
     use_sim_time = LaunchConfiguration("use_sim_time")
     bag = LaunchConfiguration("bag")
-    mapper = Node(
+    with_segmenter = LaunchConfiguration("segmenter")
+    typed = {
+        "use_sim_time": ParameterValue(use_sim_time, value_type=bool),
+        "map_directory": ParameterValue(LaunchConfiguration("map_directory"), value_type=str),
+        "labels_file": ParameterValue(LaunchConfiguration("labels_file"), value_type=str),
+        "use_segments": ParameterValue(LaunchConfiguration("use_segments"), value_type=bool),
+    }
+    # With the segmenter the mapper reads its mono16 per-frame masks and their class names.
+    from_segmenter = {"mask_transport": "raw", "mask_ids": "per_frame", "use_segments": True}
+
+    def mapping_node(extra: dict, condition) -> Node:
+        return Node(
+            package=PACKAGE,
+            executable=LaunchConfiguration("executable"),
+            name="semantic_mapper",
+            namespace=LaunchConfiguration("namespace"),
+            output="screen",
+            # Typed: launch would read map_directory:='' as YAML (null) and "false" is a bool.
+            parameters=[
+                LaunchConfiguration("params_file"),
+                LaunchConfiguration("query_params_file"),
+                {**typed, **extra},
+            ],
+            remappings=[
+                ("image", LaunchConfiguration("image")),
+                ("mask", LaunchConfiguration("mask")),
+                ("camera_info", LaunchConfiguration("camera_info")),
+                ("pose", LaunchConfiguration("pose")),
+                ("segments", LaunchConfiguration("segments")),
+                ("gaussians", LaunchConfiguration("gaussians")),
+                ("keyframe_poses", LaunchConfiguration("keyframe_poses")),
+            ],
+            condition=condition,
+        )
+
+    mappers = [
+        mapping_node({}, UnlessCondition(with_segmenter)),
+        mapping_node(from_segmenter, IfCondition(with_segmenter)),
+    ]
+    segmenter = Node(
         package=PACKAGE,
-        executable=LaunchConfiguration("executable"),
-        name="semantic_mapper",
+        executable="segmenter",
+        name="segmenter",
         namespace=LaunchConfiguration("namespace"),
         output="screen",
-        parameters=[
-            LaunchConfiguration("params_file"),
-            LaunchConfiguration("query_params_file"),
-            # Typed: launch would read map_directory:='' as YAML (null) and "false" is a bool.
-            {
-                "use_sim_time": ParameterValue(use_sim_time, value_type=bool),
-                "map_directory": ParameterValue(LaunchConfiguration("map_directory"), value_type=str),
-                "labels_file": ParameterValue(LaunchConfiguration("labels_file"), value_type=str),
-                "use_segments": ParameterValue(LaunchConfiguration("use_segments"), value_type=bool),
-            },
-        ],
+        parameters=[{"model": ParameterValue(LaunchConfiguration("segmenter_model"), value_type=str)}],
         remappings=[
             ("image", LaunchConfiguration("image")),
             ("mask", LaunchConfiguration("mask")),
-            ("camera_info", LaunchConfiguration("camera_info")),
-            ("pose", LaunchConfiguration("pose")),
             ("segments", LaunchConfiguration("segments")),
-            ("gaussians", LaunchConfiguration("gaussians")),
-            ("keyframe_poses", LaunchConfiguration("keyframe_poses")),
         ],
+        condition=IfCondition(with_segmenter),
     )
     # `monovoc replay` is an argparse command, not a node taking --ros-args: run it as a plain process.
     # It publishes the bag's own topics (/monovoc/image, ...), which are the node's inputs with the
@@ -122,4 +162,4 @@ def generate_launch_description() -> LaunchDescription:
         parameters=[{"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
         condition=IfCondition(LaunchConfiguration("rviz")),
     )
-    return LaunchDescription([*arguments, mapper, replay, rviz])
+    return LaunchDescription([*arguments, *mappers, segmenter, replay, rviz])

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs everything monovoc_ros needs into ./.venv (Python 3.11): the pinned wheels, the
 # monovoc_interfaces package (rosidl-generated, built with cmake into the venv prefix), the project
-# itself (editable), and the offline embedding models (exported once to ONNX).
+# itself (editable), and the offline embedding and segmenter models (exported once to ONNX).
 # Idempotent: each step is skipped when its inputs have not changed since it last succeeded.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -30,7 +30,10 @@ if [ "$(cat "$venv/.req_stamp" 2>/dev/null)" != "$req_stamp" ]; then
   # The machine's pip config lists local indexes that may be absent: drop those warnings.
   pip install --quiet --upgrade "pip==26.3" 2>&1 | { grep -v "^WARNING: Location" || true; }
   pip install --quiet -r requirements.txt 2>&1 | { grep -v "^WARNING: Location" || true; }
-  pip check >/dev/null || { pip check; exit 1; }
+  # launch_ros (installed below from ../shared/ros2_tools) names ament_index_python, which PyPI spells
+  # ros-jazzy-ament-index-python: the one harmless line when requirements change after the tools are in.
+  problems=$(pip check 2>&1 | grep -v "^launch-ros .* ament-index-python" | grep -v "^No broken requirements" || true)
+  [ -z "$problems" ] || { echo "$problems" >&2; exit 1; }
   echo "$req_stamp" > "$venv/.req_stamp"
 fi
 
@@ -90,11 +93,13 @@ for item in package.xml config rviz; do ln -sfn "$root/$item" "$share/$item"; do
 # ros2 launch finds launch files by walking the share directory, which does not enter linked directories.
 rm -rf "$share/launch" && mkdir -p "$share/launch"
 for file in "$root"/launch/*.py; do ln -sfn "$file" "$share/launch/"; done
-for exe in semantic_mapper mapping_node monovoc; do
+for exe in semantic_mapper mapping_node segmenter monovoc; do
   printf '#!/bin/sh\nexec "%s" "$@"\n' "$venv/bin/$exe" > "$venv/lib/monovoc_ros/$exe"
   chmod +x "$venv/lib/monovoc_ros/$exe"
 done
 
-# Offline embedding models: exported once to ONNX into the model cache (a no-op when up to date).
+# Offline embedding models and the segmenter's default models: exported once to ONNX into the model cache
+# (each a no-op when up to date).
 "$venv/bin/python" -m monovoc_ros.embed.export --quiet
+"$venv/bin/python" -m monovoc_ros.segment.export --quiet
 echo "[install] done: $venv"

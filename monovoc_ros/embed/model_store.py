@@ -55,47 +55,47 @@ def write_manifest(model_dir: Path, files: Iterable[str], info: dict) -> Path:
     return model_dir / MANIFEST_NAME
 
 
-def read_manifest(model_dir: Path) -> dict:
+def read_manifest(model_dir: Path, hint: str = EXPORT_HINT) -> dict:
     path = Path(model_dir) / MANIFEST_NAME
     if not path.is_file():
-        raise ModelMissingError(f"no embedding models in {model_dir} (missing {MANIFEST_NAME}): {EXPORT_HINT}")
+        raise ModelMissingError(f"no models in {model_dir} (missing {MANIFEST_NAME}): {hint}")
     try:
         manifest = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
-        raise ModelMissingError(f"unreadable {path} ({exc}): {EXPORT_HINT}") from exc
+        raise ModelMissingError(f"unreadable {path} ({exc}): {hint}") from exc
     if manifest.get("format") != MANIFEST_FORMAT or not isinstance(manifest.get("files"), dict):
         raise ModelMissingError(
-            f"{path} has format {manifest.get('format')!r}, this version needs {MANIFEST_FORMAT}: {EXPORT_HINT}"
+            f"{path} has format {manifest.get('format')!r}, this version needs {MANIFEST_FORMAT}: {hint}"
         )
     for name, entry in manifest["files"].items():
         if not (
             isinstance(entry, dict) and isinstance(entry.get("sha256"), str) and isinstance(entry.get("size"), int)
         ):
-            raise ModelMissingError(f"{path}: malformed entry for {name!r}: {EXPORT_HINT}")
+            raise ModelMissingError(f"{path}: malformed entry for {name!r}: {hint}")
     return manifest
 
 
-def verify_model_dir(model_dir: Path, required: Iterable[str] = ()) -> dict:
+def verify_model_dir(model_dir: Path, required: Iterable[str] = (), hint: str = EXPORT_HINT) -> dict:
     """Check every manifest file's size and sha256; return the manifest or raise ``ModelMissingError``.
 
     Hashing all ~110 MB takes ~0.08 s (sha256 with CPU extensions, files in page cache), cheaper than
     creating the onnxruntime sessions, so every load re-checks rather than trusting a size/mtime cache.
     """
     model_dir = Path(model_dir)
-    manifest = read_manifest(model_dir)
+    manifest = read_manifest(model_dir, hint)
     entries: dict = manifest["files"]
     missing_required = [name for name in required if name not in entries]
     if missing_required:
-        raise ModelMissingError(f"{model_dir / MANIFEST_NAME} does not list {missing_required}: {EXPORT_HINT}")
+        raise ModelMissingError(f"{model_dir / MANIFEST_NAME} does not list {missing_required}: {hint}")
     for name, entry in entries.items():
         path = model_dir / name
         if not path.is_file():
-            raise ModelMissingError(f"missing model file {path}: {EXPORT_HINT}")
+            raise ModelMissingError(f"missing model file {path}: {hint}")
         size = path.stat().st_size
         if size != entry["size"]:
             raise ModelMissingError(
-                f"model file {path} has {size} bytes, manifest says {entry['size']} (corrupt): {EXPORT_HINT}"
+                f"model file {path} has {size} bytes, manifest says {entry['size']} (corrupt): {hint}"
             )
         if sha256_file(path) != entry["sha256"]:
-            raise ModelMissingError(f"model file {path} does not match its sha256 (corrupt): {EXPORT_HINT}")
+            raise ModelMissingError(f"model file {path} does not match its sha256 (corrupt): {hint}")
     return manifest

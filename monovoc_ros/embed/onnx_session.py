@@ -11,7 +11,9 @@ import onnxruntime as ort
 DEFAULT_THREADS = 2
 
 
-def make_session(path: Path, threads: int = DEFAULT_THREADS) -> ort.InferenceSession:
+def make_session(path: Path, threads: int = DEFAULT_THREADS, *, prefer_cuda: bool = False) -> ort.InferenceSession:
+    """An onnxruntime session on ``threads`` CPU threads; with ``prefer_cuda`` on the GPU when onnxruntime has
+    its CUDA provider (falling back to the CPU)."""
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
     options = ort.SessionOptions()
@@ -20,4 +22,7 @@ def make_session(path: Path, threads: int = DEFAULT_THREADS) -> ort.InferenceSes
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     # Silence the per-node "initializer appears in graph inputs" style warnings on user exports.
     options.log_severity_level = 3
-    return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    providers = ["CPUExecutionProvider"]
+    if prefer_cuda and "CUDAExecutionProvider" in ort.get_available_providers():
+        providers.insert(0, "CUDAExecutionProvider")
+    return ort.InferenceSession(str(path), sess_options=options, providers=providers)

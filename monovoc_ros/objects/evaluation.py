@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.core.object_labels import GUESS
-from monovoc_ros.core.palette import format_object_id, parse_object_id
+from monovoc_ros.core.evidence.palette import format_object_id, parse_object_id
+from monovoc_ros.core.segments.object_labels import GUESS
 from monovoc_ros.embed.retrieval import chance_topk, rank
 from monovoc_ros.objects.database import ObjectDatabase
 from monovoc_ros.objects.index import CROP_MODES, IndexConfig, ObjectIndex
@@ -75,7 +75,7 @@ def load_queries(source: str | os.PathLike | Sequence[Mapping]) -> list[Retrieva
     return out
 
 
-def _class_key(name: str) -> str:
+def class_key(name: str) -> str:
     return noun(name).lower()
 
 
@@ -83,7 +83,7 @@ def resolve_expected(query: RetrievalQuery, labels: Mapping[int, str]) -> set[in
     """Object ids a query accepts; class names resolve through ``labels`` (id -> class name)."""
     by_class: dict[str, set[int]] = {}
     for oid, name in labels.items():
-        by_class.setdefault(_class_key(name), set()).add(int(oid))
+        by_class.setdefault(class_key(name), set()).add(int(oid))
     ids: set[int] = set()
     for item in query.expected:
         try:
@@ -91,7 +91,7 @@ def resolve_expected(query: RetrievalQuery, labels: Mapping[int, str]) -> set[in
             continue
         except ValueError:
             pass
-        key = _class_key(item)
+        key = class_key(item)
         if key not in by_class:
             known = ", ".join(sorted(by_class)) or "none: give labels"
             raise ValueError(f"query {query.text!r}: unknown class name {item!r} (known: {known})")
