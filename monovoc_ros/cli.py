@@ -8,7 +8,18 @@ import sys
 
 # Each module under monovoc_ros.commands defines `register(subparsers)`, adding its subcommand(s)
 # with `set_defaults(func=...)`; the function returns the process exit code.
-COMMAND_MODULES: list[str] = ["map", "segment", "eval", "bag", "replay", "record", "query", "eval_retrieval", "demo", "merge"]
+COMMAND_MODULES: list[str] = [
+    "map",
+    "segment",
+    "eval",
+    "bag",
+    "replay",
+    "record",
+    "query",
+    "eval_retrieval",
+    "demo",
+    "merge",
+]
 
 
 def build_parser() -> argparse.ArgumentParser:

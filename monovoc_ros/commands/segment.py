@@ -45,7 +45,9 @@ def segmenter_from_args(args: argparse.Namespace):
     options = SegmenterOptions(
         **{spec.name: getattr(args, spec.name) for spec in OPTION_SPECS}, class_map=args.class_map
     )
-    return load_segmenter(BACKENDS[0], model=args.model, options=options, names_file=args.names_file, threads=args.threads)
+    return load_segmenter(
+        BACKENDS[0], model=args.model, options=options, names_file=args.names_file, threads=args.threads
+    )
 
 
 def register(subparsers) -> None:
