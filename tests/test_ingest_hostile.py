@@ -112,7 +112,7 @@ def test_bombs_are_refused_from_their_header_without_a_camera():
 
 
 def test_offline_bag_mapping_refuses_the_maps_the_node_refuses():
-    from monovoc_ros.core.session import map_update_refusal
+    from monovoc_ros.core.follow.map_updater import map_update_refusal
     from monovoc_ros.offline import map_events
     from tests.node_scene import small_scene
 

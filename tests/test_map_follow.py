@@ -9,8 +9,9 @@ import pytest
 
 from monovoc_ros.core.follow.map_follow import GRID_CELL_M, FollowConfig, follow_map, nearest_within
 from monovoc_ros.core.follow.map_motion import MapMotion, estimate_motion, kabsch
+from monovoc_ros.core.follow.map_updater import MapMotionError, motion_refusal, update_map
 from monovoc_ros.core.map.gaussians import GaussianMap
-from monovoc_ros.core.mapping import MapMotionError, SemanticMapper
+from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.synthetic import churn
 from tests.node_scene import assemble, scene_messages, small_scene
@@ -56,7 +57,7 @@ def test_transfer_split_children_inherit_pruned_drop_empty_space_starts_at_zero(
         scales=[[0.001] * 3, [0.05 / 1.6, 0.01, 0.01], [0.05 / 1.6, 0.01, 0.01], [0.001] * 3, [0.001] * 3],
     )
     follow = follow_map(old, new)
-    assert follow.refusal == ""
+    assert motion_refusal(follow, FollowConfig()) == ""
     np.testing.assert_array_equal(follow.sources, [3, 0, 0, 1, -1])
     assert follow.by_position == 4 and follow.by_id == 0
 
@@ -86,7 +87,7 @@ def test_registration_follows_rigid_and_bent_maps_without_ids(kind):
     truth = _truth_rows(old, new_with_ids)
     new = replace(new_with_ids, ids=None)
     follow = follow_map(replace(old, ids=None), new)
-    assert follow.refusal == "" and follow.motion.by == "registration"
+    assert motion_refusal(follow, FollowConfig()) == "" and follow.motion.by == "registration"
     where = np.empty((len(old), 3))
     where[truth] = new.means
     err = np.linalg.norm(follow.motion.apply(old.means) - where, axis=1)
@@ -108,11 +109,13 @@ def test_absurd_motions_are_refused():
     scene = small_scene()
     old = scene.gaussians
     far = churn.loop_closure(old, degrees=0.0, translation=(25.0, 0.0, 0.0)).gaussians
-    assert "moves part of the map" in follow_map(old, far, FollowConfig(motion=replace_motion(start_trim=50.0))).refusal
+    wide = FollowConfig(motion=replace_motion(start_trim=50.0))
+    assert "moves part of the map" in motion_refusal(follow_map(old, far, wide), wide)
     noise = np.random.default_rng(0).uniform(-50, 50, (len(old), 3))
     unrelated = replace(old, means=noise.astype(np.float32))
-    assert follow_map(old, unrelated).refusal != ""
-    assert follow_map(old, far).refusal != ""  # beyond the first trim distance: nothing pairs up
+    assert motion_refusal(follow_map(old, unrelated), FollowConfig()) != ""
+    # beyond the first trim distance: nothing pairs up
+    assert motion_refusal(follow_map(old, far), FollowConfig()) != ""
 
 
 def replace_motion(**changes):
@@ -147,7 +150,7 @@ def test_mapper_refuses_an_absurd_update_and_keeps_its_state():
     before = mapper.state.total_weight.copy()
     far = churn.loop_closure(scene.gaussians, degrees=0.0, translation=(30.0, 0, 0)).gaussians
     with pytest.raises(MapMotionError):
-        mapper.update_gaussians(far)
+        update_map(mapper, far)
     assert mapper.gaussians is scene.gaussians and np.array_equal(mapper.state.total_weight, before)
     session = MappingSession(mapper=mapper)
     assert not session.add_map(far) and session.stats.rejected["map_motion"] == 1
@@ -202,12 +205,12 @@ def test_gaussians_with_non_finite_means_neither_take_nor_give_evidence():
     closure_map = replace(moved, means=new_means)
     new = replace(closure_map, ids=None)
     follow = follow_map(old, new)
-    assert follow.refusal == ""
+    assert motion_refusal(follow, FollowConfig()) == ""
     broken = np.flatnonzero(~np.isfinite(new.means).all(axis=1))
     assert len(broken) == 1 and follow.sources[broken[0]] == -1
     assert 5 not in set(follow.sources.tolist()) and np.mean(follow.sources >= 0) > 0.95
     with_ids = follow_map(_with_ids(old), closure_map)
-    assert with_ids.refusal == "" and with_ids.motion.by == "ids"
+    assert motion_refusal(with_ids, FollowConfig()) == "" and with_ids.motion.by == "ids"
 
 
 def test_a_sampled_target_map_still_recognises_a_rigid_update():

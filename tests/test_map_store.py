@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 
+from monovoc_ros.core.follow.map_updater import update_map
 from monovoc_ros.core.map.ply import read_ply_vertices
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot, save_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
@@ -56,7 +57,7 @@ def test_rotation_keeps_two_snapshots_and_links_an_unchanged_map(small_scene, tm
     mapper.integrate(small_scene.keyframe(1))
     second = save_snapshot(mapper, tmp_path).path
     assert os.stat(second / "gaussians.npz").st_ino == os.stat(first / "gaussians.npz").st_ino
-    mapper.update_gaussians(small_scene.gaussians.subset(np.arange(100, len(small_scene.gaussians))))
+    update_map(mapper, small_scene.gaussians.subset(np.arange(100, len(small_scene.gaussians))))
     third = save_snapshot(mapper, tmp_path).path
     assert os.stat(third / "gaussians.npz").st_ino != os.stat(second / "gaussians.npz").st_ino
     assert sorted(p.name for p in tmp_path.glob("snap-*")) == [second.name, third.name]

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
+from monovoc_ros.core.follow.map_updater import update_map
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
@@ -60,7 +61,7 @@ def test_map_update_carries_evidence_by_id(tmp_path):
 
     reference = offline_mapper(scene.gaussians, keyframes[:8])
     before = reference.state
-    report = reference.update_gaussians(updated)
+    report = update_map(reference, updated)
     assert report.by_id == len(updated) - 2000 and report.dropped > 0
     mid_weights = reference.state.total_weight.copy()  # integrate() adds in place
     for keyframe in keyframes[8:]:

@@ -205,7 +205,7 @@ def test_a_snapshot_without_a_log_is_marked_incomplete(tmp_path):
 
 
 def test_a_job_skips_entries_the_log_dropped_before_it_reached_them():
-    from monovoc_ros.core.session import Reintegration
+    from monovoc_ros.core.follow.map_updater import Reintegration
 
     scene, kfs = small_scene(), _keyframes(6)
     mapper, _ = offline.map_events([scene.gaussians, *kfs[:5]])

@@ -1,11 +1,11 @@
 """The semantic mapper: keyframes in, per-Gaussian object labels out (no ROS).
 
-One class drives the whole method for a Gaussian map: per keyframe either per-object votes
+One class integrates keyframes into the evidence of a Gaussian map: per keyframe either per-object votes
 (`semantic_mode` "vote", the default: core.evidence.votes) or the paper's SCD color sums with palette
-quantization ("scd": core.evidence.state, core.evidence.quantize), the palette seen so far, and map updates from the
-SLAM front-end. The offline `monovoc map` command and the
-live `semantic_mapper` node both wrap this class, so a bag processed offline and the same bag replayed
-through the node give the same semantic map.
+quantization ("scd": core.evidence.state, core.evidence.quantize), and the palette seen so far. A new map
+from the SLAM front-end takes the evidence over (`take_map`) as core.follow.map_updater decides. The offline
+`monovoc map` command and the live `semantic_mapper` node both wrap this class (through core.session), so a
+bag processed offline and the same bag replayed through the node give the same semantic map.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, Palette, PaletteBuilder, unpack_rgb
 from monovoc_ros.core.evidence.pixel_labels import mask_labels
@@ -23,8 +22,7 @@ from monovoc_ros.core.evidence.quantize import METRICS, Quantization, confidence
 from monovoc_ros.core.evidence.state import GaussianEvidence, SemanticState
 from monovoc_ros.core.evidence.votes import DEFAULT_SLOTS, VoteState
 from monovoc_ros.core.follow.keyframe_log import DEFAULT_MAX_BYTES, KeyframeLog, LoggedKeyframe
-from monovoc_ros.core.follow.map_follow import FollowConfig, follow_map
-from monovoc_ros.core.follow.map_motion import MapMotion
+from monovoc_ros.core.follow.map_follow import FollowConfig
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.object_geometry import ObjectGeometry, object_geometry
@@ -39,13 +37,6 @@ from monovoc_ros.core.segments.association import (
 from monovoc_ros.core.segments.segment_labels import LabelHistogram
 
 VOID_POLICIES = ("skip", "include")
-# Metres: a map update bending the map this much re-integrates (its evidence was rendered on the unbent map).
-REINTEGRATE_BEND_M = 0.02
-# Metres around a logged camera whose Gaussians define how the map moved there (its pose follows them).
-_POSE_SUPPORT_M = 4.0
-# Logged poses follow a map whose motion moves some part of it at least this far (metres); below it the
-# estimated motion is the noise of a densified map, and moving poses by it would make them random-walk.
-_POSE_MOVE_MIN_M = 0.01
 SEMANTIC_MODES = ("vote", "scd")
 # Per semantic mode, the MapperConfig fields that change what a keyframe adds to the evidence.
 _EVIDENCE_SETTINGS = {
@@ -92,8 +83,9 @@ class MapperConfig:
     # Bytes the keyframe log (core.follow.keyframe_log: masks, poses, segments for re-integration) may hold.
     keyframe_log_bytes: int = DEFAULT_MAX_BYTES
     # A map update that carries the evidence of less than this share of the labelled Gaussians, or that
-    # bends the map (core.follow.map_motion: a field offset of REINTEGRATE_BEND_M or more), is followed by a
-    # re-integration of the logged keyframes with their poses moved with the map; 0: never.
+    # bends the map (core.follow.map_motion: a field offset of core.follow.map_updater.REINTEGRATE_BEND_M or
+    # more), is followed by a re-integration of the logged keyframes with their poses moved with the map;
+    # 0: never.
     reintegrate_below: float = 0.9
 
     def __post_init__(self) -> None:
@@ -184,48 +176,6 @@ class SemanticResult:
         known = self.object_ids != UNOBSERVED_ID
         rgb[known] = unpack_rgb(self.object_ids[known])
         return rgb
-
-
-class MapMotionError(ValueError):
-    """A map update whose motion is not believable (core.follow.map_follow): refused, the map in use is kept."""
-
-
-@dataclass
-class MapUpdateReport:
-    carried: int  # observed old Gaussians whose evidence went to at least one new Gaussian
-    dropped: int  # observed old Gaussians whose evidence went nowhere (pruned, or nothing near their new place)
-    gaussians: int  # size of the new map
-    by_id: int  # new Gaussians that took their evidence by id
-    by_position: int  # new Gaussians that took it by the moved position
-    motion: MapMotion  # how the map moved (core.follow.map_motion)
-    seconds: float = 0.0
-
-    @property
-    def carried_share(self) -> float:
-        """Share of the labelled (observed) old Gaussians whose evidence was carried over."""
-        total = self.carried + self.dropped
-        return self.carried / total if total else 1.0
-
-    def reintegration_reason(self, below: float) -> str:
-        """Why this update's transfer should be followed by a re-integration ("" when it should not)."""
-        if below <= 0:
-            return ""
-        if self.carried_share < below:
-            return (
-                f"map update carried {self.carried_share:.0%} of the labelled evidence (< reintegrate_below {below:g})"
-            )
-        if self.motion.bend >= REINTEGRATE_BEND_M:
-            return f"map update bends the map by {100 * self.motion.bend:.0f} cm"
-        return ""
-
-    def describe(self) -> str:
-        m = self.motion
-        return (
-            f"{self.gaussians} Gaussians; evidence of {self.carried} of {self.carried + self.dropped} labelled "
-            f"Gaussians carried ({self.carried_share:.1%}), {self.by_id} new by id, {self.by_position} by position; "
-            f"motion by {m.by}: {m.rotation_deg:.2f} deg, {np.linalg.norm(m.translation):.3f} m rigid, "
-            f"bend {1e3 * m.bend:.0f} mm, residual {1e3 * m.rms:.1f} mm"
-        )
 
 
 def label_gaussians(state: SemanticState, palette: Palette, metric: str) -> SemanticResult:
@@ -421,58 +371,21 @@ class SemanticMapper:
         out.map_version = max(self.map_version, other.map_version)
         return out
 
-    def update_gaussians(self, gaussians: GaussianMap) -> MapUpdateReport:
-        """Swaps in a new map from the SLAM front-end, carrying accumulated evidence over (core.follow.map_follow:
-        by id where the maps share ids, else by the map's estimated motion). Raises MapMotionError, with
-        nothing changed, when the motion is not believable."""
-        start = time.perf_counter()
-        follow = follow_map(self.gaussians, gaussians, self.config.follow())
-        if follow.refusal and self.state.observed.any():  # nothing to protect: any new map is taken
-            raise MapMotionError(follow.refusal)
+    def take_map(self, gaussians: GaussianMap, sources: np.ndarray) -> tuple[int, int]:
+        """Swaps in a new map from the SLAM front-end whose Gaussian j takes the evidence of this map's row
+        sources[j] (-1: none; core.follow.map_updater decides them). Returns (observed old Gaussians whose
+        evidence went to at least one new Gaussian, observed old Gaussians)."""
         old_observed = self.state.observed
-        state = self.state.carried_over(follow.sources, gaussians.ids)
-        self._move_logged_poses(follow.motion)
+        state = self.state.carried_over(sources, gaussians.ids)
         used = np.zeros(len(old_observed), bool)
-        used[follow.sources[follow.sources >= 0]] = True
+        used[sources[sources >= 0]] = True
         carried = int(np.count_nonzero(used & old_observed))
-        total = int(np.count_nonzero(old_observed))
         self.gaussians = gaussians
         self.state = state
         self.map_version += 1
         self._result = None
         self._labels, self._dirty = None, []
-        return MapUpdateReport(
-            carried=carried,
-            dropped=total - carried,
-            gaussians=len(gaussians),
-            by_id=follow.by_id,
-            by_position=follow.by_position,
-            motion=follow.motion,
-            seconds=time.perf_counter() - start,
-        )
-
-    def _move_logged_poses(self, motion: MapMotion) -> None:
-        """Moves the logged keyframe poses with the map (each by the motion's rigid fit around its camera)."""
-        means = self.gaussians.means
-        support = means[:: max(1, len(means) // 20000)].astype(np.float64)
-        moved = motion.apply(support)
-        if (
-            motion.by == "identity"
-            or not len(support)
-            or np.linalg.norm(moved - support, axis=1).max() < _POSE_MOVE_MIN_M
-        ):
-            self.keyframe_log.move_poses(lambda T: T)  # densify / prune noise: poses stay (no random walk)
-            return
-        if not np.any(motion.offsets):  # one rigid motion: the same for every pose
-            self.keyframe_log.move_poses(lambda T: motion.move_pose(T, ()))
-            return
-        tree = cKDTree(support)  # one index for every logged camera (tens of thousands at the log's bound)
-
-        def move(T: np.ndarray) -> np.ndarray:
-            near = tree.query_ball_point(T[:3, 3], _POSE_SUPPORT_M)
-            return motion.move_pose(T, support[near], moved[near])
-
-        self.keyframe_log.move_poses(move)
+        return carried, int(np.count_nonzero(old_observed))
 
     def rebuilt(self) -> SemanticMapper:
         """A mapper of the same map and configuration whose evidence is the logged keyframes integrated

@@ -8,9 +8,10 @@ changes it:
   there is one. A stamp already in the map is refused (duplicate_stamp), as is a keyframe the
   rasterizer refuses (integration_error); both leave the state untouched.
 * Gaussian maps from the SLAM front-end: the first creates the mapper; a later one is a map update,
-  skipped when it is the same map again (core.map.gaussians.same_geometry) and refused when it is empty
-  (empty_gaussians) or removes more than `max_shrink` of the Gaussians (map_shrink): one empty cloud
-  must not wipe the map.
+  skipped when it is the same map again (core.map.gaussians.same_geometry). What a map update and
+  corrected keyframe poses do (refusals, the evidence carried over, the logged poses, re-integration) is
+  the MapUpdater's (core.follow.map_updater); the session applies them in order and swaps a finished
+  re-integration in.
 * reset, save and load, with their listeners and load checks.
 
 The live worker (monovoc_ros.nodes.worker) is a thread and a task queue around a session, offline
@@ -21,7 +22,6 @@ mapping (monovoc_ros.offline) a loop around one: the same events give the same e
 from __future__ import annotations
 
 import threading
-import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
@@ -31,18 +31,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
+from monovoc_ros.core.follow.map_updater import MapMotionError, MapUpdater, checked_poses
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.map.camera import validate_pose
-from monovoc_ros.core.map.gaussians import GaussianMap, removed_gaussians, same_geometry
+from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map.ply import load_ply
 from monovoc_ros.core.map_store import SnapshotInfo, load_snapshot, save_snapshot
-from monovoc_ros.core.mapping import (
-    DuplicateKeyframeError,
-    IntegrationReport,
-    MapMotionError,
-    MapperConfig,
-    SemanticMapper,
-)
+from monovoc_ros.core.mapping import DuplicateKeyframeError, IntegrationReport, MapperConfig, SemanticMapper
 
 # A map update removing a larger share of the Gaussians is refused; 1.0 allows every update.
 DEFAULT_MAX_SHRINK = 0.5
@@ -51,15 +45,13 @@ DEFAULT_MAX_SHRINK = 0.5
 #   integration_error   the rasterizer refused a keyframe (state untouched)
 #   empty_gaussians     a Gaussian map without a single Gaussian (the map in use is kept)
 #   map_shrink          a map update that would remove more than max_shrink of the Gaussians
-#   map_motion          a map update whose estimated motion is not believable (core.follow.map_follow)
+#   map_motion          a map update whose estimated motion is not believable (core.follow.map_updater)
 #   bad_keyframe_poses  corrected keyframe poses that are not rigid, not finite, or move a keyframe > 10 m
 #   reintegration_incomplete_log  a re-integration skipped: the keyframe log lacks some integrated keyframes
 SESSION_REASONS = (
     "duplicate_stamp", "integration_error", "empty_gaussians", "map_shrink", "map_motion", "bad_keyframe_poses",
     "reintegration_incomplete_log",
 )  # fmt: skip
-# Corrected keyframe poses moving any keyframe farther than this (metres) are refused.
-MAX_POSE_CORRECTION_M = 10.0
 
 KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
 LoadCheck = Callable[[str, SemanticMapper], "Callable[[], None] | None"]
@@ -84,7 +76,7 @@ class SessionStats:
     gaussians: int = 0
     has_map: bool = False
     map_version: int = 0
-    map_updates: int = 0  # maps applied with update_gaussians
+    map_updates: int = 0  # map updates applied (core.follow.map_updater)
     maps_unchanged: int = 0  # maps identical to the current one (skipped)
     map_update_carried_share: float = 1.0  # last map update: share of labelled Gaussians whose evidence was carried
     ms_map_update_last: float = 0.0  # the last map update's time (registration, transfer)
@@ -123,64 +115,6 @@ class SessionStats:
         return out
 
 
-def map_update_refusal(old: GaussianMap | None, new: GaussianMap, max_shrink: float) -> tuple[str, str] | None:
-    """(reason, detail) when a Gaussian map must not replace `old`: empty_gaussians for a map without
-    Gaussians, map_shrink when it removes more than `max_shrink` of old's Gaussians (1.0 allows
-    everything); None when it may."""
-    if len(new) == 0:
-        return "empty_gaussians", "it has no Gaussians (the map in use is kept)"
-    if old is None or max_shrink >= 1.0:
-        return None
-    removed, total = removed_gaussians(old, new)
-    if removed > max_shrink * total:
-        return "map_shrink", (
-            f"it removes {removed} of {total} Gaussians ({removed / total:.0%} > map_update_max_shrink "
-            f"{max_shrink:g}); set map_update_max_shrink to 1 to allow it, or reset the map"
-        )
-    return None
-
-
-class Reintegration:
-    """A re-integration in progress: a fresh mapper of the current map into which the logged keyframes
-    are integrated again, one per `step`, with their current poses. Keyframes integrated into the live
-    mapper meanwhile are logged there and integrated here too, in the same order, so the result is the
-    fresh mapper of every logged keyframe; it is swapped in when it has caught up."""
-
-    def __init__(self, live: SemanticMapper, reason: str) -> None:
-        self.reason = reason
-        self.mapper = live.rebuilt()
-        self.log = live.keyframe_log
-        self._done = 0  # entries of `log` integrated (counting ones the log dropped since for room)
-        self._dropped_at_start = self.log.dropped
-        self.refused = 0
-        self.skipped = 0  # entries the log dropped before this job reached them
-        self.seconds = 0.0
-
-    @property
-    def caught_up(self) -> bool:
-        return self._position >= len(self.log)
-
-    @property
-    def _position(self) -> int:
-        return max(0, self._done - (self.log.dropped - self._dropped_at_start))
-
-    def step(self) -> None:
-        """Integrates the next logged keyframe (a refused one is counted and skipped)."""
-        start = time.perf_counter()
-        # Entries the bounded log dropped before this job reached them are gone: skipped, not re-counted.
-        gone = self.log.dropped - self._dropped_at_start
-        if gone > self._done:
-            self.skipped += gone - self._done
-            self._done = gone
-        entry = self.log.entries[self._position]
-        self._done += 1
-        try:
-            self.mapper.integrate(entry.keyframe(), logged=entry)
-        except ValueError:
-            self.refused += 1
-        self.seconds += time.perf_counter() - start
-
-
 class MappingSession:
     """Owns the SemanticMapper; see the module docstring. Not thread-safe: one caller applies everything.
 
@@ -202,10 +136,12 @@ class MappingSession:
         if max_waiting is not None and max_waiting < 1:
             raise ValueError(f"max_waiting must be >= 1, got {max_waiting}")
         self.config = config or MapperConfig()
-        self.max_shrink = max_shrink
         self.max_waiting = max_waiting
         self.stats = stats if stats is not None else SessionStats()
         self.log: Logger = log or _SilentLogger()
+        self._updates = MapUpdater(
+            self.stats, self.log, max_shrink=max_shrink, reintegrate_below=self.config.reintegrate_below
+        )
         self._mapper = mapper
         self._waiting: deque[Keyframe] = deque()
         self._warned_dropping = False  # one warning per stretch without a map, not one per keyframe
@@ -214,7 +150,6 @@ class MappingSession:
         self._reset_listeners: list[Callable[[], None]] = []
         self._save_listeners: list[SaveListener] = []
         self._load_checks: list[LoadCheck] = []
-        self._job: Reintegration | None = None
         # Corrected poses of keyframes not integrated yet (live, a keyframe can still be in the synchronizer
         # when the SLAM's path arrives): applied when that keyframe is integrated. The newest path wins.
         self._pending_poses: dict[int, np.ndarray] = {}
@@ -310,7 +245,7 @@ class MappingSession:
 
     def add_map(self, gaussians: GaussianMap, name: str = "") -> bool:
         """The first map or a map update; returns whether the map changed (False: refused or unchanged)."""
-        refusal = map_update_refusal(self._mapper.gaussians if self._mapper else None, gaussians, self.max_shrink)
+        refusal = self._updates.refusal(self._mapper, gaussians)
         if refusal is not None:
             reason, detail = refusal
             self.stats.reject(reason)
@@ -327,20 +262,11 @@ class MappingSession:
             return False
         else:
             try:
-                report = self._mapper.update_gaussians(gaussians)
+                self._updates.update(self._mapper, gaussians, name)
             except MapMotionError as exc:
                 self.stats.reject("map_motion")
                 self.log.warning(f"Gaussian map {name} refused: {exc} (the map in use is kept)")
                 return False
-            self.stats.add(map_updates=1)
-            self.stats.update(map_update_carried_share=report.carried_share, ms_map_update_last=1e3 * report.seconds)
-            self.log.info(f"map update {name}: {report.describe()}")
-            if self._job is not None:  # its rebuild is of the old map: start over on the new one
-                self._start_reintegration(self._job.reason)
-            elif self._mapper.n_keyframes:
-                reason = report.reintegration_reason(self.config.reintegrate_below)
-                if reason:
-                    self._start_reintegration(reason)
         self._refresh_map_stats()
         return True
 
@@ -355,13 +281,8 @@ class MappingSession:
         if not poses.poses:
             self._pending_poses = {}  # the newest path wins, an empty one too
             return 0
-        logged = {} if mapper is None else {e.stamp_ns: e.cam_to_world for e in mapper.keyframe_log.entries}
         try:
-            checked = [(int(stamp), validate_pose(T, what=f"keyframe pose {stamp}")) for stamp, T in poses.poses]
-            for stamp, T in checked:
-                old = logged.get(stamp)
-                if old is not None and np.linalg.norm(old[:3, 3] - T[:3, 3]) > MAX_POSE_CORRECTION_M:
-                    raise ValueError(f"keyframe {stamp} would move {np.linalg.norm(old[:3, 3] - T[:3, 3]):.1f} m")
+            checked = checked_poses(mapper.keyframe_log if mapper is not None else None, poses)
         except ValueError as exc:
             self.stats.reject("bad_keyframe_poses")
             self.log.warning(f"keyframe poses {name} refused: {exc}")
@@ -370,78 +291,26 @@ class MappingSession:
         self._pending_poses = {stamp: T for stamp, T in checked if not integrated(stamp)}
         if mapper is None:
             return 0
-        changed = mapper.keyframe_log.set_poses(dict(checked))
-        if changed:
-            self._start_reintegration(f"{changed} corrected keyframe poses")
-        return changed
+        return self._updates.correct_poses(mapper, dict(checked))
 
     @property
     def reintegrating(self) -> bool:
-        return self._job is not None
+        return self._updates.reintegrating
 
     def reintegration_step(self) -> bool:
         """Advances the re-integration in progress by one keyframe, swapping its mapper in once it has caught
         up with the log; returns whether one is still in progress."""
-        job = self._job
-        if job is None:
-            return False
-        if not job.caught_up:
-            job.step()
-        if job.caught_up and job.skipped:
-            # The bounded log dropped keyframes before the rebuild reached them: their evidence would be lost.
-            self._cancel_reintegration()
-            self.stats.reject("reintegration_incomplete_log")
-            self.log.warning(
-                f"re-integration ({job.reason}) abandoned: the keyframe log dropped {job.skipped} "
-                "keyframes before it reached them (keyframe_log_bytes); the carried-over evidence is kept"
-            )
-        elif job.caught_up:
-            self._job = None
-            # The rebuilt log holds the live log's entries: it is as complete as that one.
-            job.mapper.keyframe_log.dropped = job.log.dropped
-            job.mapper.keyframe_log.poses_given = job.log.poses_given
-            self._mapper = job.mapper
-            with self.stats.lock:
-                self.stats.reintegrations += 1
-                self.stats.keyframes_reintegrated += job.mapper.n_keyframes
-                self.stats.ms_reintegration_total += 1e3 * job.seconds
-                self.stats.reintegrating = False
+        rebuilt = self._updates.step()
+        if rebuilt is not None:
+            self._mapper = rebuilt
             self._refresh_map_stats()
-            self.log.info(
-                f"re-integration ({job.reason}) done: {job.mapper.n_keyframes} keyframes in {job.seconds:.1f} s"
-                + (f", {job.refused} refused" if job.refused else "")
-            )
-        return self._job is not None
-
-    def _start_reintegration(self, reason: str) -> None:
-        assert self._mapper is not None
-        self._job = None  # a rebuild in progress is of an older map or older poses
-        log = self._mapper.keyframe_log
-        if not (log.complete and len(log) == self._mapper.n_keyframes):
-            # A rebuild from a partial log would drop the evidence of the keyframes it lacks: keep the
-            # carried-over evidence instead (the log was bounded by keyframe_log_bytes, or the map was
-            # resumed from a snapshot without one).
-            self.stats.reject("reintegration_incomplete_log")
-            self.log.warning(
-                f"not re-integrating ({reason}): the keyframe log holds {len(log)} of the map's "
-                f"{self._mapper.n_keyframes} keyframes (keyframe_log_bytes); the carried-over evidence is kept"
-            )
-            return
-        self._job = Reintegration(self._mapper, reason)
-        self.stats.update(reintegrating=True)
-        self.log.info(f"re-integrating {len(log)} logged keyframes: {reason}")
-
-    def _cancel_reintegration(self) -> None:
-        if self._job is not None:
-            self.log.info(f"re-integration ({self._job.reason}) cancelled")
-        self._job = None
-        self.stats.update(reintegrating=False)
+        return self._updates.reintegrating
 
     # ------------------------------------------------------------------ reset, save, load
 
     def reset(self, keep_gaussians: bool) -> None:
         """Clears the semantic state (keep_gaussians) or the whole map; queued keyframes stay queued."""
-        self._cancel_reintegration()
+        self._updates.cancel()
         self._pending_poses = {}
         if keep_gaussians and self._mapper is not None:
             self._mapper = SemanticMapper(self._mapper.gaussians, self.config)
@@ -479,7 +348,7 @@ class MappingSession:
         else:
             raise ValueError(f"{path}: neither a map directory nor a .ply file")
         commits = [fn(path, mapper) for fn in self._load_checks]  # may raise: nothing swapped yet
-        self._cancel_reintegration()
+        self._updates.cancel()
         self._mapper = mapper
         for commit in commits:
             if commit is not None:

@@ -4,7 +4,7 @@
 Per keyframe: stamp, pose, intrinsics, the mask as given (its raw RGB bytes, zstd-compressed; per-frame
 mask ids keep the segmenter's own colors, so re-integration associates them again) and its segments. RGB is not kept:
 the object views keep the crops they need. The log is bounded by `max_bytes`: beyond it the oldest
-entries are dropped and the log is no longer complete (core.session then does not re-integrate: a
+entries are dropped and the log is no longer complete (core.follow.map_updater then does not re-integrate: a
 rebuild would lose the dropped keyframes' evidence). It is saved in the snapshot (`keyframe_log.npz`)
 and restored on resume.
 """
@@ -90,8 +90,9 @@ class KeyframeLog:
         self.entries: list[LoggedKeyframe] = []
         self.nbytes = 0
         self.dropped = 0  # entries dropped for room: re-integration cannot be exact any more
-        # The SLAM corrected poses since the last map update: they are in the frame of the next map
-        # already, so that update must not move them again.
+        # The pose state: True when the SLAM corrected poses since the last map update, which are then in the
+        # frame of its next map already, so that update must not move them again. Saved with the log; set and
+        # cleared by core.follow.map_updater only.
         self.poses_given = False
 
     def __len__(self) -> int:
@@ -130,16 +131,18 @@ class KeyframeLog:
                 continue
             changed += _pose_changed(entry.cam_to_world, T, tolerance)
             self.entries[k] = replace(entry, cam_to_world=np.array(T, np.float64))
-        self.poses_given = self.poses_given or changed > 0
         return changed
 
     def move_poses(self, move) -> None:
-        """A map update: every pose moved by `move` ((4, 4) -> (4, 4)), unless the SLAM gave corrected
-        poses since the last update (see `poses_given`)."""
-        if not self.poses_given:
-            for k, entry in enumerate(self.entries):
-                self.entries[k] = replace(entry, cam_to_world=move(entry.cam_to_world))
-        self.poses_given = False
+        """Every pose moved by `move` ((4, 4) -> (4, 4))."""
+        for k, entry in enumerate(self.entries):
+            self.entries[k] = replace(entry, cam_to_world=move(entry.cam_to_world))
+
+    def continues(self, earlier: KeyframeLog) -> None:
+        """This log holds `earlier`'s entries integrated again (a re-integration swapped in): it is as complete
+        as that one, and its poses are in the same frame."""
+        self.dropped = earlier.dropped
+        self.poses_given = earlier.poses_given
 
     # ---------------------------------------------------------------- files
 

@@ -1,8 +1,9 @@
 """Which old Gaussian's evidence each Gaussian of a new SLAM map takes (METHOD section 10).
 
-`follow_map(old, new)` decides it in two steps:
+`follow_map(old, new)` decides it in two steps (`follow_ids`, then `follow_positions`):
 
-1. Ids win: a new Gaussian whose id is in the old map takes that Gaussian's evidence.
+1. Ids win: a new Gaussian whose id is in the old map takes that Gaussian's evidence; the map's motion is
+   estimated (core.follow.map_motion).
 2. Every other new Gaussian (all of them when a map has no ids) takes the evidence of the old Gaussian
    nearest to it *after moving the old map by its estimated motion* (core.follow.map_motion: from the id
    pairs when there are any, else by registering the two maps), provided that one lies within
@@ -12,8 +13,8 @@
    and the small radius keeps evidence from leaking onto a neighbouring object.
 
 A motion that is not believable (the registration did not converge, too few inliers, or some part of
-the map moves farther than `max_displacement`) is refused (`FollowResult.refusal`), so one absurd map
-never wipes the semantics.
+the map moves farther than `max_displacement`) is refused between the two steps (core.follow.map_updater),
+so one absurd map never wipes the semantics.
 """
 
 from __future__ import annotations
@@ -44,7 +45,11 @@ class FollowResult:
     motion: MapMotion
     by_id: int = 0  # new Gaussians matched by id
     by_position: int = 0  # new Gaussians matched by the moved position
-    refusal: str = ""  # why the update must not be applied; "" when it may
+    # The old map's finite centres, and the rows of finite centres of both maps (None: every row; no copies
+    # at 1M Gaussians): Gaussians culled by the rasterizer neither take nor give evidence.
+    old_means: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)), repr=False)
+    old_finite: np.ndarray | None = field(default=None, repr=False)
+    new_finite: np.ndarray | None = field(default=None, repr=False)
 
 
 # Grid cell of nearest_within (m): 0.045-0.09 took 150 ms for 1M queries on office_0 tiled, 0.03 (the base
@@ -85,6 +90,11 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
     """Source rows of the new map's evidence, and the map's motion (see the module docstring). Gaussians
     with non-finite means (culled by the rasterizer) neither take nor give evidence."""
     config = config or FollowConfig()
+    return follow_positions(follow_ids(old, new, config), new, config)
+
+
+def follow_ids(old: GaussianMap, new: GaussianMap, config: FollowConfig) -> FollowResult:
+    """Step 1: the sources by id (-1 for every other new Gaussian) and the map's motion."""
     old_ok = _finite_rows(old.means)  # None: every row (no copies at 1M Gaussians)
     new_ok = _finite_rows(new.means)
     old_means = old.means if old_ok is None else old.means[old_ok]
@@ -105,18 +115,24 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
         frames = (new.quats[pick], new.scales[pick])
         motion = estimate_motion(old_means, new.means[pick], config.motion, new_frames=frames)
     by_id = int(np.count_nonzero(sources >= 0))
-    refusal = _refusal(motion, old_means, config)
-    if refusal:
-        return FollowResult(sources, motion, by_id, 0, refusal)
+    return FollowResult(sources, motion, by_id, 0, old_means, old_ok, new_ok)
+
+
+def follow_positions(follow: FollowResult, new: GaussianMap, config: FollowConfig) -> FollowResult:
+    """Step 2 on the result of `follow_ids` (in place, returned): every new Gaussian without a source by id
+    takes the nearest old Gaussian, moved by the map's motion, within its transfer radius."""
+    sources, old_ok = follow.sources, follow.old_finite
     rest = np.flatnonzero(sources < 0)
-    if new_ok is not None:
-        rest = rest[np.isin(rest, new_ok)]
-    if rest.size and len(old_means):
-        found = nearest_within(motion.apply(old_means), new.means[rest], transfer_radius(new, rest, config))
+    if follow.new_finite is not None:
+        rest = rest[np.isin(rest, follow.new_finite)]
+    if rest.size and len(follow.old_means):
+        moved = follow.motion.apply(follow.old_means)
+        found = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config))
         if old_ok is not None:
             found = np.where(found >= 0, old_ok[np.maximum(found, 0)], -1)
         sources[rest] = found
-    return FollowResult(sources, motion, by_id, int(np.count_nonzero(sources >= 0)) - by_id)
+    follow.by_position = int(np.count_nonzero(sources >= 0)) - follow.by_id
+    return follow
 
 
 def _finite_rows(means: np.ndarray) -> np.ndarray | None:
@@ -124,17 +140,3 @@ def _finite_rows(means: np.ndarray) -> np.ndarray | None:
     if np.isfinite(means).all():  # one flat pass: a per-row reduction over 1M rows takes 20x longer
         return None
     return np.flatnonzero(np.isfinite(means).all(axis=1))
-
-
-def _refusal(motion: MapMotion, old_means: np.ndarray, config: FollowConfig) -> str:
-    if motion.by == "ids":
-        pass  # correspondences are given: the fit converges by construction
-    elif not motion.converged:
-        return "the registration of the old map to the new one did not converge"
-    if motion.inliers < config.min_inliers:
-        return f"only {motion.inliers:.0%} of the old map found a partner in the new one (min {config.min_inliers:.0%})"
-    step = max(1, len(old_means) // 4096)
-    moved = motion.max_displacement(old_means[::step])
-    if moved > config.max_displacement:
-        return f"it moves part of the map by {moved:.1f} m (max {config.max_displacement:g} m)"
-    return ""

@@ -250,32 +250,73 @@ def estimate_motion(
     given (K >= 3) they are the only pairs used. Otherwise pairs are nearest neighbours (registration),
     and `new_frames` (the new Gaussians' quats (M, 4) and scales (M, 3)) lets the field weigh residuals
     along the surface normals of flat Gaussians (point-to-plane: sliding along a wall is not evidence).
+
+    Four steps: the sample of old centres and their targets (`_sample`), the rigid fit (`_fit_rigid`),
+    whether the rigid motion explains the map (`_rigid_motion`), else the smooth field (`_fit_field`) and
+    how well the whole motion fits (`_field_motion`).
     """
     config = config or MotionConfig()
+    sample = _sample(old, new, config, old_rows, new_rows, new_frames)
+    if sample is None:
+        return MapMotion(converged=False, inliers=0.0)
+    rigid = _fit_rigid(sample, config)
+    if isinstance(rigid, MapMotion):  # the fit ran out of pairs
+        return rigid
+    R, t, trim = rigid
+    rigid_moved = sample.src @ R.T + t
+    if not sample.known:
+        explained = _rigid_motion(sample, R, t, rigid_moved, trim, config)
+        if explained is not None:
+            return explained
+    grid = _fit_field(sample, rigid_moved, trim, config)
+    return _field_motion(sample, R, t, rigid_moved, grid, config)
+
+
+@dataclass
+class _Sample:
+    """Old centres sampled for the fit (S, 3) and where to look for each in the new map."""
+
+    src: np.ndarray
+    targets: _Targets
+    known: bool  # the targets are the known partners (ids)
+    by: str  # MapMotion.by
+
+
+def _sample(
+    old: np.ndarray,
+    new: np.ndarray,
+    config: MotionConfig,
+    old_rows: np.ndarray | None,
+    new_rows: np.ndarray | None,
+    new_frames: tuple[np.ndarray, np.ndarray] | None,
+) -> _Sample | None:
+    """The sample of `estimate_motion` (None: fewer than 3 centres in a map, nothing to register)."""
     rng = np.random.default_rng(config.seed)
     known = old_rows is not None and new_rows is not None and len(old_rows) >= 3
     # Rows are sampled before they are gathered: gathering every partner at 1M Gaussians took 64 ms.
     if known:
         pick = rng.choice(len(old_rows), min(config.sample, len(old_rows)), replace=False)
         src = np.asarray(old[old_rows[pick]], np.float64)
-        targets = _Targets(new, np.asarray(new[new_rows[pick]], np.float64), config)
-        by = "ids"
-    else:
-        if len(old) < 3 or len(new) < 3:
-            return MapMotion(converged=False, inliers=0.0)
-        src = np.asarray(old[rng.choice(len(old), min(config.sample, len(old)), replace=False)], np.float64)
-        targets = _Targets(new, None, config, new_frames)
-        by = "registration"
+        return _Sample(src, _Targets(new, np.asarray(new[new_rows[pick]], np.float64), config), True, "ids")
+    if len(old) < 3 or len(new) < 3:
+        return None
+    src = np.asarray(old[rng.choice(len(old), min(config.sample, len(old)), replace=False)], np.float64)
+    return _Sample(src, _Targets(new, None, config, new_frames), False, "registration")
 
+
+def _fit_rigid(sample: _Sample, config: MotionConfig) -> tuple[np.ndarray, np.ndarray, float] | MapMotion:
+    """Trimmed ICP of the sample's first `rigid_sample` rows: (R, t, the final trim distance), or a motion
+    that did not converge when fewer than 3 pairs are left."""
     R, t = np.eye(3), np.zeros(3)
+    src, known = sample.src, sample.known
     trim = config.start_trim if not known else np.inf
     rigid = slice(0, config.rigid_sample)  # the sample is random: its first rows are a smaller random sample
-    rigid_targets = targets.subset(rigid)
+    rigid_targets = sample.targets.subset(rigid)
     for _ in range(config.rigid_iterations):
         moved = src[rigid] @ R.T + t
         inlier, target, _ = rigid_targets.pairs(moved, trim)
         if inlier.sum() < 3:
-            return MapMotion(converged=False, inliers=float(inlier.mean()), by=by)
+            return MapMotion(converged=False, inliers=float(inlier.mean()), by=sample.by)
         R_new, t_new = kabsch(src[rigid][inlier], target[inlier])
         step = np.linalg.norm(R_new - R) + np.linalg.norm(t_new - t)
         R, t = R_new, t_new
@@ -284,16 +325,42 @@ def estimate_motion(
             trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01)
         if step < config.rigid_tolerance:
             break
-    rigid_moved = src @ R.T + t
-    if not known:
-        # A rigid motion that explains the map (densified, pruned, moved as a whole) needs no field.
-        inlier, target, _ = targets.pairs(rigid_moved, trim)
-        res = np.linalg.norm(target - rigid_moved, axis=1)[inlier]
-        share, spacing = targets.floor(trim)
-        explained = res.size and np.median(res) <= config.rigid_residual + spacing
-        if inlier.mean() >= config.rigid_inliers * share and explained:
-            rms = float(np.sqrt(np.mean(res**2)))
-            return MapMotion(R, t, rms=rms, inliers=float(inlier.mean()), converged=rms <= config.max_rms, by=by)
+    return R, t, trim
+
+
+def _rigid_motion(
+    sample: _Sample, R: np.ndarray, t: np.ndarray, rigid_moved: np.ndarray, trim: float, config: MotionConfig
+) -> MapMotion | None:
+    """The rigid motion alone when it explains the map (densified, pruned, moved as a whole), else None (a
+    field follows the bend)."""
+    inlier, target, _ = sample.targets.pairs(rigid_moved, trim)
+    res = np.linalg.norm(target - rigid_moved, axis=1)[inlier]
+    share, spacing = sample.targets.floor(trim)
+    explained = res.size and np.median(res) <= config.rigid_residual + spacing
+    if inlier.mean() >= config.rigid_inliers * share and explained:
+        rms = float(np.sqrt(np.mean(res**2)))
+        return MapMotion(R, t, rms=rms, inliers=float(inlier.mean()), converged=rms <= config.max_rms, by=sample.by)
+    return None
+
+
+@dataclass
+class _Field:
+    """The smooth field over the rigidly moved sample: its grid, and per sample point its 8 nodes and weights."""
+
+    origin: np.ndarray  # (3,) grid node (0, 0, 0)
+    offsets: np.ndarray  # (GX, GY, GZ, 3)
+    weights: np.ndarray  # (S, 8) trilinear weights
+    nodes: np.ndarray  # (S, 8) flat node indices
+    trim: float  # the pairs' trim distance after the fit
+
+    def at_sample(self) -> np.ndarray:
+        """(S, 3) the field's offsets at the sample points."""
+        return np.einsum("nk,nkc->nc", self.weights, self.offsets.reshape(-1, 3)[self.nodes])
+
+
+def _fit_field(sample: _Sample, rigid_moved: np.ndarray, trim: float, config: MotionConfig) -> _Field:
+    """The smooth translation field fitted to the residuals the rigid motion left (module docstring, step 2)."""
+    targets, known = sample.targets, sample.known
     lo, hi = rigid_moved.min(axis=0), rigid_moved.max(axis=0)
     shape = tuple(int(v) for v in np.maximum(np.ceil((hi - lo) / config.spacing).astype(int) + 1, 2))
     offsets = np.zeros((*shape, 3))
@@ -338,13 +405,20 @@ def estimate_motion(
         if not known:
             res = np.linalg.norm(r[inlier], axis=1)
             trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01) if res.size else trim
-    field_now = np.einsum("nk,nkc->nc", w, offsets.reshape(-1, 3)[flat])
-    inlier, target, _ = targets.pairs(rigid_moved + field_now, trim if not known else np.inf)
+    return _Field(lo, offsets, w, flat, trim)
+
+
+def _field_motion(
+    sample: _Sample, R: np.ndarray, t: np.ndarray, rigid_moved: np.ndarray, grid: _Field, config: MotionConfig
+) -> MapMotion:
+    """The rigid motion and the field, with how well they fit together."""
+    field_now = grid.at_sample()
+    inlier, target, _ = sample.targets.pairs(rigid_moved + field_now, grid.trim if not sample.known else np.inf)
     res = np.linalg.norm(target - rigid_moved - field_now, axis=1)[inlier]
     rms = float(np.sqrt(np.mean(res**2))) if res.size else float("inf")
     # A bent map never settles on one rigid motion: what counts is how well the whole motion fits.
-    converged = known or rms <= config.max_rms
-    return MapMotion(R, t, lo, config.spacing, offsets, rms, float(inlier.mean()), converged, by)
+    converged = sample.known or rms <= config.max_rms
+    return MapMotion(R, t, grid.origin, config.spacing, grid.offsets, rms, float(inlier.mean()), converged, sample.by)
 
 
 def _neighbour_mean(offsets: np.ndarray) -> np.ndarray:

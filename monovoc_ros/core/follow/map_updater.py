@@ -1,0 +1,357 @@
+"""Map updates, one owner (METHOD section 10): what a new Gaussian map or corrected keyframe poses from the
+SLAM front-end do to the mapper a MappingSession (core.session) holds.
+
+* Refusals: a map without Gaussians (empty_gaussians) or one removing more than `max_shrink` of the
+  Gaussians (map_shrink) is refused (`map_update_refusal`: one empty cloud must not wipe the map); so is a
+  map whose estimated motion is not believable (`motion_refusal`: the registration did not converge, too
+  few inliers, or part of the map moves farther than `max_displacement`), unless the map holds no evidence
+  yet (nothing to protect: any new map is taken). Corrected poses that are not finite rigid transforms or
+  move a logged keyframe farther than MAX_POSE_CORRECTION_M are refused (`checked_poses`).
+* The update (`update_map`): which old Gaussian's evidence each new one takes (core.follow.map_follow),
+  handed to the mapper (`take_map`), and the logged keyframe poses moved with the map.
+* The log's pose state (`KeyframeLog.poses_given`, written here only): corrected poses the SLAM gave since
+  the last map update are in the frame of its next map already, so that update does not move them again.
+* Re-integration: whether a map update or corrected poses re-integrate the keyframe log
+  (`MapUpdater.reintegration_reason`), and the re-integration in progress (`Reintegration`), stepped by the
+  session and swapped in by it once it has caught up with the log.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, LoggedKeyframe
+from monovoc_ros.core.follow.map_follow import FollowConfig, FollowResult, follow_ids, follow_positions
+from monovoc_ros.core.follow.map_motion import MapMotion
+from monovoc_ros.core.keyframe import Keyframe
+from monovoc_ros.core.map.camera import validate_pose
+from monovoc_ros.core.map.gaussians import GaussianMap, removed_gaussians
+
+# Metres: a map update bending the map this much re-integrates (its evidence was rendered on the unbent map).
+REINTEGRATE_BEND_M = 0.02
+# Metres around a logged camera whose Gaussians define how the map moved there (its pose follows them).
+_POSE_SUPPORT_M = 4.0
+# Logged poses follow a map whose motion moves some part of it at least this far (metres); below it the
+# estimated motion is the noise of a densified map, and moving poses by it would make them random-walk.
+_POSE_MOVE_MIN_M = 0.01
+# Corrected keyframe poses moving any keyframe farther than this (metres) are refused.
+MAX_POSE_CORRECTION_M = 10.0
+
+
+class Mapper(Protocol):
+    """What map updates need of a mapper (core.mapping.SemanticMapper)."""
+
+    config: Any  # MapperConfig: its follow() says how evidence is carried over
+    gaussians: GaussianMap
+    state: Any  # the evidence store: `observed`
+    keyframe_log: KeyframeLog
+
+    @property
+    def n_keyframes(self) -> int: ...
+
+    def integrate(self, keyframe: Keyframe, logged: LoggedKeyframe | None = None) -> Any: ...
+
+    def rebuilt(self) -> Mapper: ...
+
+    def take_map(self, gaussians: GaussianMap, sources: np.ndarray) -> tuple[int, int]: ...
+
+
+class MapMotionError(ValueError):
+    """A map update whose motion is not believable: refused, the map in use is kept."""
+
+
+@dataclass
+class MapUpdateReport:
+    carried: int  # observed old Gaussians whose evidence went to at least one new Gaussian
+    dropped: int  # observed old Gaussians whose evidence went nowhere (pruned, or nothing near their new place)
+    gaussians: int  # size of the new map
+    by_id: int  # new Gaussians that took their evidence by id
+    by_position: int  # new Gaussians that took it by the moved position
+    motion: MapMotion  # how the map moved (core.follow.map_motion)
+    seconds: float = 0.0
+
+    @property
+    def carried_share(self) -> float:
+        """Share of the labelled (observed) old Gaussians whose evidence was carried over."""
+        total = self.carried + self.dropped
+        return self.carried / total if total else 1.0
+
+    def describe(self) -> str:
+        m = self.motion
+        return (
+            f"{self.gaussians} Gaussians; evidence of {self.carried} of {self.carried + self.dropped} labelled "
+            f"Gaussians carried ({self.carried_share:.1%}), {self.by_id} new by id, {self.by_position} by position; "
+            f"motion by {m.by}: {m.rotation_deg:.2f} deg, {np.linalg.norm(m.translation):.3f} m rigid, "
+            f"bend {1e3 * m.bend:.0f} mm, residual {1e3 * m.rms:.1f} mm"
+        )
+
+
+# ---------------------------------------------------------------------- refusals
+
+
+def map_update_refusal(old: GaussianMap | None, new: GaussianMap, max_shrink: float) -> tuple[str, str] | None:
+    """(reason, detail) when a Gaussian map must not replace `old`: empty_gaussians for a map without
+    Gaussians, map_shrink when it removes more than `max_shrink` of old's Gaussians (1.0 allows
+    everything); None when it may."""
+    if len(new) == 0:
+        return "empty_gaussians", "it has no Gaussians (the map in use is kept)"
+    if old is None or max_shrink >= 1.0:
+        return None
+    removed, total = removed_gaussians(old, new)
+    if removed > max_shrink * total:
+        return "map_shrink", (
+            f"it removes {removed} of {total} Gaussians ({removed / total:.0%} > map_update_max_shrink "
+            f"{max_shrink:g}); set map_update_max_shrink to 1 to allow it, or reset the map"
+        )
+    return None
+
+
+def motion_refusal(follow: FollowResult, config: FollowConfig) -> str:
+    """Why the map's estimated motion is not believable ("" when it is)."""
+    motion = follow.motion
+    if motion.by == "ids":
+        pass  # correspondences are given: the fit converges by construction
+    elif not motion.converged:
+        return "the registration of the old map to the new one did not converge"
+    if motion.inliers < config.min_inliers:
+        return f"only {motion.inliers:.0%} of the old map found a partner in the new one (min {config.min_inliers:.0%})"
+    step = max(1, len(follow.old_means) // 4096)
+    moved = motion.max_displacement(follow.old_means[::step])
+    if moved > config.max_displacement:
+        return f"it moves part of the map by {moved:.1f} m (max {config.max_displacement:g} m)"
+    return ""
+
+
+def checked_poses(log: KeyframeLog | None, poses: KeyframePoses) -> list[tuple[int, np.ndarray]]:
+    """The corrected poses as (stamp, validated (4, 4) cam_to_world); raises ValueError when a pose is not a
+    finite rigid transform or moves a keyframe of `log` farther than MAX_POSE_CORRECTION_M."""
+    logged = {} if log is None else {e.stamp_ns: e.cam_to_world for e in log.entries}
+    checked = [(int(stamp), validate_pose(T, what=f"keyframe pose {stamp}")) for stamp, T in poses.poses]
+    for stamp, T in checked:
+        old = logged.get(stamp)
+        if old is not None and np.linalg.norm(old[:3, 3] - T[:3, 3]) > MAX_POSE_CORRECTION_M:
+            raise ValueError(f"keyframe {stamp} would move {np.linalg.norm(old[:3, 3] - T[:3, 3]):.1f} m")
+    return checked
+
+
+# ---------------------------------------------------------------------- the update and the logged poses
+
+
+def update_map(mapper: Mapper, gaussians: GaussianMap) -> MapUpdateReport:
+    """Swaps a new map from the SLAM front-end into `mapper`, carrying its evidence over (core.follow.map_follow:
+    by id where the maps share ids, else by the map's estimated motion) and moving the logged poses with it.
+    Raises MapMotionError, with nothing changed, when the motion is not believable and there is evidence."""
+    start = time.perf_counter()
+    old = mapper.gaussians
+    config = mapper.config.follow()
+    follow = follow_ids(old, gaussians, config)
+    refusal = motion_refusal(follow, config)
+    if refusal and mapper.state.observed.any():  # nothing to protect: any new map is taken
+        raise MapMotionError(refusal)
+    if not refusal:
+        follow_positions(follow, gaussians, config)
+    move_logged_poses(mapper.keyframe_log, old.means, follow.motion)
+    carried, labelled = mapper.take_map(gaussians, follow.sources)
+    return MapUpdateReport(
+        carried=carried,
+        dropped=labelled - carried,
+        gaussians=len(gaussians),
+        by_id=follow.by_id,
+        by_position=follow.by_position,
+        motion=follow.motion,
+        seconds=time.perf_counter() - start,
+    )
+
+
+def move_logged_poses(log: KeyframeLog, means: np.ndarray, motion: MapMotion) -> None:
+    """A map update: the logged poses moved with the map whose old centres are `means` (each by the motion's
+    rigid fit around its camera), unless the SLAM gave corrected poses since the last update."""
+    if log.poses_given:  # in the frame of this map already
+        log.poses_given = False
+        return
+    support = means[:: max(1, len(means) // 20000)].astype(np.float64)
+    moved = motion.apply(support)
+    if motion.by == "identity" or not len(support) or np.linalg.norm(moved - support, axis=1).max() < _POSE_MOVE_MIN_M:
+        return  # densify / prune noise: poses stay (no random walk)
+    if not np.any(motion.offsets):  # one rigid motion: the same for every pose
+        log.move_poses(lambda T: motion.move_pose(T, ()))
+        return
+    tree = cKDTree(support)  # one index for every logged camera (tens of thousands at the log's bound)
+
+    def move(T: np.ndarray) -> np.ndarray:
+        near = tree.query_ball_point(T[:3, 3], _POSE_SUPPORT_M)
+        return motion.move_pose(T, support[near], moved[near])
+
+    log.move_poses(move)
+
+
+def correct_logged_poses(log: KeyframeLog, poses: dict[int, np.ndarray]) -> int:
+    """Corrected poses (stamp -> validated (4, 4) cam_to_world) of logged keyframes; returns how many moved."""
+    changed = log.set_poses(poses)
+    if changed:  # in the frame of the SLAM's next map already: that update must not move them again
+        log.poses_given = True
+    return changed
+
+
+# ---------------------------------------------------------------------- re-integration
+
+
+class Reintegration:
+    """A re-integration in progress: a fresh mapper of the current map into which the logged keyframes
+    are integrated again, one per `step`, with their current poses. Keyframes integrated into the live
+    mapper meanwhile are logged there and integrated here too, in the same order, so the result is the
+    fresh mapper of every logged keyframe; it is swapped in when it has caught up."""
+
+    def __init__(self, live: Mapper, reason: str) -> None:
+        self.reason = reason
+        self.mapper = live.rebuilt()
+        self.log = live.keyframe_log
+        self._done = 0  # entries of `log` integrated (counting ones the log dropped since for room)
+        self._dropped_at_start = self.log.dropped
+        self.refused = 0
+        self.skipped = 0  # entries the log dropped before this job reached them
+        self.seconds = 0.0
+
+    @property
+    def caught_up(self) -> bool:
+        return self._position >= len(self.log)
+
+    @property
+    def _position(self) -> int:
+        return max(0, self._done - (self.log.dropped - self._dropped_at_start))
+
+    def step(self) -> None:
+        """Integrates the next logged keyframe (a refused one is counted and skipped)."""
+        start = time.perf_counter()
+        # Entries the bounded log dropped before this job reached them are gone: skipped, not re-counted.
+        gone = self.log.dropped - self._dropped_at_start
+        if gone > self._done:
+            self.skipped += gone - self._done
+            self._done = gone
+        entry = self.log.entries[self._position]
+        self._done += 1
+        try:
+            self.mapper.integrate(entry.keyframe(), logged=entry)
+        except ValueError:
+            self.refused += 1
+        self.seconds += time.perf_counter() - start
+
+
+class MapUpdater:
+    """Map updates and corrected poses as a MappingSession applies them, with the re-integration they start;
+    counts in the session's `stats` (core.session.SessionStats) and reports to its `log`. See the module
+    docstring."""
+
+    def __init__(self, stats: Any, log: Any, *, max_shrink: float, reintegrate_below: float) -> None:
+        self.stats = stats
+        self.log = log
+        self.max_shrink = max_shrink
+        self.reintegrate_below = reintegrate_below
+        self.job: Reintegration | None = None
+
+    def refusal(self, mapper: Mapper | None, gaussians: GaussianMap) -> tuple[str, str] | None:
+        """(reason, detail) when `gaussians` must not become the map (`map_update_refusal`); None when it may."""
+        return map_update_refusal(mapper.gaussians if mapper is not None else None, gaussians, self.max_shrink)
+
+    def update(self, mapper: Mapper, gaussians: GaussianMap, name: str = "") -> MapUpdateReport:
+        """A map update (`update_map`, raising MapMotionError), counted, then the re-integration it needs: a
+        rebuild in progress (of the old map) starts over on the new one."""
+        report = update_map(mapper, gaussians)
+        self.stats.add(map_updates=1)
+        self.stats.update(map_update_carried_share=report.carried_share, ms_map_update_last=1e3 * report.seconds)
+        self.log.info(f"map update {name}: {report.describe()}")
+        if self.job is not None:  # its rebuild is of the old map: start over on the new one
+            self.start(mapper, self.job.reason)
+        elif mapper.n_keyframes:
+            reason = self.reintegration_reason(report)
+            if reason:
+                self.start(mapper, reason)
+        return report
+
+    def reintegration_reason(self, report: MapUpdateReport) -> str:
+        """Why a map update's transfer should be followed by a re-integration ("" when it should not)."""
+        below = self.reintegrate_below
+        if below <= 0:
+            return ""
+        if report.carried_share < below:
+            share = report.carried_share
+            return f"map update carried {share:.0%} of the labelled evidence (< reintegrate_below {below:g})"
+        if report.motion.bend >= REINTEGRATE_BEND_M:
+            return f"map update bends the map by {100 * report.motion.bend:.0f} cm"
+        return ""
+
+    def correct_poses(self, mapper: Mapper, poses: dict[int, np.ndarray]) -> int:
+        """Corrected poses (`checked_poses`) of logged keyframes; any moved keyframe starts a re-integration of
+        the log against the current map. Returns how many moved."""
+        changed = correct_logged_poses(mapper.keyframe_log, poses)
+        if changed:
+            self.start(mapper, f"{changed} corrected keyframe poses")
+        return changed
+
+    # ------------------------------------------------------------------ the re-integration in progress
+
+    @property
+    def reintegrating(self) -> bool:
+        return self.job is not None
+
+    def start(self, mapper: Mapper, reason: str) -> None:
+        """Starts re-integrating `mapper`'s log (dropping a rebuild in progress: it is of an older map or
+        older poses), unless the log lacks some of its keyframes."""
+        self.job = None
+        log = mapper.keyframe_log
+        if not (log.complete and len(log) == mapper.n_keyframes):
+            # A rebuild from a partial log would drop the evidence of the keyframes it lacks: keep the
+            # carried-over evidence instead (the log was bounded by keyframe_log_bytes, or the map was
+            # resumed from a snapshot without one).
+            self.stats.reject("reintegration_incomplete_log")
+            self.log.warning(
+                f"not re-integrating ({reason}): the keyframe log holds {len(log)} of the map's "
+                f"{mapper.n_keyframes} keyframes (keyframe_log_bytes); the carried-over evidence is kept"
+            )
+            return
+        self.job = Reintegration(mapper, reason)
+        self.stats.update(reintegrating=True)
+        self.log.info(f"re-integrating {len(log)} logged keyframes: {reason}")
+
+    def step(self) -> Mapper | None:
+        """Advances the re-integration in progress by one keyframe; returns its mapper once it has caught up
+        with the log (the session swaps it in), else None."""
+        job = self.job
+        if job is None:
+            return None
+        if not job.caught_up:
+            job.step()
+        if job.caught_up and job.skipped:
+            # The bounded log dropped keyframes before the rebuild reached them: their evidence would be lost.
+            self.cancel()
+            self.stats.reject("reintegration_incomplete_log")
+            self.log.warning(
+                f"re-integration ({job.reason}) abandoned: the keyframe log dropped {job.skipped} "
+                "keyframes before it reached them (keyframe_log_bytes); the carried-over evidence is kept"
+            )
+            return None
+        if not job.caught_up:
+            return None
+        self.job = None
+        job.mapper.keyframe_log.continues(job.log)
+        with self.stats.lock:
+            self.stats.reintegrations += 1
+            self.stats.keyframes_reintegrated += job.mapper.n_keyframes
+            self.stats.ms_reintegration_total += 1e3 * job.seconds
+            self.stats.reintegrating = False
+        self.log.info(
+            f"re-integration ({job.reason}) done: {job.mapper.n_keyframes} keyframes in {job.seconds:.1f} s"
+            + (f", {job.refused} refused" if job.refused else "")
+        )
+        return job.mapper
+
+    def cancel(self) -> None:
+        if self.job is not None:
+            self.log.info(f"re-integration ({self.job.reason}) cancelled")
+        self.job = None
+        self.stats.update(reintegrating=False)
