@@ -108,7 +108,7 @@ def test_colcon_builds_both_packages_into_the_install_layout(workspace: Workspac
                  "config/queries/replica_office0.json", "launch/monovoc.launch.py", "rviz/monovoc.rviz"):  # fmt: skip
         assert (share / name).read_bytes() == (REPO / name).read_bytes(), name
     lib = ws / "install" / "monovoc_ros" / "lib" / "monovoc_ros"
-    assert sorted(p.name for p in lib.iterdir()) == ["mapping_node", "monovoc", "semantic_mapper"]
+    assert sorted(p.name for p in lib.iterdir()) == ["mapping_node", "monovoc", "segmenter", "semantic_mapper"]
     assert all(os.access(p, os.X_OK) for p in lib.iterdir())
     assert (
         ws / "install" / "monovoc_ros" / "share" / "ament_index" / "resource_index" / "packages" / "monovoc_ros"
@@ -131,7 +131,7 @@ def test_every_executable_and_file_the_launch_file_names_is_installed(workspace:
         path = install / package / relative
         assert path.is_file() and os.access(path, os.X_OK), relative
     ours = {e for p, e in launch.executables if p == "monovoc_ros"}
-    assert ours == {"semantic_mapper", "mapping_node"}
+    assert ours == {"semantic_mapper", "mapping_node", "segmenter"}
     for executable in ours:  # what `ros2 run monovoc_ros <executable>` / launch_ros's Node start
         assert os.access(install / "monovoc_ros" / "lib" / "monovoc_ros" / executable, os.X_OK), executable
 

@@ -131,6 +131,8 @@ def _linked_copy(tmp_path):
     dst = tmp_path / "models"
     dst.mkdir()
     for path in src.iterdir():
+        if path.is_dir():  # other models' directories (the segmenter's): not the embedding models
+            continue
         if path.stat().st_size > 2_000_000:
             (dst / path.name).symlink_to(path)
         else:
