@@ -158,6 +158,21 @@ def test_objects_covered_together_are_merged_only_when_repeatedly():
         assert b.associate(together, 5, seg.astype(np.int32), ids).merges == []
 
 
+def test_only_confident_segments_cover_objects_together():
+    """A detector's unsure mask bleeding over a partly hidden neighbour is no evidence that two objects are one:
+    stage 5 counts a segment covering two objects only from merge_min_score on."""
+    seg = blocks()
+    together = np.unique(np.where(seg == 1, 0, seg), return_inverse=True)[1].reshape(seg.shape)
+    for score, merged in ((0.3, False), (0.5, True)):
+        a = Associator(AssociationConfig(merge_min_keyframes=3, merge_min_score=0.5))
+        ids = a.associate(seg, 6, np.full(seg.shape, -1, np.int32), np.zeros(0, np.uint32)).segment_objects
+        names = SegmentNames(("chair",) * 5, {}, (score,) + (0.9,) * 4)
+        merges = [a.associate(together, 5, seg.astype(np.int32), ids, names=names).merges for _ in range(3)]
+        assert merges[-1] == ([(int(ids[0]), int(ids[1]))] if merged else []), score
+    # Unnamed segments (no scores) count as before.
+    assert SegmentNames((None,) * 3, {}).confident(AssociationConfig()).tolist() == [True] * 3
+
+
 def test_a_named_segment_never_takes_an_object_named_otherwise():
     """office_0 under fusion noise: a fused segment once voted the desk organizer's Gaussians into the tissue
     box; seen again, the organizer's segment took the tissue box's id and the tissue box was born anew."""

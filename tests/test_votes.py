@@ -9,7 +9,7 @@ import pytest
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, Palette, pack_rgb
 from monovoc_ros.core.evidence.pixel_labels import pixel_labels
 from monovoc_ros.core.evidence.vote_kernels import merge_slots
-from monovoc_ros.core.evidence.votes import EMPTY_SLOT, VoteState, merge_slots_reference
+from monovoc_ros.core.evidence.votes import EMPTY_SLOT, VoteState, merge_slots_reference, weakly_supported
 from monovoc_ros.core.raster import accumulate_votes
 from monovoc_ros.core.raster.numba_impl import tile_slots
 from monovoc_ros.core.raster.reference import dense_votes, pixel_weights
@@ -266,3 +266,26 @@ def test_relabel_kernel_matches_labels():
     np.testing.assert_array_equal(got_ids[rows], ids[rows])
     np.testing.assert_allclose(got_conf[rows], conf[rows], rtol=1e-6)
     assert (got_conf[np.setdiff1d(np.arange(500), rows)] == -1).all()  # other rows untouched
+
+
+def test_weakly_supported_against_a_loop_over_objects():
+    rng = np.random.default_rng(3)
+    n = 5000
+    ids = rng.choice(np.array([7, 9, 0x123456, UNOBSERVED_ID], np.uint32), n, p=[0.3, 0.3, 0.01, 0.39])
+    support = rng.uniform(0, 1, n) ** 2
+    for min_support in (0.0, 0.3, 0.5, 1.0):
+        expected = np.zeros(n, bool)
+        for oid in np.unique(ids):
+            if oid == UNOBSERVED_ID:
+                continue
+            mine = ids == oid
+            expected |= mine & (support < min_support * np.median(support[mine]))
+        np.testing.assert_array_equal(weakly_supported(ids, support, min_support), expected)
+    assert not weakly_supported(np.full(3, UNOBSERVED_ID, np.uint32), np.zeros(3), 0.5).any()
+
+
+def test_support_counts_the_pooled_votes_against_the_leader():
+    state = VoteState.zeros(3, 2, None)
+    rows = np.array([0, 1], np.int64)
+    state.add(rows, np.array([[5, 0], [5, 6]], np.uint32), np.array([[3.0, 0.0], [2.0, 1.0]]), np.array([1.0, 0.0]), 1)
+    np.testing.assert_allclose(state.support(), [0.75, 1.0, 0.0])

@@ -43,6 +43,14 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
         f"(default {defaults.void_policy})",
     )
     parser.add_argument(
+        "--min-support",
+        type=float,
+        default=defaults.min_support,
+        help="vote mode: a Gaussian keeps its object only where the object's share of its votes, void counted "
+        "against it, is at least this times the object's median share; 0 = off, 0.5 for a segmenter's masks "
+        f"(default {defaults.min_support})",
+    )
+    parser.add_argument(
         "--semantic-mode",
         choices=SEMANTIC_MODES,
         default=defaults.semantic_mode,
@@ -115,6 +123,7 @@ def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) ->
         min_snap_margin=args.min_snap_margin,
         mask_ids=args.mask_ids.replace("-", "_"),
         association_scale=args.association_scale,
+        min_support=args.min_support,
     )
 
 

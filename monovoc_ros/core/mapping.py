@@ -20,7 +20,7 @@ from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, VOID_RGB, 
 from monovoc_ros.core.evidence.pixel_labels import mask_labels
 from monovoc_ros.core.evidence.quantize import METRICS, Quantization, confidence, quantize
 from monovoc_ros.core.evidence.state import GaussianEvidence, SemanticState
-from monovoc_ros.core.evidence.votes import DEFAULT_SLOTS, VoteState
+from monovoc_ros.core.evidence.votes import DEFAULT_SLOTS, VoteState, weakly_supported
 from monovoc_ros.core.follow.keyframe_log import DEFAULT_MAX_BYTES, KeyframeLog, LoggedKeyframe
 from monovoc_ros.core.follow.map_follow import FollowConfig
 from monovoc_ros.core.keyframe import Keyframe
@@ -42,7 +42,7 @@ SEMANTIC_MODES = ("vote", "scd")
 _EVIDENCE_SETTINGS = {
     "scd": ("semantic_mode", "weight_power", "void_policy"),
     "vote": ("semantic_mode", "weight_power", "void_policy", "vote_slots", "metric", "min_snap_margin",
-             "object_colors", "mask_ids"),
+             "object_colors", "mask_ids", "min_support"),
 }  # fmt: skip
 
 
@@ -87,6 +87,12 @@ class MapperConfig:
     # more), is followed by a re-integration of the logged keyframes with their poses moved with the map;
     # 0: never.
     reintegrate_below: float = 0.9
+    # Vote mode: a Gaussian keeps its object only where the object's share of its votes, void pixels counted
+    # against it, is at least this fraction of the median share over the object's Gaussians (0 = off). A
+    # segmenter leaves everything it does not detect void, so a mask that bleeds over an object's border
+    # would otherwise grow the object by every Gaussian it ever touched; relative to the object's own
+    # median, an object detected in few frames keeps its Gaussians (core.evidence.votes.weakly_supported).
+    min_support: float = 0.0
 
     def __post_init__(self) -> None:
         if self.impl not in IMPLEMENTATIONS:
@@ -111,6 +117,8 @@ class MapperConfig:
             raise ValueError(f"mask_ids must be one of {MASK_ID_MODES}, got {self.mask_ids!r}")
         if self.mask_ids == "per_frame" and self.semantic_mode != "vote":
             raise ValueError("mask_ids 'per_frame' needs semantic_mode 'vote' (association merges per-object votes)")
+        if not 0.0 <= float(self.min_support) <= 1.0:
+            raise ValueError(f"min_support must be in [0, 1], got {self.min_support!r}")
         if not 0.0 <= float(self.reintegrate_below) <= 1.0:
             raise ValueError(f"reintegrate_below must be in [0, 1], got {self.reintegrate_below!r}")
         if isinstance(self.keyframe_log_bytes, bool) or int(self.keyframe_log_bytes) < 0:
@@ -299,7 +307,8 @@ class SemanticMapper:
             keyframe.mask,
             self.config.metric,
             self.config.min_snap_margin,
-            include_void=self.config.void_policy == "include",
+            # Void votes count against objects when they decide support (min_support) too.
+            include_void=self.config.void_policy == "include" or self.config.min_support > 0,
             palette=self._known_palette,
         )
         labels = labelled.labels
@@ -346,8 +355,11 @@ class SemanticMapper:
             if self.config.semantic_mode == "scd":
                 self._result = label_gaussians(self.state, palette, self.config.metric)
             else:
-                ids, conf = self._vote_labels()
-                self._result = SemanticResult(palette, ids.copy(), conf.copy(), ids != UNOBSERVED_ID)
+                ids, conf = (a.copy() for a in self._vote_labels())
+                if self.config.min_support > 0:
+                    weak = weakly_supported(ids, self.state.support(), self.config.min_support)
+                    ids[weak], conf[weak] = UNOBSERVED_ID, 0.0
+                self._result = SemanticResult(palette, ids, conf, ids != UNOBSERVED_ID)
         return self._result
 
     def merged(self, other: SemanticMapper) -> SemanticMapper:

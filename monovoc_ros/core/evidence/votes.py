@@ -184,6 +184,13 @@ class VoteState(GaussianEvidence):
             return np.full(len(self.votes), UNOBSERVED_ID, np.uint32)
         return np.where(self.votes[:, 1] > 0, self.objects[:, 1], UNOBSERVED_ID).astype(np.uint32)
 
+    def support(self) -> np.ndarray:
+        """(N,) float64 share of each Gaussian's leading object in its votes and the pooled ones (void votes
+        included when void pixels are counted), 0 where unobserved."""
+        best = self.votes[:, 0]
+        total = best + self.other
+        return np.divide(best, total, out=np.zeros(len(best)), where=total > 0)
+
     def labels(self, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Object id (uint32, UNOBSERVED_ID where unobserved) and confidence (float32 vote margin
         (V1 - V2) / sum V, 0 where unobserved) of every Gaussian, or of `rows` alone."""
@@ -196,3 +203,19 @@ class VoteState(GaussianEvidence):
         total = votes.sum(axis=1) + other
         margin = np.divide(votes[:, 0] - second, total, out=np.zeros(len(votes)), where=seen)
         return ids, margin.astype(np.float32)
+
+
+def weakly_supported(ids: np.ndarray, support: np.ndarray, min_support: float) -> np.ndarray:
+    """(N,) bool: labelled Gaussians whose ``support`` is below ``min_support`` times the median support
+    of the Gaussians labelled with the same object. ``ids`` (N,) uint32 (UNOBSERVED_ID = unlabelled),
+    ``support`` (N,) float64 (VoteState.support)."""
+    labelled = np.flatnonzero(ids != UNOBSERVED_ID)
+    weak = np.zeros(len(ids), bool)
+    if labelled.size == 0:
+        return weak
+    order = labelled[np.lexsort((support[labelled], ids[labelled]))]  # by object, then by support
+    _, first, counts = np.unique(ids[order], return_index=True, return_counts=True)
+    sorted_support = support[order]
+    median = 0.5 * (sorted_support[first + (counts - 1) // 2] + sorted_support[first + counts // 2])
+    weak[order] = sorted_support < min_support * np.repeat(median, counts)
+    return weak

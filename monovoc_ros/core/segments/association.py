@@ -75,6 +75,9 @@ class AssociationConfig:
     new_object_fraction: float = 2e-4  # stage 3: least segment size (fraction of the image) for a new object
     merge_containment: float = 0.6  # stage 5: share of an object's rendered region inside the one segment
     merge_min_keyframes: int = 3  # stage 5: keyframes a pair must have been covered together
+    # Stage 5: least segmenter score of a segment that counts as covering two objects together. A detector's
+    # unsure mask bleeds over a partly hidden neighbour; only confident masks say two objects are one.
+    merge_min_score: float = 0.5
     # Overlaps are counted on every render_scale-th pixel (the view rendered at 1/render_scale of the
     # mask's resolution): they are ratios of areas, and the rendering is most of the cost.
     render_scale: int = 2  # MapperConfig.association_scale
@@ -104,6 +107,8 @@ class AssociationConfig:
             raise ValueError(f"association render_scale must be >= 1, got {self.render_scale!r}")
         if not float(self.name_min_score) > 0.0:
             raise ValueError(f"association name_min_score must be > 0, got {self.name_min_score!r}")
+        if not 0.0 <= float(self.merge_min_score) <= 1.0:
+            raise ValueError(f"association merge_min_score must be in [0, 1], got {self.merge_min_score!r}")
         if int(self.merge_min_keyframes) < 1:
             raise ValueError(f"association merge_min_keyframes must be >= 1, got {self.merge_min_keyframes!r}")
 
@@ -147,6 +152,13 @@ class SegmentNames:
 
     segments: tuple[str | None, ...]  # (S,) per segment index, None = unnamed
     objects: Mapping[int, Mapping[str, float]]  # object id -> class name -> summed score (LabelHistogram.scores)
+    scores: tuple[float, ...] = ()  # (S,) the segmenter's score per segment index (1 = unnamed); () = all 1
+
+    def confident(self, config: AssociationConfig) -> np.ndarray:
+        """(S,) bool: segments scored at least merge_min_score (stage 5 counts only those)."""
+        if not self.scores:
+            return np.ones(len(self.segments), bool)
+        return np.asarray(self.scores, np.float64) >= config.merge_min_score
 
     def named(self, object_id: int, config: AssociationConfig) -> tuple[Mapping[str, float], float] | None:
         """(the object's names, their summed score) when that reaches name_min_score, else None."""
@@ -324,6 +336,8 @@ class Associator:
         cfg = self.config
         visible = obj_claimed >= min_pixels
         inside = (C >= cfg.merge_containment * obj_claimed[None, :]) & visible[None, :]  # (S, R)
+        if names is not None:
+            inside &= names.confident(cfg)[:, None]
         for s in np.flatnonzero(inside.sum(axis=1) >= 2):
             objs = [int(rendered_ids[o]) for o in np.flatnonzero(inside[s])]
             for i, a in enumerate(objs):
@@ -488,7 +502,11 @@ def associate_keyframe(
     names = None
     if keyframe.segments and object_names is not None:
         by_color = {s.id: s.class_name for s in keyframe.segments if s.score > 0}  # as LabelHistogram counts
-        names = SegmentNames(tuple(by_color.get(c) for c in labelled.objects.tolist()), object_names)
+        score = {s.id: float(s.score) for s in keyframe.segments}
+        colors = labelled.objects.tolist()
+        names = SegmentNames(
+            tuple(by_color.get(c) for c in colors), object_names, tuple(score.get(c, 1.0) for c in colors)
+        )
     report = associator.associate(
         segments_small, len(labelled.objects), rendered, ids, runner_up if runner_up_ids is not None else None, names
     )
