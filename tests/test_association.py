@@ -557,3 +557,43 @@ def test_a_fused_segments_class_name_names_neither_object(small_room):
         assert counts.max() >= 0.8 * got.size, (values, counts)
         leading.append(int(values[np.argmax(counts)]))
     assert leading[0] != leading[1]
+
+
+def test_rebuilt_objects_take_the_ids_of_the_objects_they_replace():
+    """core.segments.object_match and Associator.adopt_ids: a rebuilt labelling matched to the old one by its
+    Gaussians, one to one; unmatched objects get ids the old associator never issued; everything renames."""
+    from monovoc_ros.core.segments.object_match import match_objects
+    from monovoc_ros.core.segments.segment_labels import LabelHistogram
+
+    old_a, new_a = Associator(), Associator()
+    o1, o2, o3 = (old_a.new_object() for _ in range(3))
+    n1, n2, n3, n4 = (new_a.new_object() for _ in range(4))  # the rebuild issued the same colors otherwise
+    u = UNOBSERVED_ID
+    old = np.array([o1] * 10 + [o2] * 6 + [o3] * 4 + [u] * 3, np.uint32)
+    # n2 is old o1 (its larger part), n1 old o2, n4 a piece of o1 too small to keep it, n3 where nothing was.
+    new = np.array([n2] * 8 + [n4] * 2 + [n1] * 6 + [u] * 4 + [n3] * 3, np.uint32)
+    matches = match_objects(old, new)
+    assert matches == {n2: o1, n1: o2}
+    mapping = new_a.adopt_ids(old_a, matches)
+    assert mapping[n2] == o1 and mapping[n1] == o2
+    assert mapping[n3] not in old_a.issued and mapping[n4] not in old_a.issued  # fresh: o3's id is dead
+    assert len(set(mapping.values())) == 4 and set(old_a.issued) <= set(new_a.issued)
+    assert new_a.new_object() not in set(old_a.issued) | set(mapping.values())
+    back = Associator.from_json(new_a.to_json())
+    assert back.issued == new_a.issued
+    # The votes, palette counts and segment labels follow the ids.
+    state = VoteState.zeros(3, 2)
+    state.add(np.arange(3), np.array([[n1, n2], [n2, 0], [n3, n4]], np.uint32), np.array([[2.0, 1.0], [1.0, 0.0],
+              [3.0, 1.0]]), np.zeros(3), 1)  # fmt: skip
+    state.rename_objects(mapping)
+    np.testing.assert_array_equal(state.objects[:, 0], [o2, o1, mapping[n3]])
+    with pytest.raises(ValueError, match="stays"):  # row 0 would hold one object in two slots
+        state.rename_objects({o2: mapping[n3]})
+    builder = PaletteBuilder()
+    builder.update(unpack_rgb(np.array([n1] * 5 + [n2] * 7, np.uint32)).reshape(3, 4, 3))
+    builder.rename_ids(mapping)
+    assert dict(zip(builder.ids.tolist(), builder.counts["pixels"].tolist(), strict=True)) == {o1: 7, o2: 5}
+    labels = LabelHistogram()
+    labels.add(n1, "chair", 1.0)
+    labels.rename_objects(mapping)
+    assert labels.leading() == {o2: "chair"}

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros import offline
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, decode_mask, encode_mask
 from monovoc_ros.core.map_store import load_snapshot, save_snapshot
 from monovoc_ros.core.segments.segment_labels import SegmentLabel
@@ -268,3 +269,85 @@ def test_a_rebuild_that_lost_keyframes_to_the_bound_or_to_a_new_map_is_never_swa
     closure = churn.loop_closure(scene.gaussians, degrees=1.0).gaussians
     assert session.add_map(closure) and not session.reintegrating
     assert session.mapper.gaussians is closure
+
+
+def _per_frame_closure(rates, seed: int, refine_m: float):
+    """A per-frame-id session (the small scene's masks renumbered per frame, with segmenter-like noise when
+    `rates` has some) of 8 keyframes, then a loop closure: the map moved 2 deg (re-ordered, ids kept so that
+    Gaussians can be followed), and the SLAM's corrected path, the poses moved with the map and refined by
+    `refine_m` along x; re-integrated. Returns (per Gaussian of the new map: its object id before the
+    closure, after the swap, in a fresh mapping of the same corrected keyframes), the old and new mappers'
+    object geometry and the closure."""
+    from monovoc_ros.core.evaluation.datasets import CorruptedMasks
+
+    scene = small_scene()
+    seq = CorruptedMasks(scene, shuffled=True, rates=rates, seed=seed)
+    kfs = [seq.keyframe(i) for i in range(8)]
+    config = replace(offline.MapperConfig(), mask_ids="per_frame")
+    session = MappingSession(config)
+    session.add_map(scene.gaussians)
+    for kf in kfs:
+        session.add_keyframe(kf)
+        session.integrate_next()
+    old = session.mapper  # the map update takes its new map in place; the rebuild replaces it
+    before, old_geometry = old.result().object_ids, old.result().objects(old.gaussians)
+    old_gaussian_ids = old.gaussians.ids
+    closure = churn.loop_closure(scene.gaussians, degrees=2.0, seed=5, keep_ids=True)
+    refine = np.eye(4)
+    refine[0, 3] = refine_m
+    corrected = [replace(kf, cam_to_world=refine @ closure.move_pose(kf.cam_to_world)) for kf in kfs]
+    session.add_map(closure.gaussians)
+    session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in corrected)))
+    while session.reintegration_step():
+        pass
+    assert session.stats.reintegrations == 1 and session.mapper is not old
+    new = session.mapper
+    order = np.argsort(old_gaussian_ids)
+    rows = order[np.searchsorted(old_gaussian_ids[order], new.gaussians.ids)]  # (N,) old row of each new Gaussian
+    fresh, _ = offline.map_events([closure.gaussians, *corrected], config)  # what the rebuild named them
+    ids = (before[rows], new.result().object_ids, fresh.result().object_ids)
+    return ids, old_geometry, new.result().objects(new.gaussians), closure, (old, new)
+
+
+def test_per_frame_object_ids_survive_a_reintegration():
+    """Per-frame ids, a segmenter's noise (merged, split, dropped segments) and corrected poses refined by
+    2 mm: the rebuild associates the logged segments afresh and names the objects its own way (a tenth of
+    the Gaussians under other ids), yet after the swap the objects keep the ids they had."""
+    from monovoc_ros.core.segments.segment_noise import NoiseRates
+
+    rates = NoiseRates(split=0.2, merge=0.1, drop=0.1)
+    (before, after, fresh), _, _, _, (old, new) = _per_frame_closure(rates, seed=4, refine_m=0.002)
+    both = (before != UNOBSERVED_ID) & (after != UNOBSERVED_ID)
+    kept = np.mean(after[both] == before[both])
+    assert kept >= 0.95, kept
+    assert np.mean(fresh[both] == before[both]) < kept - 0.05  # the ids a rebuild gives by itself
+    # Every object of the map before (but slivers) is there after, under its id.
+    ids, counts = np.unique(before[before != UNOBSERVED_ID], return_counts=True)
+    present = set(after[after != UNOBSERVED_ID].tolist())
+    assert set(ids[counts >= 0.01 * counts.sum()].tolist()) <= present
+    # The ids the old map issued are never given to another object later.
+    assert set(old.associator.issued) <= set(new.associator.issued)
+    assert len(set(new.associator.issued)) == len(new.associator.issued)
+
+
+def test_per_frame_reintegration_keeps_ids_and_geometry_of_unchanged_objects(tmp_path):
+    """Per-frame ids without noise, the poses corrected with the map (and by 1.5 mm): every Gaussian keeps its object
+    id, and each object's geometry (the boxes and centroids the queries answer with) moved with the map; the
+    adopted ids go through a snapshot."""
+    (before, after, _), old_geometry, new_geometry, closure, (_, new) = _per_frame_closure(None, 3, 0.0015)
+    both = (before != UNOBSERVED_ID) & (after != UNOBSERVED_ID)
+    assert np.mean(after[both] == before[both]) >= 0.99
+    assert set(before[before != UNOBSERVED_ID].tolist()) == set(after[after != UNOBSERVED_ID].tolist())
+    moved = closure.move_pose(np.eye(4))
+    old_objects = {o.id: o for o in old_geometry.objects}
+    assert [o.id for o in new_geometry.objects] == sorted(old_objects)
+    # Things, not the room's shell: a floor's or wall's centroid wanders with the confidence of its far edges.
+    things = [o for o in new_geometry.objects if np.max(o.bbox_max - o.bbox_min) < 1.5]
+    assert len(things) >= 10
+    for o in things:
+        expected = moved[:3, :3] @ old_objects[o.id].centroid + moved[:3, 3]
+        assert np.linalg.norm(o.centroid - expected) < 0.02, (hex(o.id), o)
+    save_snapshot(new, tmp_path / "map", export_cloud=False)
+    back = load_snapshot(tmp_path / "map")
+    np.testing.assert_array_equal(back.result().object_ids, new.result().object_ids)
+    assert back.associator.to_json() == new.associator.to_json()

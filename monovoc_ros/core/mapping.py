@@ -399,6 +399,18 @@ class SemanticMapper:
         self._labels, self._dirty = None, []
         return carried, int(np.count_nonzero(old_observed))
 
+    def rename_objects(self, mapping: dict[int, int]) -> None:
+        """Vote mode: object ids renamed (old id -> new id, one to one; others stay) in the evidence, the
+        palette counts and the segment labels (a rebuilt map taking the ids its predecessor's users know:
+        core.follow.map_updater.keep_object_ids, which renames the associator's ids itself)."""
+        if not isinstance(self.state, VoteState):
+            raise ValueError("rename_objects needs semantic_mode 'vote'")
+        self.state.rename_objects(mapping)
+        self.palette_builder.rename_ids(mapping)
+        self.segment_labels.rename_objects(mapping)
+        self._result = None
+        self._labels, self._dirty = None, []
+
     def rebuilt(self) -> SemanticMapper:
         """A mapper of the same map and configuration whose evidence is the logged keyframes integrated
         again, with their current poses (what a re-integration swaps in when done)."""

@@ -300,7 +300,7 @@ class MappingSession:
     def reintegration_step(self) -> bool:
         """Advances the re-integration in progress by one keyframe, swapping its mapper in once it has caught
         up with the log; returns whether one is still in progress."""
-        rebuilt = self._updates.step()
+        rebuilt = self._updates.step(self._mapper)
         if rebuilt is not None:
             self._mapper = rebuilt
             self._refresh_map_stats()

@@ -322,6 +322,19 @@ class PaletteBuilder:
             self.counts[name] = np.delete(self.counts[name], at)
         self._add(np.array([keep], np.uint32), *(moved[name] for name in _COUNT_FIELDS))
 
+    def rename_ids(self, mapping: Mapping[int, int]) -> None:
+        """Colors renamed (old id -> new id; others stay), their counts with them; colors renamed onto one
+        id add up, as merge_ids does (a rebuilt map taking its predecessor's ids, core.segments.object_match)."""
+        if not mapping:
+            return
+        ids = np.array([mapping.get(int(i), int(i)) for i in self.ids.tolist()], np.uint32)  # (C,)
+        all_ids, at = np.unique(ids, return_inverse=True)
+        for name in _COUNT_FIELDS:
+            total = np.zeros(all_ids.size, np.int64)
+            np.add.at(total, at, self.counts[name])
+            self.counts[name] = total
+        self.ids = all_ids.astype(np.uint32)
+
     def build(
         self,
         min_pixels: int = 1,

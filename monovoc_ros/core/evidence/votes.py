@@ -19,6 +19,7 @@ for the SCD state (core.evidence.state.GaussianEvidence).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -160,6 +161,24 @@ class VoteState(GaussianEvidence):
         self.votes[rows] = 0.0
         self._merge(rows.astype(np.int64), objects, votes, np.zeros(rows.size))
         return rows
+
+    def rename_objects(self, mapping: Mapping[int, int]) -> None:
+        """Object ids renamed (old id -> new id; ids not in `mapping` stay): the same votes under other names
+        (a rebuilt state taking the ids its predecessor's users know, core.segments.object_match). The new ids
+        must be distinct and must not be ids that stay, else one Gaussian would hold one object in two slots."""
+        moved = {int(a): int(b) for a, b in mapping.items() if int(a) != int(b)}
+        if not moved:
+            return
+        src = np.array(sorted(moved), np.uint32)  # (K,)
+        dst = np.array([moved[int(a)] for a in src], np.uint32)  # (K,)
+        if np.unique(dst).size != dst.size or dst.max() > 0xFFFFFF:
+            raise ValueError("rename_objects: new ids must be distinct 24-bit ids")
+        pos = np.searchsorted(src, self.objects).clip(0, src.size - 1)  # (N, m)
+        hit = src[pos] == self.objects  # (N, m)
+        staying = np.unique(self.objects[~hit & (self.votes > 0)])
+        if np.isin(dst, staying).any():
+            raise ValueError("rename_objects: a new id is an id that stays")
+        self.objects = np.where(hit, dst[pos], self.objects).astype(np.uint32)
 
     @property
     def observed(self) -> np.ndarray:

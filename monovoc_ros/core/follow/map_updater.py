@@ -13,7 +13,8 @@ SLAM front-end do to the mapper a MappingSession (core.session) holds.
   the last map update are in the frame of its next map already, so that update does not move them again.
 * Re-integration: whether a map update or corrected poses re-integrate the keyframe log
   (`MapUpdater.reintegration_reason`), and the re-integration in progress (`Reintegration`), stepped by the
-  session and swapped in by it once it has caught up with the log.
+  session and swapped in by it once it has caught up with the log; with per-frame mask ids its objects
+  take the ids of the objects they replace first (`keep_object_ids`).
 """
 
 from __future__ import annotations
@@ -25,12 +26,14 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.spatial import cKDTree
 
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, LoggedKeyframe
 from monovoc_ros.core.follow.map_follow import FollowConfig, FollowResult, follow_ids, follow_positions
 from monovoc_ros.core.follow.map_motion import MapMotion
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import validate_pose
 from monovoc_ros.core.map.gaussians import GaussianMap, removed_gaussians
+from monovoc_ros.core.segments.object_match import match_objects
 
 # Metres: a map update bending the map this much re-integrates (its evidence was rendered on the unbent map).
 REINTEGRATE_BEND_M = 0.02
@@ -50,6 +53,7 @@ class Mapper(Protocol):
     gaussians: GaussianMap
     state: Any  # the evidence store: `observed`
     keyframe_log: KeyframeLog
+    associator: Any  # core.segments.association.Associator with per-frame mask ids, else None
 
     @property
     def n_keyframes(self) -> int: ...
@@ -59,6 +63,10 @@ class Mapper(Protocol):
     def rebuilt(self) -> Mapper: ...
 
     def take_map(self, gaussians: GaussianMap, sources: np.ndarray) -> tuple[int, int]: ...
+
+    def result(self) -> Any: ...  # SemanticResult: `object_ids`
+
+    def rename_objects(self, mapping: dict[int, int]) -> None: ...
 
 
 class MapMotionError(ValueError):
@@ -242,6 +250,22 @@ class Reintegration:
         self.seconds += time.perf_counter() - start
 
 
+def keep_object_ids(live: Mapper, rebuilt: Mapper) -> tuple[int, int]:
+    """Per-frame mask ids: the rebuilt mapper's objects take the ids of the live mapper's objects they are
+    (core.segments.object_match: by the Gaussians both label), so that everything that knows the live ids (the
+    object database, query answers, the semantic cloud) sees the same id for the same object after the swap;
+    the rest get ids the live associator never issued. Returns (rebuilt objects that kept an id, rebuilt
+    objects). With global mask ids the ids are the masks' own colors, the same in both: nothing to do."""
+    if rebuilt.associator is None or live.associator is None:
+        return 0, 0
+    if len(live.gaussians) != len(rebuilt.gaussians):  # a rebuild is always of the map in use
+        raise ValueError("keep_object_ids: the rebuilt mapper labels another map")
+    new_ids = rebuilt.result().object_ids  # (N,) uint32, what downstream will see
+    matches = match_objects(live.result().object_ids, new_ids)
+    rebuilt.rename_objects(rebuilt.associator.adopt_ids(live.associator, matches))
+    return len(matches), int(np.unique(new_ids[new_ids != UNOBSERVED_ID]).size)
+
+
 class MapUpdater:
     """Map updates and corrected poses as a MappingSession applies them, with the re-integration they start;
     counts in the session's `stats` (core.session.SessionStats) and reports to its `log`. See the module
@@ -318,9 +342,10 @@ class MapUpdater:
         self.stats.update(reintegrating=True)
         self.log.info(f"re-integrating {len(log)} logged keyframes: {reason}")
 
-    def step(self) -> Mapper | None:
+    def step(self, live: Mapper) -> Mapper | None:
         """Advances the re-integration in progress by one keyframe; returns its mapper once it has caught up
-        with the log (the session swaps it in), else None."""
+        with the log (the session swaps it in for `live`, the mapper in use, whose object ids it takes over:
+        `keep_object_ids`), else None."""
         job = self.job
         if job is None:
             return None
@@ -339,6 +364,7 @@ class MapUpdater:
             return None
         self.job = None
         job.mapper.keyframe_log.continues(job.log)
+        kept, objects = keep_object_ids(live, job.mapper)
         with self.stats.lock:
             self.stats.reintegrations += 1
             self.stats.keyframes_reintegrated += job.mapper.n_keyframes
@@ -347,6 +373,7 @@ class MapUpdater:
         self.log.info(
             f"re-integration ({job.reason}) done: {job.mapper.n_keyframes} keyframes in {job.seconds:.1f} s"
             + (f", {job.refused} refused" if job.refused else "")
+            + (f"; {kept} of its {objects} objects kept their ids" if job.mapper.associator is not None else "")
         )
         return job.mapper
 

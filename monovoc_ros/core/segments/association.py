@@ -239,6 +239,47 @@ class Associator:
             object_id = self.merged_into[object_id]
         return object_id
 
+    def adopt_ids(self, old: Associator, matches: Mapping[int, int]) -> dict[int, int]:
+        """After a rebuild (core.segments.object_match): this associator, which issued the rebuilt state's ids,
+        takes over from `old`, whose ids the map's users know. A rebuilt object in `matches` (rebuilt id -> old
+        id, one to one) takes its old object's id; any other keeps its own id when `old` never issued it, else
+        gets a fresh one that neither issued. Every id `old` issued stays issued, so none is ever given to
+        another object later. The pair statistics and merges follow the ids (issue order: this associator's).
+        Returns the renaming (rebuilt id -> id now, every id this associator issued) that the evidence, the
+        palette and the segment labels must take (SemanticMapper.rename_objects)."""
+        if len(set(matches.values())) != len(matches) or not set(matches) <= set(self._rank):
+            raise ValueError("adopt_ids: matches must pair ids this associator issued one to one")
+        if not set(matches.values()) <= set(old._rank):
+            raise ValueError("adopt_ids: matches must name ids the old associator issued")
+        self._next_color = max(self._next_color, old._next_color)
+        mapping: dict[int, int] = {}
+        for oid in self.issued:
+            if oid in matches:
+                mapping[oid] = int(matches[oid])
+            elif oid not in old._rank:
+                mapping[oid] = oid  # never known downstream: nothing to keep, nothing it could be mistaken for
+            else:  # the old map's id of another object: fresh
+                while True:
+                    color = display_color(self._next_color)
+                    self._next_color += 1
+                    if color not in old._rank and color not in self._rank and color not in _RESERVED:
+                        break
+                mapping[oid] = color
+        issued = [mapping[o] for o in self.issued]
+        now = set(issued)
+        issued += [o for o in old.issued if o not in now]  # reserved: dead ids of the old map
+        self.issued = issued
+        self._rank = {o: i for i, o in enumerate(issued)}
+        for name in ("together", "apart"):
+            table: Counter[tuple[int, int]] = Counter()
+            for (a, b), n in getattr(self, name).items():
+                table[self._order(mapping[a], mapping[b])] += n
+            setattr(self, name, table)
+        merged = {mapping[a]: mapping[b] for a, b in self.merged_into.items()}
+        # The old map's merges keep resolving (its merged-away ids are dead here too, never a live id).
+        self.merged_into = {**{a: b for a, b in old.merged_into.items() if a not in now}, **merged}
+        return mapping
+
     # ------------------------------------------------------------------ association
 
     def associate(

@@ -103,6 +103,13 @@ class LabelHistogram:
         for name, score in self.scores.pop(int(drop), {}).items():
             self.add(keep, name, score)
 
+    def rename_objects(self, mapping: Mapping[int, int]) -> None:
+        """Object ids renamed (old id -> new id; others stay); objects renamed onto one id add their scores."""
+        scores, self.scores = self.scores, defaultdict(dict)
+        for oid, table in scores.items():
+            for name, score in table.items():
+                self.add(mapping.get(oid, oid), name, score)
+
     def merged(self, other: LabelHistogram) -> LabelHistogram:
         """Both histograms' scores added (two maps of the same scene with global ids)."""
         out = LabelHistogram()
