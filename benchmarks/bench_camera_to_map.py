@@ -62,11 +62,12 @@ REPLICA_TO_COCO = {
     "clock": "clock",
     "tv-screen": "tv",
 }
+CLASS_AWARE = SegmenterOptions(score_threshold=0.25, class_agnostic=False)  # YOLO's own defaults
 VARIANTS = {
-    "yolov5s-seg": ("yolov5s-seg", SegmenterOptions()),
-    "yolov5s-seg agnostic 0.1": ("yolov5s-seg", SegmenterOptions(score_threshold=0.1, class_agnostic=True)),
+    "yolov5s-seg": ("yolov5s-seg", SegmenterOptions()),  # the default: class-agnostic, 0.1
+    "yolov5s-seg class-aware 0.25": ("yolov5s-seg", CLASS_AWARE),
     "yolov7-seg": ("yolov7-seg", SegmenterOptions()),
-    "yolov7-seg agnostic 0.1": ("yolov7-seg", SegmenterOptions(score_threshold=0.1, class_agnostic=True)),
+    "yolov7-seg class-aware 0.25": ("yolov7-seg", CLASS_AWARE),
 }
 DEFAULT_VARIANT = "yolov5s-seg"
 # What the launch file's segmenter:=true sets: per-frame ids, void counted against weakly supported Gaussians.
@@ -167,12 +168,22 @@ def score_retrieval(mapper, index, instances, names) -> dict:
             noun_labels=noun_labels,
         )
     variant = report["variants"][0]["all"]
+    labels = mapper.object_labels()
+
+    def named(hex_id: str) -> str:
+        return labels.get(int(hex_id.lstrip("#"), 16), "?")
+
+    ranks = {
+        q["text"]: {"rank": q["rank"], "top3": [named(h) for h in q["top3"]]}
+        for q in report["variants"][0]["per_query"]
+    }
     scale = len(answerable) / max(1, len(kept))
     return {
         "retrieval_queries": [q.text for q in kept],
         "retrieval_unanswerable": [q.text for q in kept if q.text not in {a.text for a in answerable}],
         "retrieval_top1": round(float(variant["top1"]) * scale, 2),
         "retrieval_top3": round(float(variant["top3"]) * scale, 2),
+        "retrieval_ranks": ranks,
     }
 
 

@@ -38,7 +38,8 @@ def reference_decode(pred, proto, layout, lb: Letterbox, names, options: Segment
         if conf < options.score_threshold or box[2] <= 0 or box[3] <= 0 or options.rename(names[c]) == "":
             continue
         x0, y0 = box[0] - box[2] / 2, box[1] - box[3] / 2
-        rows.append((float(conf), c, (x0, y0, x0 + box[2], y0 + box[3]), coef))
+        named = cls[c] if obj is None else obj * cls[c]  # the class's confidence names the segment
+        rows.append((float(conf), c, (x0, y0, x0 + box[2], y0 + box[3]), coef, float(named)))
     rows.sort(key=lambda r: -r[0])
     kept = []
     for r in rows:
@@ -62,7 +63,7 @@ def reference_decode(pred, proto, layout, lb: Letterbox, names, options: Segment
     u1, v1 = np.minimum(u0 + 1, pw - 1), np.minimum(v0 + 1, ph - 1)
     fu, fv = u - u0, v - v0
     for index in range(len(kept) - 1, -1, -1):
-        _, _, box, coef = kept[index]
+        _, _, box, coef, _ = kept[index]
         logit = np.tensordot(coef, proto, axes=1)
         sample = (
             logit[v0, u0] * (1 - fu) * (1 - fv)
@@ -78,11 +79,11 @@ def reference_decode(pred, proto, layout, lb: Letterbox, names, options: Segment
         owner[inside & (sample > 0)] = index
     ids = np.zeros((H, W), np.uint16)
     out_names, out_scores = [], []
-    for index, (conf, c, _, _) in enumerate(kept):
+    for index, (_, c, _, _, named) in enumerate(kept):
         area = int((owner == index).sum())
         if area >= max(options.min_mask_area, 1):
             out_names.append(options.rename(names[c]))
-            out_scores.append(conf)
+            out_scores.append(named)
             ids[owner == index] = len(out_names)
     return ids, tuple(out_names), tuple(out_scores)
 

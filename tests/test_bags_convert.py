@@ -143,6 +143,16 @@ def test_bag_events_equal_the_sequence(scene, bag: Path) -> None:
     assert not assembler.rejected and assembler.sync.stats.matched == N_KF
 
 
+def test_a_camera_only_bag_has_no_masks_for_the_segmenter_to_make(scene, tmp_path: Path) -> None:
+    out = tmp_path / "camera.mcap"
+    assert monovoc(["bag", "convert", "synthetic", "-o", str(out), "--mask-format", "none", "--max-keyframes", "3",
+                    "--quiet"]) == 0  # fmt: skip
+    topics = bag_info(out).topics
+    assert TOPICS["mask"] not in topics and TOPICS["segments"] not in topics
+    assert topics[TOPICS["image"]].count == topics[TOPICS["pose"]].count == topics[TOPICS["camera_info"]].count == 3
+    assert topics[TOPICS["gaussians"]].count == 1
+
+
 def test_raw_and_png_formats_are_exact(scene, tmp_path: Path) -> None:
     raw = tmp_path / "raw.mcap"
     sequence_to_bag(scene, raw, rgb_format="raw", mask_format="raw", max_keyframes=2, time_offset_ns=5_000_000)

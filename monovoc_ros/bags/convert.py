@@ -40,7 +40,7 @@ from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
 
 RGB_FORMATS = ("jpeg", "png", "raw")
-MASK_FORMATS = ("png", "raw")
+MASK_FORMATS = ("png", "raw", "none")  # none: a camera-only bag (image, camera_info, pose, map) for the segmenter
 MIN_START_NS = 1_000_000_000
 DEFAULT_JPEG_QUALITY = 95
 # Publisher QoS recorded with the channels (what replay offers): everything reliable, the map latched.
@@ -207,6 +207,8 @@ def sequence_to_bag(
                     writer.write(topics["image"], image, stamp, qos=STREAM_QOS)
                 elif "image" not in " ".join(skipped):
                     skipped.append("image (the sequence has no RGB images)")
+                if mask_format == "none":  # what a robot with only a camera records: the segmenter makes masks
+                    continue
                 if i == 0:
                     with_segments = kf.segments is not None if segments is None else segments
                 if with_segments:  # one per mask, empty when the segmenter named nothing in it

@@ -28,7 +28,12 @@ def register(subparsers) -> None:
     add_sequence_options(c, "the bag holds only the corrupted masks: map a shuffled one with --mask-ids per-frame")
     add_segment_names_option(c)  # a segments topic (SegmentArray per mask) then; also from segments/*.json
     c.add_argument("--rgb-format", choices=("jpeg", "png", "raw"), default="jpeg", help="image topic (default jpeg)")
-    c.add_argument("--mask-format", choices=("png", "raw"), default="png", help="mask topic (default png)")
+    c.add_argument(
+        "--mask-format",
+        choices=("png", "raw", "none"),
+        default="png",
+        help="mask topic (default png); none: no masks and no segments, a camera-only bag for segmenter:=true",
+    )
     c.add_argument("--jpeg-quality", type=int, default=95)
     c.add_argument("--namespace", default=DEFAULT_NAMESPACE)
     c.add_argument("--no-map", action="store_true", help="leave the Gaussian map out")

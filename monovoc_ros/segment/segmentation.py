@@ -14,7 +14,8 @@ MAX_INSTANCES = 65535
 class Segmentation:
     """``ids`` (H, W) uint16: 0 is void, instance k (1..K) is named ``names[k - 1]`` with ``scores[k - 1]``.
 
-    Ids are numbered per image in descending score order, without gaps; they carry no identity across
+    Ids are numbered per image by descending detection confidence, without gaps; ``scores`` are the
+    confidences in the class names; they carry no identity across
     images (the mapper associates them with its objects).
     """
 

@@ -146,6 +146,14 @@ def confidences(raw: RawDetections, options: SegmenterOptions) -> tuple[np.ndarr
     return raw.objectness * best, classes
 
 
+def class_confidences(raw: RawDetections, classes: np.ndarray) -> np.ndarray:
+    """(N,) confidence in each candidate's class: objectness x class score (YOLOv5 layout) or the class
+    score. What a segment's name is worth, also where candidates were selected by objectness alone."""
+    n = raw.boxes.shape[0]
+    best = raw.class_scores[np.arange(n), classes] if raw.class_scores.shape[1] else np.ones(n, np.float32)
+    return best if raw.objectness is None else raw.objectness * best
+
+
 def bilinear_weights(n_out: int, start: int, a: float, b: float, n_src: int) -> tuple[np.ndarray, int]:
     """Interpolation matrix (n_out, span) and its first source column for output pixels start..start+n_out-1
     sampled at source coordinate ``u = a * x + b`` (pixel centres, edges clamped)."""
@@ -225,7 +233,8 @@ def decode(
     if class_names and raw.class_scores.shape[1] != len(class_names):
         raise ModelLayoutError(f"the model scores {raw.class_scores.shape[1]} classes but has {len(class_names)} names")
     kept = select(raw, class_names, options)
-    scores, classes = confidences(raw, options)
+    _, classes = confidences(raw, options)
+    scores = class_confidences(raw, classes)
     masks = instance_masks(raw, kept, lb)
     ids, survivors = resolve_overlaps(masks, lb.image_h, lb.image_w, options.min_mask_area)
     chosen = kept[survivors]
