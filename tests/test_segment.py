@@ -115,7 +115,9 @@ def test_options_class_map_max_instances_and_min_area(tmp_path):
 
     def run(**kw):
         return load_segmenter(
-            model=str(path), options=SegmenterOptions(**{"nms_iou": 0.9, "class_agnostic": False, **kw}), prefer_cuda=False
+            model=str(path),
+            options=SegmenterOptions(**{"nms_iou": 0.9, "class_agnostic": False, **kw}),
+            prefer_cuda=False,
         ).segment(zero)
 
     assert run(class_map={"chair": "seat"}).names == ("seat", "couch")
