@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monovoc_ros.core.blas_threads import single_threaded_blas
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.embed.onnx_session import DEFAULT_THREADS, make_session
 from monovoc_ros.segment.backend import SegmenterModelError
@@ -19,6 +20,7 @@ from monovoc_ros.segment.segmentation import Segmentation
 from monovoc_ros.segment.yolo_decode import ModelLayoutError, decode, detect_layout
 
 DEFAULT_STRIDE = 32
+single_threaded_blas()  # the mask decoding's matmul would leave BLAS threads spinning on onnxruntime's cores
 
 
 def parse_names(value: object, where: str) -> tuple[str, ...]:

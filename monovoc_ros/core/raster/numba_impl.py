@@ -12,30 +12,20 @@ and the lock lets the calls share one workspace of scratch arrays.
 
 from __future__ import annotations
 
-import os
 import threading
 from dataclasses import dataclass
 
 import numba
 import numpy as np
-import threadpoolctl
 
+from monovoc_ros.core.blas_threads import single_threaded_blas
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster import numba_kernels as nk
 from monovoc_ros.core.raster.inputs import View
 from monovoc_ros.core.raster.projection import jacobian_limits, tile_grid
 
 _LOCK = threading.Lock()
-# OpenBLAS's threads busy-wait for a while after every BLAS call numpy makes (one small matmul is
-# enough) and take the cores from these kernels' threads: with them at 1, per-frame association fell
-# from ~41 to ~19 ms median (bench_association: 140k Gaussians, 2 cores) and its 50-90 ms outliers went
-# away. Small matrices are all this package hands BLAS, so its threads never paid for themselves. The
-# limit covers the BLAS libraries loaded so far (numpy's, OpenCV's); the variable, those loaded later
-# (scipy's) in this process and in the processes it starts. Only a user's own OPENBLAS_NUM_THREADS
-# (non-empty) is left as it is.
-if not os.environ.get("OPENBLAS_NUM_THREADS"):
-    os.environ["OPENBLAS_NUM_THREADS"] = "1"
-    threadpoolctl.threadpool_limits(1, user_api="blas")
+single_threaded_blas()  # its threads would busy-wait on these kernels' cores (core.blas_threads)
 _NO_VALID = np.ones((1, 1), dtype=np.bool_)
 _NO_COLORS = np.zeros((1, 3), dtype=np.float32)
 _ZERO_BG = np.zeros(3, dtype=np.float32)
