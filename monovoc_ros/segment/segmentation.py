@@ -49,7 +49,3 @@ class Segmentation:
         from monovoc_ros.core.segments.segment_labels import SegmentLabel
 
         return tuple(SegmentLabel(k, name, min(1.0, max(0.0, score))) for k, name, score in self.entries())
-
-    @classmethod
-    def empty(cls, height: int, width: int) -> Segmentation:
-        return cls(np.zeros((height, width), np.uint16), (), ())
