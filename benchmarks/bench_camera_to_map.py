@@ -70,8 +70,9 @@ VARIANTS = {
     "yolov7-seg class-aware 0.25": ("yolov7-seg", CLASS_AWARE),
 }
 DEFAULT_VARIANT = "yolov5s-seg"
-# What the launch file's segmenter:=true sets: per-frame ids, void counted against weakly supported Gaussians.
-MAPPER = MapperConfig(mask_ids="per_frame", min_support=0.5)
+# What the launch file's segmenter:=true sets: per-frame ids, void counted against weakly supported Gaussians,
+# objects named by less than one confident detection are fragments.
+MAPPER = MapperConfig(mask_ids="per_frame", min_support=0.5, min_object_score=0.5)
 
 
 def run_variant(seq, model: str, options: SegmenterOptions, every: int) -> dict:

@@ -95,7 +95,13 @@ def generate_launch_description() -> LaunchDescription:
         "use_segments": ParameterValue(LaunchConfiguration("use_segments"), value_type=bool),
     }
     # With the segmenter the mapper reads its mono16 per-frame masks and their class names.
-    from_segmenter = {"mask_transport": "raw", "mask_ids": "per_frame", "use_segments": True, "min_support": 0.5}
+    from_segmenter = {
+        "mask_transport": "raw",
+        "mask_ids": "per_frame",
+        "use_segments": True,
+        "min_support": 0.5,
+        "min_object_score": 0.5,
+    }
 
     def mapping_node(extra: dict, condition) -> Node:
         return Node(

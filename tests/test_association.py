@@ -419,6 +419,37 @@ def test_mapper_per_frame_on_shuffled_masks_matches_global_ids(small_room):
         a.merged(b)
 
 
+def test_objects_named_by_unsure_segments_alone_are_no_objects(small_room):
+    """min_object_score: an object whose names add up to less is a fragment (its Gaussians unlabelled); one
+    confident detection keeps an object, and objects never named stay."""
+    from dataclasses import replace
+
+    from monovoc_ros.core.evaluation.datasets import PaletteSegments
+    from monovoc_ros.core.segments.segment_labels import SegmentLabel
+
+    named = PaletteSegments(small_room)
+    unsure, unnamed = sorted(named.names)[:2]
+
+    def keyframe(i):
+        kf = named.keyframe(i)
+        segments = [SegmentLabel(s.id, s.class_name, 0.02 if s.id == unsure else s.score) for s in kf.segments]
+        return replace(kf, segments=tuple(s for s in segments if s.id != unnamed))
+
+    results = {}
+    for score in (0.0, 0.5):
+        mapper = SemanticMapper(small_room.load_gaussians(), MapperConfig(min_object_score=score))
+        for i in range(len(small_room)):
+            mapper.integrate(keyframe(i))
+        results[score] = mapper.result().object_ids
+    before, after = results[0.0], results[0.5]
+    assert (before == unsure).sum() > 100 and not (after == unsure).any()
+    assert (after == unnamed).sum() == (before == unnamed).sum() > 100
+    kept = (before != unsure) & (before != UNOBSERVED_ID)
+    np.testing.assert_array_equal(after[kept], before[kept])
+    with pytest.raises(ValueError, match="min_object_score"):
+        MapperConfig(min_object_score=-1.0)
+
+
 def test_label_histogram_leads_merges_and_round_trips():
     from monovoc_ros.core.segments.segment_labels import LabelHistogram, SegmentLabel
 

@@ -51,6 +51,13 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
         f"(default {defaults.min_support})",
     )
     parser.add_argument(
+        "--min-object-score",
+        type=float,
+        default=defaults.min_object_score,
+        help="vote mode: objects whose segment names add up to less than this are no objects (the fragments "
+        f"of a segmenter's unsure masks); 0 = off, 0.5 for a segmenter's masks (default {defaults.min_object_score})",
+    )
+    parser.add_argument(
         "--semantic-mode",
         choices=SEMANTIC_MODES,
         default=defaults.semantic_mode,
@@ -124,6 +131,7 @@ def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) ->
         mask_ids=args.mask_ids.replace("-", "_"),
         association_scale=args.association_scale,
         min_support=args.min_support,
+        min_object_score=args.min_object_score,
     )
 
 

@@ -57,7 +57,7 @@ def register(subparsers) -> None:
         description="Runs the segmenter on every RGB keyframe of SEQ_DIR and writes OUT_DIR in the plain layout: "
         "the same poses, intrinsics, RGB and Gaussian map, masks/ with a fresh color per instance and frame (white "
         "void) and segments/ with each instance's class name and score. Map it with `monovoc map OUT_DIR "
-        "--mask-ids per-frame --min-support 0.5 --objects -o MAP`.",
+        "--mask-ids per-frame --min-support 0.5 --min-object-score 0.5 --objects -o MAP`.",
     )
     p.add_argument("source", help="sequence folder with RGB images (plain, NICE-SLAM or HI-SLAM2 layout)")
     p.add_argument("-o", "--out", required=True, help="folder to write (must be empty unless --overwrite)")

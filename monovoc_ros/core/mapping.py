@@ -93,6 +93,10 @@ class MapperConfig:
     # would otherwise grow the object by every Gaussian it ever touched; relative to the object's own
     # median, an object detected in few frames keeps its Gaussians (core.evidence.votes.weakly_supported).
     min_support: float = 0.0
+    # Vote mode: objects whose segment names add up to less than this summed score are no objects (their
+    # Gaussians unlabelled): the fragments a segmenter's unsure masks leave; one confident detection
+    # (score >= this) is enough. Objects never named are kept. 0 = off.
+    min_object_score: float = 0.0
 
     def __post_init__(self) -> None:
         if self.impl not in IMPLEMENTATIONS:
@@ -117,6 +121,8 @@ class MapperConfig:
             raise ValueError(f"mask_ids must be one of {MASK_ID_MODES}, got {self.mask_ids!r}")
         if self.mask_ids == "per_frame" and self.semantic_mode != "vote":
             raise ValueError("mask_ids 'per_frame' needs semantic_mode 'vote' (association merges per-object votes)")
+        if not float(self.min_object_score) >= 0.0:
+            raise ValueError(f"min_object_score must be >= 0, got {self.min_object_score!r}")
         if not 0.0 <= float(self.min_support) <= 1.0:
             raise ValueError(f"min_support must be in [0, 1], got {self.min_support!r}")
         if not 0.0 <= float(self.reintegrate_below) <= 1.0:
@@ -359,6 +365,10 @@ class SemanticMapper:
                 if self.config.min_support > 0:
                     weak = weakly_supported(ids, self.state.support(), self.config.min_support)
                     ids[weak], conf[weak] = UNOBSERVED_ID, 0.0
+                if self.config.min_object_score > 0:
+                    fragments = self.segment_labels.weakly_named(self.config.min_object_score)
+                    dropped = np.isin(ids, np.asarray(fragments, np.uint32))
+                    ids[dropped], conf[dropped] = UNOBSERVED_ID, 0.0
                 self._result = SemanticResult(palette, ids, conf, ids != UNOBSERVED_ID)
         return self._result
 

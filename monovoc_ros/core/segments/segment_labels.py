@@ -119,6 +119,10 @@ class LabelHistogram:
                     out.add(oid, name, score)
         return out
 
+    def weakly_named(self, min_score: float) -> list[int]:
+        """Objects whose names add up to less than ``min_score`` (objects never named are not listed)."""
+        return [oid for oid, t in self.scores.items() if t and sum(t.values()) < min_score]
+
     def leading(self) -> dict[int, str]:
         """Object id -> its leading class."""
         return {oid: leading_name(t) for oid, t in self.scores.items() if t}
