@@ -1,6 +1,6 @@
 """The `segmenter` node: keyframe images in, per-frame instance masks and their class names out.
 
-    ros2 run monovoc_ros segmenter --ros-args -r __ns:=/monovoc [-p model:=/path/to/yolo-seg.onnx]
+    ros2 run monovoc_ros segmenter [--ros-args -p model:=/path/to/yolo-seg.onnx]   # in /monovoc, as the mapper
 
 Subscribes to `image` (CompressedImage or, with `image_transport: raw`, Image) and publishes, with the
 image's header, `mask` (sensor_msgs/Image mono16: instance ids numbered per image, 0 = void) and
@@ -26,7 +26,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 import msg_adapters as ma
-from monovoc_ros.contract import IMAGE_MESSAGE_TYPES, SEGMENTS_TYPE, message_class
+from monovoc_ros.contract import DEFAULT_NAMESPACE, IMAGE_MESSAGE_TYPES, SEGMENTS_TYPE, message_class
 from monovoc_ros.nodes.mapping_node import _StopSignals
 from monovoc_ros.nodes.param_spec import Param, ParameterError, declare
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, input_qos
@@ -83,7 +83,7 @@ class SegmenterStats:
 
 class SegmenterNode(Node):
     def __init__(self) -> None:
-        super().__init__(NODE_NAME)
+        super().__init__(NODE_NAME, namespace=DEFAULT_NAMESPACE)  # the mapper's, unless remapped (__ns)
         values = declare(self, PARAMS)
         options = SegmenterOptions(
             **{s.name: values[s.name] for s in OPTION_SPECS},
