@@ -39,13 +39,17 @@ def test_launch_with_the_segmenter_on_a_bag_without_masks(env):
     process = NodeProcess(["bash", "-c", "exec " + LAUNCH], env, name="launch_segmenter", cwd=REPO, process_group=True)
     with process, ClientNode(env) as client:
         masks, segments = {}, {}
-        client.node.create_subscription(Image, "/monovoc/mask", lambda m: masks.__setitem__(_ns(m), m), 100)
-        client.node.create_subscription(
-            SegmentArray, "/monovoc/segments", lambda m: segments.__setitem__(_ns(m), m), 100
-        )
+        outputs = [
+            client.node.create_subscription(Image, "/monovoc/mask", lambda m: masks.__setitem__(_ns(m), m), 100),
+            client.node.create_subscription(
+                SegmentArray, "/monovoc/segments", lambda m: segments.__setitem__(_ns(m), m), 100
+            ),
+        ]
         segmenter = DiagnosticsMonitor(client.node, "segmenter")
         mapper = DiagnosticsMonitor(client.node, "semantic_mapper")
         segmenter.wait_for(lambda v: "segmented" in v, 120.0, process=process)
+        # This client hears every mask only once it has discovered the segmenter's publishers.
+        wait_until(lambda: all(s.get_publisher_count() >= 1 for s in outputs), 30.0, "the segmenter's outputs")
         # A bag without masks: the mapper sees only the segmenter's. 2 keyframes/s, a SLAM's pace.
         topics = " ".join(f"/monovoc/{role}" for role in ("image", "camera_info", "pose", "gaussians"))
         replay = f"monovoc replay {BAG} --rate 0.2 --topics {topics}"
