@@ -14,7 +14,7 @@ import pytest
 from monovoc_ros.bags import bag_info
 from monovoc_ros.contract import CAMERA_FRAME
 from monovoc_ros.embed import default_model_dir
-from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, wait_until
+from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, HarnessError, NodeProcess, wait_until
 from tests.rosutil import REPO, ros_environment
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -55,24 +55,33 @@ def test_launch_with_the_segmenter_on_a_bag_without_masks(env):
         replay = f"monovoc replay {BAG} --rate 0.2 --topics {topics}"
         played = subprocess.run(["bash", "-c", replay], env=env, cwd=REPO, capture_output=True, text=True, timeout=180)
         assert played.returncode == 0, played.stdout + played.stderr
-        # The replay has ended: every image it delivered is segmented or was replaced by a newer one. (Images
-        # published before the segmenter discovered the replay, which waits for the mapper only, never arrive.)
-        done = segmenter.wait_for(
-            lambda v: int(v["segmented"]) + int(v["dropped"]) == int(v["received"]) >= KEYFRAMES * 3 // 4,
-            60.0,
-            process=process,
-        )
-        assert done["bad_images"] == "0", done
+
+        # The replay has ended. Once every image that arrived is segmented or was replaced by a newer one (images
+        # published before the segmenter discovered the replay, which waits for the mapper only, never arrive),
+        # this client holds every mask and its segments, and the mapper has taken every mask: integrated, or
+        # refused as void_mask when nothing was detected (all void). One joint condition: counters read at
+        # different moments could pair an image still in flight with a stale count.
+        def settled() -> bool:
+            seg, mapped = segmenter.values(), mapper.values()
+            if not seg or not mapped:
+                return False
+            made = int(seg["segmented"])
+            return (
+                made + int(seg["dropped"]) == int(seg["received"]) >= KEYFRAMES * 3 // 4
+                and len(masks) == len(segments) == made
+                and int(mapped["keyframes_processed"]) + int(mapped["rejected.void_mask"]) == made
+            )
+
+        try:
+            wait_until(settled, 90.0, "every image segmented, its mask and segments heard and mapped", process=process)
+        except HarnessError as exc:
+            heard = f"masks heard {len(masks)}, segments heard {len(segments)}"
+            raise HarnessError(f"{exc}\n{heard}\nsegmenter {segmenter.values()}\nmapper {mapper.values()}") from None
+        done, mapped = segmenter.values(), mapper.values()
         made = int(done["segmented"])
-        assert made >= KEYFRAMES // 2, done  # at this pace nearly none is dropped
-        # Every mask is integrated, but one where nothing was detected (all void) is refused as void_mask.
-        mapped = mapper.wait_for(
-            lambda v: int(v["keyframes_processed"]) + int(v["rejected.void_mask"]) == made, 60.0, process=process
-        )
-        assert (
-            int(mapped["keyframes_processed"]) >= made // 2 and mapped["rejected_total"] == mapped["rejected.void_mask"]
-        )
-        wait_until(lambda: len(masks) == made and len(segments) == made, 10.0, "the masks and segments on the topics")
+        assert done["bad_images"] == "0" and made >= KEYFRAMES // 2, done  # at this pace nearly none is dropped
+        assert int(mapped["keyframes_processed"]) >= made // 2, mapped
+        assert mapped["rejected_total"] == mapped["rejected.void_mask"], mapped
         # Each mask and its segments carry an image's stamp and frame; ids are per-frame instance ids.
         recorded = {s for s in _image_stamps()}
         assert set(masks) <= recorded and set(segments) == set(masks)
