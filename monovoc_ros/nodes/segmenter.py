@@ -142,6 +142,9 @@ class SegmenterNode(Node):
         if self.compressed:
             rgb = ma.compressed_image_to_numpy(msg, max_pixels=MAX_IMAGE_PIXELS)
         else:
+            pixels = int(msg.height) * int(msg.width)
+            if pixels > MAX_IMAGE_PIXELS:  # refused before its buffer is viewed, as compressed ones are
+                raise ma.AdapterError(f"Image: {msg.width}x{msg.height} is more than {MAX_IMAGE_PIXELS} pixels")
             rgb = ma.image_to_numpy(msg)
         if rgb.ndim != 3 or rgb.dtype.name != "uint8":
             raise ma.AdapterError(f"expected an 8-bit color image, got shape {rgb.shape} {rgb.dtype}")
