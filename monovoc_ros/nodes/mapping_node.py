@@ -454,7 +454,7 @@ def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Com
     # keyframe and per query; with the default 5 ms switch interval each handoff could wait up to 5 ms
     # behind another thread's Python code (the tails of query and keyframe-to-cloud latency).
     sys.setswitchinterval(0.001)
-    stop = _StopSignals()
+    stop = StopSignals()
     try:
         return _run(args, compose, stop)
     finally:
@@ -463,7 +463,7 @@ def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Com
             signal.signal(signum, signal.SIG_IGN)
 
 
-def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component]] | None, stop: _StopSignals) -> int:
+def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component]] | None, stop: StopSignals) -> int:
     # rclpy's own handlers would shut the context down under the final snapshot's feet: ours only ask to stop.
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
@@ -500,14 +500,15 @@ def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component
     return 0
 
 
-class _StopSignals:
+class StopSignals:
     """SIGINT / SIGTERM handler: the first signal asks the node to stop, later ones are only logged. A
     terminal's Ctrl-C reaches both the node and `ros2 launch`, which forwards one more. Raising
     KeyboardInterrupt instead (as rclpy's default does) lands wherever the main thread happens to be: in
     the worker's join it cut the final snapshot short, inside the executor it left half-built rclpy Tasks
     whose __del__ printed a traceback."""
 
-    def __init__(self) -> None:
+    def __init__(self, node_name: str = NODE_NAME) -> None:
+        self.node_name = node_name
         self.requested = threading.Event()
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, self)
@@ -518,7 +519,9 @@ class _StopSignals:
             return
         with contextlib.suppress(OSError):  # a closed stderr must not raise in the main thread
             print(
-                f"{NODE_NAME}: {signal.Signals(signum).name} again: already shutting down", file=sys.stderr, flush=True
+                f"{self.node_name}: {signal.Signals(signum).name} again: already shutting down",
+                file=sys.stderr,
+                flush=True,
             )
 
 

@@ -27,7 +27,7 @@ from rclpy.signals import SignalHandlerOptions
 
 import msg_adapters as ma
 from monovoc_ros.contract import DEFAULT_NAMESPACE, IMAGE_MESSAGE_TYPES, SEGMENTS_TYPE, message_class
-from monovoc_ros.nodes.mapping_node import _StopSignals
+from monovoc_ros.nodes.mapping_node import StopSignals
 from monovoc_ros.nodes.param_spec import Param, ParameterError, declare
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, input_qos
 from monovoc_ros.segment.backend import SegmenterModelError, load_segmenter
@@ -201,7 +201,7 @@ class SegmenterNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    stop = _StopSignals()
+    stop = StopSignals(NODE_NAME)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = SegmenterNode()
