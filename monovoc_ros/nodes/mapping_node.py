@@ -484,11 +484,7 @@ def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component
         component.start()
     node.start()
     try:
-        # spin() in slices: a signal is only noticed between waits, and never lands inside the executor.
-        while not stop.requested.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=STOP_POLL_S)
-    except ExternalShutdownException:
-        pass
+        stop.spin(executor)
     finally:
         # Order matters (ROS_WHEELS.md): worker (final snapshot), components, executor, then node and context.
         node.stop()
@@ -512,6 +508,15 @@ class StopSignals:
         self.requested = threading.Event()
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, self)
+
+    def spin(self, executor: Any) -> None:
+        """Spins ``executor`` until a stop is asked or the context shuts down: in slices, so that a signal is
+        only noticed between waits and never lands inside the executor."""
+        try:
+            while not self.requested.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=STOP_POLL_S)
+        except ExternalShutdownException:
+            pass
 
     def __call__(self, signum: int, _frame: Any) -> None:
         if not self.requested.is_set():

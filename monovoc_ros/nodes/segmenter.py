@@ -21,7 +21,7 @@ from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
@@ -35,7 +35,6 @@ from monovoc_ros.segment.model_files import CHECKPOINTS, DEFAULT_MODEL
 from monovoc_ros.segment.options import OPTION_SPECS, SegmenterOptions, option_defaults, parse_class_map
 
 NODE_NAME = "segmenter"
-STOP_POLL_S = 0.1
 # Camera images: far beyond any keyframe camera, and a decompression bomb is refused before decoding.
 MAX_IMAGE_PIXELS = 4096 * 4096
 
@@ -217,10 +216,7 @@ def main(args: list[str] | None = None) -> int:
     executor.add_node(node)
     node.start()
     try:
-        while not stop.requested.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=STOP_POLL_S)
-    except ExternalShutdownException:
-        pass
+        stop.spin(executor)
     finally:
         node.stop()
         executor.shutdown(timeout_sec=5.0)

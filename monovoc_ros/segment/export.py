@@ -28,6 +28,7 @@ from monovoc_ros.segment.model_files import (
     onnx_name,
     segmenter_model_dir,
 )
+from monovoc_ros.segment.torch_yolo import sample_input
 
 # float32 convolutions in torch and onnxruntime differ by a few 1e-4 on box coordinates of hundreds of pixels.
 MATCH_RTOL = 1e-3
@@ -87,9 +88,7 @@ def export_one(weights: Path, out_path: Path) -> None:
     for key in [k for k in checks if k.startswith("pred_")]:
         size = key.removeprefix("pred_")
         h, w = (int(v) for v in size.split("x"))
-        from monovoc_ros.segment.torch_yolo import sample_input
-
-        pred, proto = session.run(None, {"images": sample_input(h, w).numpy()})
+        pred, proto = session.run(None, {"images": sample_input(h, w)})
         for name, got, expected in (("pred", pred, checks[key]), ("proto", proto, checks[f"proto_{size}"])):
             if got.shape != expected.shape or not np.allclose(got, expected, rtol=MATCH_RTOL, atol=MATCH_ATOL):
                 err = float(np.max(np.abs(got - expected))) if got.shape == expected.shape else float("nan")

@@ -115,8 +115,11 @@ def xywh_to_xyxy(boxes: np.ndarray) -> np.ndarray:
     return np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2], axis=1)
 
 
-def select(raw: RawDetections, class_names: tuple[str, ...], options: SegmenterOptions) -> np.ndarray:
-    """Candidates kept after thresholds, the class map and suppression: (K,) indices, best first."""
+def select(
+    raw: RawDetections, class_names: tuple[str, ...], options: SegmenterOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidates kept after thresholds, the class map and suppression: (K,) indices, best first, and (N,)
+    every candidate's class index."""
     scores, classes = confidences(raw, options)
     allowed = np.array([options.rename(n) != "" for n in class_names], bool)
     named = allowed[classes] if class_names else np.ones(len(scores), bool)
@@ -129,7 +132,7 @@ def select(raw: RawDetections, class_names: tuple[str, ...], options: SegmenterO
     if not options.class_agnostic:
         boxes = boxes + classes[candidates, None] * CLASS_OFFSET
     kept = candidates[nms(boxes, scores[candidates], options.nms_iou)]
-    return kept[: options.max_instances]
+    return kept[: options.max_instances], classes
 
 
 def confidences(raw: RawDetections, options: SegmenterOptions) -> tuple[np.ndarray, np.ndarray]:
@@ -232,8 +235,7 @@ def decode(
     raw = split_outputs(outputs, len(class_names) if class_names else None)
     if class_names and raw.class_scores.shape[1] != len(class_names):
         raise ModelLayoutError(f"the model scores {raw.class_scores.shape[1]} classes but has {len(class_names)} names")
-    kept = select(raw, class_names, options)
-    _, classes = confidences(raw, options)
+    kept, classes = select(raw, class_names, options)
     scores = class_confidences(raw, classes)
     masks = instance_masks(raw, kept, lb)
     ids, survivors = resolve_overlaps(masks, lb.image_h, lb.image_w, options.min_mask_area)

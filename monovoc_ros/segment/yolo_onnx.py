@@ -23,6 +23,12 @@ DEFAULT_STRIDE = 32
 single_threaded_blas()  # the mask decoding's matmul would leave BLAS threads spinning on onnxruntime's cores
 
 
+def first_line(exc: Exception) -> str:
+    """onnxruntime's messages run over many lines: the first says what went wrong."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def parse_names(value: object, where: str) -> tuple[str, ...]:
     """Class names from a list, or a dict of index -> name (``yolo export`` metadata, coco.yaml ``names``)."""
     if isinstance(value, Mapping) and "names" in value:
@@ -95,8 +101,9 @@ class YoloSegOnnx:
         try:
             self.session = make_session(self.path, threads, prefer_cuda=prefer_cuda)
         except Exception as exc:  # onnxruntime raises its own exception types for unreadable graphs
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise SegmenterModelError(f"segmenter model {self.path} cannot be loaded by onnxruntime: {first}") from None
+            raise SegmenterModelError(
+                f"segmenter model {self.path} cannot be loaded by onnxruntime: {first_line(exc)}"
+            ) from None
         inputs = self.session.get_inputs()
         if len(inputs) != 1 or len(inputs[0].shape) != 4 or inputs[0].shape[1] not in (3, "3", None):
             shapes = [(i.name, i.shape) for i in inputs]
@@ -144,8 +151,7 @@ class YoloSegOnnx:
         try:
             return self.session.run(None, {self.input_name: lb.apply(rgb)})
         except Exception as exc:  # onnxruntime's own types: shape or type errors inside the graph
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise SegmenterModelError(f"segmenter model {self.path} failed to run: {first}") from None
+            raise SegmenterModelError(f"segmenter model {self.path} failed to run: {first_line(exc)}") from None
 
     def segment(self, rgb: np.ndarray) -> Segmentation:
         """(H, W, 3) uint8 RGB -> instances at the image's resolution."""
