@@ -448,6 +448,8 @@ def test_objects_named_by_unsure_segments_alone_are_no_objects(small_room):
     np.testing.assert_array_equal(after[kept], before[kept])
     with pytest.raises(ValueError, match="min_object_score"):
         MapperConfig(min_object_score=-1.0)
+    with pytest.raises(ValueError, match="semantic_mode 'vote'"):
+        MapperConfig(semantic_mode="scd", min_object_score=0.5)
 
 
 def test_label_histogram_leads_merges_and_round_trips():

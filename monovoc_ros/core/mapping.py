@@ -121,6 +121,8 @@ class MapperConfig:
             raise ValueError(f"mask_ids must be one of {MASK_ID_MODES}, got {self.mask_ids!r}")
         if self.mask_ids == "per_frame" and self.semantic_mode != "vote":
             raise ValueError("mask_ids 'per_frame' needs semantic_mode 'vote' (association merges per-object votes)")
+        if self.semantic_mode != "vote" and (self.min_support > 0 or self.min_object_score > 0):
+            raise ValueError("min_support and min_object_score need semantic_mode 'vote'")
         if not float(self.min_object_score) >= 0.0:
             raise ValueError(f"min_object_score must be >= 0, got {self.min_object_score!r}")
         if not 0.0 <= float(self.min_support) <= 1.0:
