@@ -9,6 +9,7 @@ reach the synchronizer or the semantic state.
 from __future__ import annotations
 
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,7 +22,7 @@ from monovoc_ros.core.evidence.palette import VOID_RGB, pack_rgb
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.segments.segment_labels import SegmentLabel
-from monovoc_ros.core.sync import StampSynchronizer, lead_over_others
+from monovoc_ros.core.sync import StampEpochs, StampSynchronizer
 
 POSE_TYPES = tuple(POSE_MESSAGE_TYPES)
 _POSE_READERS = {
@@ -47,8 +48,10 @@ class IngestConfig:
     rectified: bool = False  # CameraInfo: use P (rectified images) instead of K
     allow_distortion: bool = False
     max_pending: int = 32  # per-stream synchronizer buffer
-    # A stamp more than this ahead of the newest stamp of every other topic is rejected (stamp_future); a
-    # waiting message this far ahead of a later one of its own topic is dropped. 0 = no such check.
+    # A stamp more than this ahead of the newest stamp of every other topic is held until another topic confirms
+    # it (the streams resumed after a pause) or a later message of its own topic shows it an outlier (rejected:
+    # stamp_future; core.sync.StampEpochs); a waiting message this far ahead of a later one of its own topic is
+    # dropped. 0 = no such check.
     max_stamp_lead_s: float = 30.0
 
     def __post_init__(self) -> None:
@@ -127,7 +130,8 @@ def instance_segments(segments: tuple[SegmentLabel, ...]) -> tuple[SegmentLabel,
 
 
 class KeyframeAssembler:
-    def __init__(self, config: IngestConfig | None = None) -> None:
+    def __init__(self, config: IngestConfig | None = None, clock: Callable[[], int | None] | None = None) -> None:
+        """``clock``: now in ns where there is one (the node's ROS time; see core.sync.StampEpochs)."""
         self.config = config or IngestConfig()
         roles = KEYFRAME_ROLES if self.config.use_image else tuple(r for r in KEYFRAME_ROLES if r != "image")
         self.roles = (*roles, SEGMENTS_ROLE) if self.config.use_segments else roles
@@ -142,6 +146,9 @@ class KeyframeAssembler:
         self._last_stamp: dict[str, int] = {}
         self._newest: dict[str, int] = {}
         self._lead_ns = int(round(self.config.max_stamp_lead_s * 1e9))
+        self.epochs = StampEpochs(
+            self.roles, self._lead_ns, self.config.max_pending, clock
+        )  # far-future stamps: outliers or a pause
         self._camera_latest: tuple[int, int] | None = None  # size of the latest valid camera_info
         self._camera_sizes: deque[tuple[int, int]] = deque(maxlen=4)  # camera sizes of the last keyframes
         self._count = 0
@@ -159,20 +166,35 @@ class KeyframeAssembler:
             reason = "void_mask" if isinstance(exc, _VoidMask) else BAD_MESSAGE[role]
             reason = "size_mismatch" if isinstance(exc, _SizeMismatch) else reason
             return [], [self._reject(reason, role, stamp, str(exc))]
+        last = self._last_stamp.get(role)
+        if last is not None and stamp <= last:
+            reason = "duplicate_stamp" if stamp == last else "stamp_out_of_order"
+            return [], [self._reject(reason, role, stamp, f"stamp {stamp} after {last} on {role}")]
+        go, refused = self.epochs.offer(role, stamp, item, self._newest)
+        rejections = [self._reject("stamp_future", h.role, h.stamp_ns, why) for h, why in refused]
+        keyframes = []
+        for taken in go:
+            kfs, rejection = self._take(taken.role, taken.stamp_ns, taken.item)
+            keyframes += kfs
+            rejections += rejection
+        return keyframes, rejections
+
+    def _take(self, role: str, stamp: int, item: Any) -> tuple[list[Keyframe], list[Rejection]]:
+        """A message past the stamp rules into the synchronizer."""
         rejections = []
-        rejection = self._check_stamp(role, stamp)
-        if rejection is None and self._lead_ns:
+        if self._lead_ns:
             # Waiting messages of this topic far ahead of this one were outliers (a far-future stamp that came
             # before any other topic could show it): they go, so they cannot block this topic.
             for gone in self.sync.discard_newer(role, stamp + self._lead_ns):
                 detail = f"{role} stamp {gone} was {(gone - stamp) / 1e9:.3g} s ahead of a later message"
                 rejections.append(self._reject("stamp_future", role, gone, detail))
         newest = self.sync.newest(role)
-        if rejection is None and newest is not None and stamp <= newest:
+        if newest is not None and stamp <= newest:
             reason = "duplicate_stamp" if stamp == newest else "stamp_out_of_order"
-            rejection = self._reject(reason, role, stamp, f"stamp {stamp} after {newest} (waiting) on {role}")
-        if rejection is not None:
-            return [], [*rejections, rejection]
+            return [], [
+                *rejections,
+                self._reject(reason, role, stamp, f"stamp {stamp} after {newest} (waiting) on {role}"),
+            ]
         self._newest[role] = stamp
         keyframes = []
         for pivot_stamp, parts in self.sync.push(role, stamp, (stamp, item)):
@@ -183,19 +205,6 @@ class KeyframeAssembler:
             except ValueError as exc:
                 rejections.append(self._reject("size_mismatch", "mask", pivot_stamp, str(exc)))
         return keyframes, rejections
-
-    def _check_stamp(self, role: str, stamp: int) -> Rejection | None:
-        """Against the watermark of the role, then against the other topics."""
-        last = self._last_stamp.get(role)
-        if last is not None and stamp <= last:
-            reason = "duplicate_stamp" if stamp == last else "stamp_out_of_order"
-            return self._reject(reason, role, stamp, f"stamp {stamp} after {last} on {role}")
-        lead = lead_over_others(stamp, (t for r, t in self._newest.items() if r != role), self._lead_ns)
-        if lead is not None:
-            return self._reject(
-                "stamp_future", role, stamp, f"{role} stamp {stamp} is {lead / 1e9:.3g} s ahead of every other topic"
-            )
-        return None
 
     def _reject(self, reason: str, role: str, stamp: int | None, detail: str) -> Rejection:
         self.rejected[reason] += 1

@@ -20,11 +20,50 @@ def test_one_far_future_pose_does_not_block_later_poses():
     asm = KeyframeAssembler()
     assert len(feed(asm, messages(1 * S))[0]) == 1
     outlier = messages(FAR)["pose"]
-    _, rejections = asm.push("pose", outlier)
-    assert [r.reason for r in rejections] == ["stamp_future"] and "ahead of every other topic" in rejections[0].detail
-    for k in range(2, 6):  # every later keyframe still goes through
+    assert asm.push("pose", outlier) == ([], [])  # held: a lone outlier or the first message after a pause
+    keyframes, rejections = feed(asm, messages(2 * S))  # the next pose shows it an outlier
+    assert len(keyframes) == 1 and [r.reason for r in rejections] == ["stamp_future"]
+    assert rejections[0].stamp_ns == FAR and "ahead of a later one" in rejections[0].detail
+    for k in range(3, 6):  # every later keyframe still goes through
         keyframes, rejections = feed(asm, messages(k * S))
         assert rejections == [] and len(keyframes) == 1, rejections
+    assert asm.epochs.epochs == 0 and asm.epochs.held == 0
+
+
+@pytest.mark.parametrize("gap_s", [100, 3600, 30 * 24 * 3600])
+def test_streams_that_resume_after_a_pause_are_integrated(gap_s):
+    """A robot that stood still, a restarted SLAM or a later bag: every topic resumes far ahead of the
+    stamps the pause froze. The first message is held until another topic agrees; nothing is lost."""
+    asm = KeyframeAssembler()
+    for k in range(1, 4):
+        assert len(feed(asm, messages(k * S))[0]) == 1
+    resumed = 0
+    for k in range(4, 8):
+        keyframes, rejections = feed(asm, messages(gap_s * S + k * S))
+        assert rejections == [] and len(keyframes) == 1, rejections
+        resumed += len(keyframes)
+    assert resumed == 4 and asm.epochs.epochs == 1 and sum(asm.rejected.values()) == 0
+
+
+def test_a_lone_far_future_message_after_a_pause_is_still_an_outlier():
+    asm = KeyframeAssembler()
+    assert len(feed(asm, messages(1 * S))[0]) == 1
+    asm.push("mask", messages(FAR)["mask"])  # held
+    keyframes, rejections = feed(asm, messages(100 * S))  # the streams resume 99 s later, far from the outlier
+    assert len(keyframes) == 1 and [r.reason for r in rejections] == ["stamp_future"]
+    assert asm.epochs.epochs == 1 and rejections[0].stamp_ns == FAR
+
+
+def test_a_far_future_stamp_is_refused_at_once_against_the_clock():
+    now = 10 * S
+    asm = KeyframeAssembler(clock=lambda: now)
+    assert len(feed(asm, messages(1 * S))[0]) == 1
+    _, rejections = asm.push("pose", messages(now + 31 * S)["pose"])
+    assert [r.reason for r in rejections] == ["stamp_future"] and "31 s ahead of the clock" in rejections[0].detail
+    keyframes, rejections = feed(asm, messages(now + 29 * S))  # a pause within the clock: an epoch
+    assert len(keyframes) == 1 and rejections == [] and asm.epochs.epochs == 1
+    unknown = KeyframeAssembler(clock=lambda: None)  # sim time before the first /clock: no clock rule
+    assert unknown.push("pose", messages(FAR)["pose"]) == ([], [])
 
 
 def test_a_far_future_first_message_is_dropped_by_the_next_one():
@@ -46,13 +85,26 @@ def test_watermark_moves_only_with_keyframes():
     assert [r.reason for r in rejections] == ["duplicate_stamp"] * 4
 
 
-def test_reorder_passes_far_future_stamps_on_at_once():
+def test_reorder_holds_a_far_future_stamp_aside_until_its_topic_shows_it_an_outlier():
     reorder = StampReorder(("mask", "pose"), max_wait_s=100.0)
     assert reorder.add("mask", messages(1 * S)["mask"]) == []
     far = messages(FAR)["pose"]
-    assert reorder.add("pose", far) == [("pose", far)]  # not held at the head of the pose topic
+    assert reorder.add("pose", far) == []  # held aside, not at the head of the pose topic
     late = messages(1 * S)["pose"]
-    assert [role for role, _ in reorder.add("pose", late)] == ["mask", "pose"]
+    out = reorder.add("pose", late)
+    assert out[0] == ("pose", far) and [role for role, _ in out[1:]] == ["mask", "pose"]
+
+
+def test_reorder_takes_streams_that_resume_after_a_pause_in_stamp_order():
+    reorder = StampReorder(("mask", "pose"), max_wait_s=100.0)
+    reorder.add("mask", messages(1 * S)["mask"])
+    assert [r for r, _ in reorder.add("pose", messages(1 * S)["pose"])] == ["mask", "pose"]
+    gap = 3600 * S
+    assert reorder.add("pose", messages(gap + 2 * S)["pose"]) == []  # held: alone so far ahead
+    assert reorder.add("pose", messages(gap + 3 * S)["pose"]) == []
+    out = reorder.add("mask", messages(gap + 2 * S)["mask"])  # another topic agrees: a new epoch
+    assert [(r, ma.header_stamp_ns(m)) for r, m in out] == [("mask", gap + 2 * S), ("pose", gap + 2 * S)]
+    assert reorder.epochs.epochs == 1 and len(reorder) == 1  # pose gap + 3 s waits for its mask
 
 
 @pytest.mark.parametrize(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from monovoc_ros.core.sync import StampSynchronizer, lead_over_others
+from monovoc_ros.core.sync import Held, StampEpochs, StampSynchronizer, lead_over_others
 
 MS = 1_000_000
 
@@ -84,3 +84,25 @@ def test_far_future_rule():
     assert lead_over_others(90 * s, [50 * s, 60 * s], 30 * s) is None  # exactly the allowed lead
     assert lead_over_others(100 * s, [None, None], 30 * s) is None  # nothing to compare with yet
     assert lead_over_others(100 * s, [1], 0) is None  # 0 disables the rule
+
+
+def test_stamp_epochs_hold_confirm_and_refuse():
+    s = 1_000_000_000
+    epochs = StampEpochs(("a", "b"), 30 * s, max_held=2)
+    newest = {"a": 10 * s, "b": 10 * s}
+    assert epochs.offer("a", 11 * s, "a11", newest) == ([Held("a", 11 * s, "a11")], [])  # in step: taken
+    assert epochs.offer("a", 500 * s, "a500", newest) == ([], [])  # far ahead of b: held
+    go, refused = epochs.offer("b", 510 * s, "b510", newest)  # within 30 s of it: a new epoch
+    assert [h.item for h in go] == ["a500", "b510"] and refused == [] and epochs.epochs == 1 and epochs.held == 0
+    for t in (900, 901, 902):  # never confirmed: the oldest beyond max_held is refused
+        go, refused = epochs.offer("a", t * s, f"a{t}", newest)
+    assert go == [] and [h.item for h, _ in refused] == ["a900"] and "none agreed on" in refused[0][1]
+    go, refused = epochs.offer("a", 12 * s, "a12", newest)  # its own topic goes on: the held ones were outliers
+    assert [h.item for h in go] == ["a12"] and [h.item for h, _ in refused] == ["a901", "a902"]
+    assert "ahead of a later one" in refused[0][1] and epochs.held == 0
+    assert StampEpochs(("a", "b"), 0).offer("a", 10**18, "x", newest) == ([Held("a", 10**18, "x")], [])  # 0: off
+    three = StampEpochs(("a", "b", "c"), 30 * s)
+    newest = {"a": 10 * s, "b": 10 * s, "c": 10 * s}
+    assert three.offer("a", 500 * s, "a", newest) == three.offer("b", 501 * s, "b", newest) == ([], [])
+    go, _ = three.offer("c", 502 * s, "c", newest)  # an epoch needs every topic to agree
+    assert [h.item for h in go] == ["a", "b", "c"] and three.epochs == 1

@@ -11,7 +11,7 @@ dropped (counted as unmatched), as are partner items older than every pending pi
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +25,96 @@ def lead_over_others(stamp: int, others: Iterable[int | None], max_lead_ns: int)
         return None
     lead = stamp - max(known)
     return lead if lead > max_lead_ns else None
+
+
+@dataclass(frozen=True)
+class Held:
+    role: str
+    stamp_ns: int
+    item: Any
+
+
+class StampEpochs:
+    """The far-future rule with epochs, for the assembler and the node's reorder stage alike.
+
+    A stamp more than `max_lead_ns` ahead of the node's clock (where there is one: ROS time, `/clock` under
+    sim time) is refused at once. A stamp more than `max_lead_ns` ahead of the newest stamp of every other
+    topic is either a lone outlier (one bad header) or the first message after a pause (a robot that stood
+    still, a restarted driver or SLAM, a later bag): the keyframe topics all resume at once, far ahead of the
+    stamps the pause froze. Such a message is held, not refused. Once every other topic has sent a message
+    within `max_lead_ns` of it, the topics agree on a new epoch: the held messages near it go on, in stamp
+    order (counted in `epochs`, not as rejections). A later message of the held one's own topic far behind
+    it shows it was an outlier: it is refused then. So a pause of any length locks nothing out, and a lone
+    outlier blocks nothing. A whole keyframe stamped in the future (every topic agreeing, within the clock)
+    cannot be told from a resumed stream and is taken as one. Stamps that jump back are not an epoch: they
+    stay out of order (the watermark)."""
+
+    def __init__(
+        self,
+        roles: Iterable[str],
+        max_lead_ns: int,
+        max_held: int = 32,
+        clock: Callable[[], int | None] | None = None,
+    ) -> None:
+        self.roles = tuple(roles)
+        self.max_lead_ns = int(max_lead_ns)
+        self.max_held = int(max_held)
+        self.clock = clock  # now in ns, or None / 0 while unknown (sim time before the first /clock)
+        self._held: dict[str, deque[Held]] = {r: deque() for r in self.roles}
+        self.epochs = 0  # new epochs agreed on (streams resumed after a pause)
+
+    @property
+    def held(self) -> int:
+        return sum(len(q) for q in self._held.values())
+
+    def offer(
+        self, role: str, stamp_ns: int, item: Any, newest: Mapping[str, int | None]
+    ) -> tuple[list[Held], list[tuple[Held, str]]]:
+        """Judges one message of one of `roles` against `newest` (per topic, the newest stamp taken). Returns
+        (the messages to take now, in stamp order: this one unless it is held, and those of an agreed epoch;
+        messages refused, each with why)."""
+        this = Held(role, int(stamp_ns), item)
+        lead_ns = self.max_lead_ns
+        if not lead_ns:
+            return [this], []
+        now = self.clock() if self.clock is not None else None
+        if now and this.stamp_ns > now + lead_ns:
+            return [], [
+                (this, f"{role} stamp {this.stamp_ns} is {(this.stamp_ns - now) / 1e9:.3g} s ahead of the clock")
+            ]
+        own = self._held[role]
+        if lead_over_others(this.stamp_ns, (t for r, t in newest.items() if r != role), lead_ns) is None:
+            go = [this]
+        elif all(
+            any(abs(h.stamp_ns - this.stamp_ns) <= lead_ns for h in self._held[r]) for r in self.roles if r != role
+        ):
+            self.epochs += 1  # every other topic agrees on this stamp: the streams resumed
+            go = [this]
+            for r, q in self._held.items():
+                go += [h for h in q if abs(h.stamp_ns - this.stamp_ns) <= lead_ns]
+                self._held[r] = deque(h for h in q if abs(h.stamp_ns - this.stamp_ns) > lead_ns)
+            go.sort(key=lambda h: h.stamp_ns)
+        else:
+            own.append(this)
+            if len(own) <= self.max_held:
+                return [], []
+            gone = own.popleft()
+            return [], [
+                (gone, f"{role} stamp {gone.stamp_ns}: {self.max_held + 1} far-future messages, none agreed on")
+            ]
+        own = self._held[role]
+        refused = [
+            (h, f"{role} stamp {h.stamp_ns} was {(h.stamp_ns - this.stamp_ns) / 1e9:.3g} s ahead of a later one")
+            for h in own
+            if h.stamp_ns > this.stamp_ns + lead_ns
+        ]
+        if refused:
+            self._held[role] = deque(h for h in own if h.stamp_ns <= this.stamp_ns + lead_ns)
+        return go, refused
+
+    def clear(self) -> None:
+        for q in self._held.values():
+            q.clear()
 
 
 @dataclass

@@ -83,9 +83,12 @@ class MappingNode(Node):
         self.params = self._read_parameters()
         self.stats = MapperStats()
         self._ingest_lock = threading.Lock()
-        self.assembler = KeyframeAssembler(self.params.ingest)
+        self.assembler = KeyframeAssembler(self.params.ingest, clock=self._clock_ns)
         self._reorder = StampReorder(
-            self.assembler.roles, self.params.reorder_wait_s, max_lead_s=self.params.ingest.max_stamp_lead_s
+            self.assembler.roles,
+            self.params.reorder_wait_s,
+            max_lead_s=self.params.ingest.max_stamp_lead_s,
+            clock_ns=self._clock_ns,
         )
         self._reject_log = RejectionLog(self.get_logger().warning)
         self._warned_frame: set[str] = set()
@@ -286,6 +289,10 @@ class MappingNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
+    def _clock_ns(self) -> int | None:
+        """ROS time (``/clock`` under sim time; 0 until it arrives): a stamp far ahead of it is refused."""
+        return self.get_clock().now().nanoseconds or None
+
     def _on_input(self, role: str, msg: Any) -> None:
         with self._ingest_lock:  # topics arrive on several threads; the assembler takes them one at a time
             self._push(self._reorder.add(role, msg))
@@ -432,6 +439,9 @@ class MappingNode(Node):
             extra: dict[str, Any] = {f"sync_unmatched.{r}": n for r, n in sync.unmatched.items()}
             extra.update({f"sync_overflow.{r}": n for r, n in sync.overflow.items()})
             extra.update({f"messages_received.{r}": n for r, n in self.assembler.received.items()})
+            # Streams that resumed far ahead of their last stamps (a pause), and far-future messages held aside.
+            extra["stamp_epochs"] = self.assembler.epochs.epochs
+            extra["stamps_held"] = self.assembler.epochs.held + self._reorder.epochs.held
         for source in self._diagnostics_sources:
             extra.update(source())
         status = diagnostic_status(

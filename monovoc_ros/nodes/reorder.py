@@ -18,9 +18,10 @@ topic's callbacks also stalled for more than 0.5 s while another's ran (a backlo
 keyframes), hence the 3 s default. Per-topic order is
 never changed: out-of-order and duplicate stamps still reach the assembler as sent, and are rejected there.
 The one exception are far-future stamps (more than `max_lead_s` ahead of every other topic, or of a later
-message of their own topic): they are passed on at once, without moving the topic's position, so one
-outlier neither holds its topic's later messages back nor releases the other topics early; the
-assembler rejects them (stamp_future).
+message of their own topic): they are held aside (core.sync.StampEpochs, as in the assembler) until another
+topic confirms their stamps (the streams resumed after a pause: they are queued then) or a later message of
+their own topic shows them outliers (passed on at once, the assembler rejects them: stamp_future), so one
+outlier neither holds its topic's later messages back nor releases the other topics early.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from monovoc_ros.core.sync import lead_over_others
+from monovoc_ros.core.sync import StampEpochs
 from msg_adapters import header_stamp_ns
 
 
@@ -42,6 +43,7 @@ class StampReorder:
         max_buffered: int = 1000,
         clock: Callable[[], float] = time.monotonic,
         max_lead_s: float = 30.0,
+        clock_ns: Callable[[], int | None] | None = None,
     ) -> None:
         self.roles = tuple(roles)
         self.max_lead_ns = int(round(max_lead_s * 1e9))
@@ -53,6 +55,9 @@ class StampReorder:
         self._rank = {r: i for i, r in enumerate(self.roles)}
         self._last_arrival = dict.fromkeys(self.roles, -float("inf"))
         self._passed: dict[str, int | None] = dict.fromkeys(self.roles)  # newest stamp each topic delivered
+        self.epochs = StampEpochs(
+            self.roles, self.max_lead_ns, max_buffered, clock_ns
+        )  # far-future stamps: outliers or a pause
         self.released_early = 0  # messages let go without their partners (waited too long, or overflow)
 
     def __len__(self) -> int:
@@ -65,20 +70,30 @@ class StampReorder:
         except ValueError:
             stamp = None  # no readable stamp: released at once, the assembler rejects it
         now = self._clock()
+        if stamp is None:
+            return self._queue(role, None, now, msg)
+        go, refused = self.epochs.offer(role, stamp, msg, self._passed)
+        out = [(h.role, h.item) for h, _ in refused]  # to the assembler, whose own StampEpochs refuses them
+        for held in go:
+            out += self._queue(held.role, held.stamp_ns, now, held.item)
+        return out
+
+    def _queue(self, role: str, stamp: int | None, now: float, msg: Any) -> list[tuple[str, Any]]:
         outliers: list[tuple[str, Any]] = []
-        if stamp is not None and self.max_lead_ns:
-            if lead_over_others(stamp, (t for r, t in self._passed.items() if r != role), self.max_lead_ns) is not None:
-                return [(role, msg), *self.due()]  # far ahead of every other topic: the assembler rejects it
-            queue = self._queues[role]
-            if any(s is not None and s > stamp + self.max_lead_ns for s, _, _ in queue):
-                # Held far-future messages of this topic (sent before any other topic): out now, so they do
-                # not hold this one back.
-                outliers = [(role, m) for s, _, m in queue if s is not None and s > stamp + self.max_lead_ns]
-                kept = [e for e in queue if not (e[0] is not None and e[0] > stamp + self.max_lead_ns)]
-                queue.clear()
-                queue.extend(kept)
-                self._passed[role] = max((e[0] for e in kept if e[0] is not None), default=None)
-        self._queues[role].append((stamp, now, msg))
+        queue = self._queues[role]
+        if (
+            stamp is not None
+            and self.max_lead_ns
+            and any(s is not None and s > stamp + self.max_lead_ns for s, _, _ in queue)
+        ):
+            # Queued far-future messages of this topic (sent before any other topic): out now, so they do not
+            # hold this one back.
+            outliers = [(role, m) for s, _, m in queue if s is not None and s > stamp + self.max_lead_ns]
+            kept = [e for e in queue if not (e[0] is not None and e[0] > stamp + self.max_lead_ns)]
+            queue.clear()
+            queue.extend(kept)
+            self._passed[role] = max((e[0] for e in kept if e[0] is not None), default=None)
+        queue.append((stamp, now, msg))
         self._last_arrival[role] = now
         if stamp is not None:
             passed = self._passed[role]
@@ -117,3 +132,4 @@ class StampReorder:
             q.clear()
         self._last_arrival = dict.fromkeys(self.roles, -float("inf"))
         self._passed = dict.fromkeys(self.roles)
+        self.epochs.clear()

@@ -179,20 +179,27 @@ class KeyframeLog:
                 log.poses_given = bool(meta["poses_given"])
                 segments = json.loads(str(data["segments"]))
                 intrinsics = json.loads(str(data["intrinsics"]))
+                # Every array is read out of the archive once: indexing `data[...]` decompresses it again.
+                index, stamps, poses = data["index"], data["stamps_ns"], data["poses"]
                 ends = np.cumsum(data["mask_sizes"])
                 masks = data["masks"].tobytes()
-                n = len(data["stamps_ns"])
-                lengths = {len(ends), len(segments), len(intrinsics), len(data["poses"]), n}
+                n = len(stamps)
+                lengths = {len(ends), len(segments), len(intrinsics), len(poses), len(index), n}
                 if len(lengths) != 1 or (n and ends[-1] != len(masks)):
                     raise ValueError("inconsistent array lengths")
+                cameras: dict[str, Intrinsics] = {}  # a robot's keyframes share a few cameras
                 for k in range(n):
+                    key = json.dumps(intrinsics[k], sort_keys=True)
+                    camera = cameras.get(key)
+                    if camera is None:
+                        camera = cameras[key] = Intrinsics.from_dict(intrinsics[k])
                     start = int(ends[k - 1]) if k else 0
                     log.append(
                         LoggedKeyframe(
-                            int(data["index"][k]),
-                            int(data["stamps_ns"][k]),
-                            validate_pose(data["poses"][k], what="logged pose"),
-                            Intrinsics.from_dict(intrinsics[k]),
+                            int(index[k]),
+                            int(stamps[k]),
+                            validate_pose(poses[k], what="logged pose"),
+                            camera,
                             masks[start : int(ends[k])],
                             None if segments[k] is None else segments_from_entries(segments[k]),
                         )
