@@ -157,6 +157,9 @@ def generate_launch_description() -> LaunchDescription:
             "--rate",
             LaunchConfiguration("bag_rate"),
             "--clock",
+            # A node whose kernel cache is empty compiles them before it subscribes (~20-40 s on 2 cores).
+            "--wait-timeout",
+            "300",
         ],
         output="screen",
         condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),

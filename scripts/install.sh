@@ -102,4 +102,7 @@ done
 # (each a no-op when up to date).
 "$venv/bin/python" -m monovoc_ros.embed.export --quiet
 "$venv/bin/python" -m monovoc_ros.segment.export --quiet
+# The numba kernels compiled into their on-disk cache now, so that no node pays it on its first keyframe
+# (~20-40 s on 2 cores; ~2 s when already cached).
+"$venv/bin/monovoc" warm-up
 echo "[install] done: $venv"

@@ -139,11 +139,17 @@ def test_every_executable_and_file_the_launch_file_names_is_installed(workspace:
 def test_the_installed_node_answers_a_query_and_publishes_what_rviz_shows(workspace: Workspace) -> None:
     from monovoc_interfaces.srv import TextQuery
 
-    export, node_line, query_line = workspace.commands
+    export, warm, node_line, query_line = workspace.commands
     env = workspace.env
     assert export == "python3 -m monovoc_ros.embed.export"
     done = subprocess.run(workspace.sourced(export), env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
+    # The kernels compile into the install space's own cache (next to its modules), not the working tree's.
+    assert warm == "install/monovoc_ros/lib/monovoc_ros/monovoc warm-up"
+    done = subprocess.run(workspace.sourced(warm), env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and '"seconds"' in done.stdout, done.stdout + done.stderr
+    installed = workspace.root / "install" / "monovoc_ros" / "lib"
+    assert any(installed.rglob("numba_kernels.accumulate_tiles-*.nbi")), "no kernel cache in the install space"
     # The README's map directory ($HOME/maps/office) holds a saved map here, so the node resumes it.
     assert "-p map_directory:=$HOME/maps/office -p resume:=true" in node_line and node_line.endswith(" &")
     copy_directory(room_directory(), Path(env["HOME"]) / "maps" / "office")

@@ -136,3 +136,28 @@ def test_evidence_of_another_mode_or_slot_count_is_refused_on_resume(small_scene
         with pytest.raises(MapStoreError, match=next(iter(change))):
             load_snapshot(tmp_path, MapperConfig(metric="ciede2000", **change))
     assert load_snapshot(tmp_path, MapperConfig(metric="ciede2000", impl="reference")).n_keyframes == 3
+
+
+def test_deferred_keyframes_round_trip_whole_and_refuse_corrupt_files(tmp_path):
+    from monovoc_ros.core.deferred_keyframes import load_keyframes, save_keyframes
+    from monovoc_ros.core.keyframe import Keyframe
+    from monovoc_ros.core.map.camera import Intrinsics
+    from monovoc_ros.core.segments.segment_labels import SegmentLabel
+
+    rng = np.random.default_rng(0)
+    cam = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
+    pose = np.eye(4)
+    pose[:3, 3] = (0.5, -1.0, 2.0)
+    mask, rgb = (rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for h, w in ((24, 32), (48, 64)))
+    with_all = Keyframe(3, 7_000, pose, cam, mask, rgb, (SegmentLabel(0xC81E1E, "chair", 0.75),))
+    bare = Keyframe(4, 8_000, np.eye(4), cam, np.full((24, 32, 3), 9, np.uint8))
+    path = tmp_path / "deferred.npz"
+    save_keyframes(path, [with_all, bare])
+    got = load_keyframes(path)
+    assert [k.stamp_ns for k in got] == [7_000, 8_000] and [k.index for k in got] == [3, 4]
+    assert np.array_equal(got[0].rgb, with_all.rgb) and got[1].rgb is None and got[1].segments is None
+    assert np.array_equal(got[0].mask, with_all.mask) and np.array_equal(got[0].cam_to_world, pose)
+    assert got[0].segments == with_all.segments and got[0].intrinsics == cam
+    path.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(ValueError, match="unreadable deferred keyframes"):
+        load_keyframes(path)

@@ -12,7 +12,7 @@ import pytest
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
-from monovoc_ros.core.map_store import current_snapshot, load_snapshot
+from monovoc_ros.core.map_store import current_snapshot, load_deferred, load_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped
@@ -302,3 +302,64 @@ def test_stats_snapshot_mean():
     stats.reject("bad_pose")
     snap = stats.snapshot()
     assert snap["ms_per_keyframe_mean"] == 15.0 and snap["rejected"] == {"bad_pose": 1}
+
+
+def rgb_keyframe(stamp: int) -> Keyframe:
+    from dataclasses import replace
+
+    rgb = np.random.default_rng(stamp).integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    return replace(keyframe(stamp, shift=stamp % 5), rgb=rgb)
+
+
+def test_stop_drains_the_queue_within_its_bound(tmp_path):
+    worker, _, log = make_worker(map_directory=str(tmp_path), queue_size=100)
+    worker.submit_map(plane_map())
+    for stamp in range(1, 21):
+        worker.submit_keyframe(rgb_keyframe(stamp))
+    info = worker.stop(drain_s=60.0)  # never started: stop integrates all of them on this thread
+    assert info is not None and info.keyframes == 20 and load_snapshot(tmp_path).n_keyframes == 20
+    assert load_deferred(tmp_path) == []
+    assert any("integrated 20 queued keyframes, deferred 0" in m for _, m in log.lines)
+
+
+def test_keyframes_stop_has_no_time_for_are_deferred_to_the_snapshot_and_resumed(tmp_path):
+    worker, _, log = make_worker(map_directory=str(tmp_path), queue_size=100)
+    worker.submit_map(plane_map())
+    sent = [rgb_keyframe(stamp) for stamp in range(1, 13)]
+    for kf in sent:
+        worker.submit_keyframe(kf)
+    info = worker.stop(drain_s=0.0)  # no time: the map goes in, every keyframe is deferred
+    assert info is not None and info.keyframes == 0
+    deferred = load_deferred(tmp_path)
+    assert [k.stamp_ns for k in deferred] == [k.stamp_ns for k in sent]
+    for got, kf in zip(deferred, sent, strict=True):  # whole keyframes: RGB included, bit-exact
+        assert np.array_equal(got.mask, kf.mask) and np.array_equal(got.rgb, kf.rgb)
+        assert np.array_equal(got.cam_to_world, kf.cam_to_world) and got.intrinsics == kf.intrinsics
+    assert any("final snapshot" in m and "12 deferred to resume" in m for _, m in log.lines)
+
+    resumed, _, _ = make_worker(map_directory=str(tmp_path), queue_size=100)
+    resumed.session.load(str(tmp_path))
+    for kf in load_deferred(tmp_path):
+        resumed.submit_keyframe(kf)
+    resumed.start()
+    drain(resumed)
+    resumed.stop()
+    reference = SemanticMapper(plane_map())
+    for kf in sent:
+        reference.integrate(kf)
+    assert load_snapshot(tmp_path).n_keyframes == 12 and load_deferred(tmp_path) == []
+    assert_same_evidence(load_snapshot(tmp_path).state, reference.state)
+
+
+def test_stop_is_bounded_when_the_worker_is_busy(tmp_path):
+    worker, _, log = make_worker(map_directory=str(tmp_path))
+    worker.submit_map(plane_map())
+    running, release = threading.Event(), threading.Event()
+    worker.submit(lambda m: running.set() or release.wait(30))  # a task far longer than the bound
+    worker.start()
+    assert running.wait(10)
+    start = time.monotonic()
+    assert worker.stop(drain_s=0.5) is None
+    assert time.monotonic() - start < 0.5 + 1.0 + 0.5  # the bound plus the grace for the task in progress
+    assert any("still busy" in m for _, m in log.lines)
+    release.set()

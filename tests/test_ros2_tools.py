@@ -15,12 +15,13 @@ from __future__ import annotations
 import shlex
 import shutil
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
 from monovoc_ros.bags import bag_info
-from monovoc_ros.core.map_store import load_snapshot
+from monovoc_ros.core.map_store import load_deferred, load_snapshot
 from monovoc_ros.embed import default_model_dir
 from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, wait_for_service, wait_until
 from tests.rosutil import REPO, ros_environment
@@ -124,6 +125,27 @@ def test_launch_with_a_bag_and_the_ros2_command_line(env):
         assert snapshot_keyframes(env, launch_line) == KEYFRAMES, process.describe()
     finally:
         ros2("ros2 daemon stop", env)
+
+
+def test_ctrl_c_two_seconds_after_the_replay_keeps_every_keyframe_on_a_cold_start(env, tmp_path):
+    """Issue 24: a fresh install (numba's cache empty) launched on the bag, and a terminal's Ctrl-C 2 s after
+    the replay ended. The node compiled its kernels before it subscribed (the replay waited for it), and its
+    shutdown integrated or deferred what was queued: the final snapshot holds every keyframe."""
+    cold = tmp_path / "numba_cache"
+    cold.mkdir()
+    env = {**env, "NUMBA_CACHE_DIR": str(cold)}
+    launch_line = readme_session()[0]
+    with launch(launch_line, env, "ros2_launch_cold") as process, ClientNode(env) as client:
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        process.wait_for_output('"unmatched": []', 300.0)  # the replay's summary: it has ended
+        compiled = diagnostics.wait_for(lambda v: float(v["kernel_compile_ms"]) > 0, 30.0, process=process)
+        time.sleep(2.0)
+        assert process.stop(timeout=9.0) == 0, process.describe()  # SIGINT to the group; SIGTERM comes at 5 s
+    output = process.output()
+    assert "Traceback" not in output and "SIGTERM" not in output and "still busy" not in output, output[-4000:]
+    map_dir = Path(shlex.split(launch_line.split("map_directory:=")[1])[0].replace("$HOME", env["HOME"]))
+    saved, deferred = load_snapshot(map_dir), load_deferred(map_dir)
+    assert saved.n_keyframes + len(deferred) == KEYFRAMES, (saved.n_keyframes, len(deferred), compiled)
 
 
 def test_ros2_run_then_a_plain_fast_replay_loses_nothing(env):

@@ -2,7 +2,8 @@
 
 Layout of a map directory:
     CURRENT               name of the newest complete snapshot (replaced atomically)
-    snap-000007/          one complete snapshot: gaussians.npz, state.npz, palette.npz, meta.json
+    snap-000007/          one complete snapshot: gaussians.npz, state.npz, palette.npz, meta.json (and
+                          deferred_keyframes.npz: keyframes a stopping node had not integrated yet)
     semantic.ply          the latest quantized cloud (x y z rgb object_id confidence), for viewers
                           (save_semantic_ply / read_semantic_ply)
 
@@ -20,15 +21,19 @@ import json
 import os
 import shutil
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from monovoc_ros.core.deferred_keyframes import FILE_NAME as DEFERRED_FILE
+from monovoc_ros.core.deferred_keyframes import load_keyframes, save_keyframes
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, PaletteBuilder
 from monovoc_ros.core.evidence.state import SemanticState
 from monovoc_ros.core.evidence.votes import VoteState
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog
+from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map.ply import PlyError, read_ply_vertices, write_ply_vertices
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, evidence_mismatch
@@ -95,8 +100,15 @@ def current_snapshot(map_dir: str | os.PathLike) -> Path | None:
     return snap
 
 
-def save_snapshot(mapper: SemanticMapper, map_dir: str | os.PathLike, *, export_cloud: bool = True) -> SnapshotInfo:
-    """Writes the mapper's full state as a new snapshot and publishes it atomically."""
+def save_snapshot(
+    mapper: SemanticMapper,
+    map_dir: str | os.PathLike,
+    *,
+    export_cloud: bool = True,
+    deferred: Sequence[Keyframe] = (),
+) -> SnapshotInfo:
+    """Writes the mapper's full state as a new snapshot and publishes it atomically; `deferred`: keyframes
+    received but not integrated (a stopping node's queue), integrated first on resume (`load_deferred`)."""
     start = time.perf_counter()
     map_dir = Path(map_dir)
     map_dir.mkdir(parents=True, exist_ok=True)
@@ -127,12 +139,15 @@ def save_snapshot(mapper: SemanticMapper, map_dir: str | os.PathLike, *, export_
     if mapper.segment_labels.scores:
         (partial / "segment_labels.json").write_text(mapper.segment_labels.to_json())
     mapper.keyframe_log.save(partial / "keyframe_log.npz")
+    if deferred:
+        save_keyframes(partial / DEFERRED_FILE, deferred)
     meta = {
         "format_version": FORMAT_VERSION,
         "created_unix": time.time(),
         "keyframes": mapper.n_keyframes,
         "gaussians": len(mapper.gaussians),
         "map_version": mapper.map_version,
+        "deferred_keyframes": len(deferred),
         "config": asdict(mapper.config),
     }
     (partial / "meta.json").write_text(json.dumps(meta, indent=1))
@@ -153,6 +168,17 @@ def save_snapshot(mapper: SemanticMapper, map_dir: str | os.PathLike, *, export_
     if export_cloud:
         export_semantic_ply(mapper, map_dir / "semantic.ply")
     return SnapshotInfo(final, mapper.n_keyframes, len(mapper.gaussians), time.perf_counter() - start)
+
+
+def load_deferred(map_dir: str | os.PathLike) -> list[Keyframe]:
+    """The keyframes the newest snapshot of `map_dir` deferred (see `save_snapshot`); [] when none."""
+    snap = current_snapshot(map_dir)
+    if snap is None or not (snap / DEFERRED_FILE).is_file():
+        return []
+    try:
+        return load_keyframes(snap / DEFERRED_FILE)
+    except ValueError as exc:
+        raise MapStoreError(str(exc)) from exc
 
 
 def load_snapshot(map_dir: str | os.PathLike, config: MapperConfig | None = None) -> SemanticMapper:

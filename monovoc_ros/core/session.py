@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import threading
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -170,6 +170,13 @@ class MappingSession:
     def keyframes_ready(self) -> bool:
         """True when `integrate_next` has a keyframe to integrate."""
         return self._mapper is not None and bool(self._waiting)
+
+    def take_waiting(self) -> list[Keyframe]:
+        """The keyframes given and not integrated, oldest first, removed from the session (a stopping node
+        defers them to its final snapshot)."""
+        out = list(self._waiting)
+        self._waiting.clear()
+        return out
 
     # ------------------------------------------------------------------ listeners
 
@@ -321,10 +328,11 @@ class MappingSession:
         self._refresh_map_stats()
         self.log.info("reset: " + ("semantic state cleared" if keep_gaussians else "waiting for a new Gaussian map"))
 
-    def save(self, directory: str) -> SnapshotInfo:
+    def save(self, directory: str, deferred: Sequence[Keyframe] = ()) -> SnapshotInfo:
+        """A snapshot of the map; `deferred`: keyframes received but not integrated, saved with it (map_store)."""
         if self._mapper is None:
             raise ValueError("no map to save yet")
-        info = save_snapshot(self._mapper, directory)
+        info = save_snapshot(self._mapper, directory, deferred=deferred)
         self.stats.add(snapshots_saved=1)
         for fn in self._save_listeners:
             fn(directory, info, self._mapper)

@@ -5,7 +5,8 @@ mapping path; 25 s to compile into an empty cache). In a live node that cost lan
 keyframes: measured at 2 keyframes/s, the first took 1.0 s and the second 0.5 s to reach the semantic
 cloud, against ~0.2 s afterwards. `warm_up` runs the configured mapping path (votes or SCD, pixel labels,
 snapping, per-frame association, labelling, object geometry) once on a tiny scene, so the node can do it
-while it waits for its first Gaussian map.
+before it subscribes to its inputs; `warm_up_all` (`monovoc warm-up`, run at install) fills the cache for
+every path.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import time
 
 import numpy as np
 
+from monovoc_ros.core.follow.map_updater import update_map
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map.gaussians import GaussianMap
@@ -54,12 +56,32 @@ def kernels_cached() -> bool:
     return os.path.exists(index)
 
 
-def warm_up(config: MapperConfig) -> float:
-    """Runs `config`'s mapping path once on a tiny scene; returns the seconds it took."""
+def warm_up(config: MapperConfig, *, map_update: bool = False) -> float:
+    """Runs `config`'s mapping path once on a tiny scene (and a map update without ids: the map-following
+    kernels); returns the seconds it took."""
     start = time.perf_counter()
     gaussians, keyframes = warm_up_scene()
     mapper = SemanticMapper(gaussians, config)
     for keyframe in keyframes:
         mapper.integrate(keyframe)
     mapper.result().objects(gaussians)
+    if map_update:
+        order = np.random.default_rng(1).permutation(len(gaussians))
+        moved = GaussianMap(
+            means=gaussians.means[order] + np.float32(0.002),
+            scales=gaussians.scales[order],
+            quats=gaussians.quats[order],
+            opacities=gaussians.opacities[order],
+        )
+        update_map(mapper, moved)
+        mapper.result().objects(moved)
     return time.perf_counter() - start
+
+
+# Every mapping path a node can be configured for: compiling them all fills numba's cache for any config.
+ALL_PATHS = (MapperConfig(), MapperConfig(mask_ids="per_frame"), MapperConfig(semantic_mode="scd"))
+
+
+def warm_up_all() -> float:
+    """Compiles (into numba's on-disk cache) or loads every mapping path and map updates; returns seconds."""
+    return sum(warm_up(config, map_update=True) for config in ALL_PATHS)

@@ -32,6 +32,7 @@ class MapperStats(SessionStats):
     queue_length: int = 0  # keyframes waiting for the worker
     publish_ms_last: float = 0.0  # result + outputs
     warm_up_ms: float = 0.0  # loading the mapping kernels at start (0 until done)
+    kernel_compile_ms: float = 0.0  # compiling them first, when numba's cache was empty (0: it was not)
     objects: int = 0
     observed_gaussians: int = 0
     maps_coalesced: int = 0  # pending maps replaced by a newer one before being applied

@@ -49,9 +49,10 @@ from monovoc_ros.contract import (
     message_class,
 )
 from monovoc_ros.core.map.ply import load_ply
-from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_snapshot
+from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_deferred, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import KeyframeListener
+from monovoc_ros.core.warm_up import kernels_cached, warm_up
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.component import Component, MappingHost
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
@@ -61,6 +62,7 @@ from monovoc_ros.nodes.params import PARAMETERS, NodeParams
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
+from monovoc_ros.nodes.startup import StartupAborted, check_stop, compile_kernels
 from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
@@ -77,7 +79,9 @@ def _message_types(params: NodeParams) -> dict[str, type]:
 
 
 class MappingNode(Node):
-    def __init__(self, **node_kwargs: Any) -> None:
+    def __init__(self, stop: threading.Event | None = None, **node_kwargs: Any) -> None:
+        """``stop``: set by a stop signal; start-up ends early with StartupAborted when it is set (the kernels'
+        compilation is killed, nothing is written)."""
         node_kwargs.setdefault("namespace", DEFAULT_NAMESPACE)
         super().__init__(NODE_NAME, **node_kwargs)
         self.params = self._read_parameters()
@@ -126,6 +130,9 @@ class MappingNode(Node):
             mapper=self._initial_mapper(),
         )
         self.worker.add_reset_listener(self._reset_ingest)
+        check_stop(stop, "loading the map")
+        self._queue_deferred()
+        self._prepare_kernels(stop)
         self._create_subscriptions()
         self._create_services()
         self._diagnostics = self.create_publisher(_diagnostic_array_type(), "/diagnostics", DIAGNOSTICS_QOS)
@@ -212,8 +219,9 @@ class MappingNode(Node):
         )
 
     def stop(self) -> None:
-        """Stops the worker (final snapshot when map_directory is set). Call before destroy_node()."""
-        self.worker.stop()
+        """Stops the worker: what is queued is integrated for up to shutdown_drain_s, the rest deferred to the
+        final snapshot (when map_directory is set). Call before destroy_node()."""
+        self.worker.stop(drain_s=self.params.shutdown_drain_s)
 
     # ------------------------------------------------------------------ set-up
 
@@ -236,6 +244,39 @@ class MappingNode(Node):
             log.info(f"map_ply {p.map_ply}: {len(gaussians)} Gaussians")
             return SemanticMapper(gaussians, p.mapper)
         return None
+
+    def _queue_deferred(self) -> None:
+        """Keyframes the last run received but did not integrate (saved with its final snapshot) go first."""
+        p = self.params
+        if not (p.resume and p.map_directory and self.worker.mapper is not None):
+            return
+        deferred = load_deferred(p.map_directory)
+        for keyframe in deferred:
+            self.worker.submit_keyframe(keyframe)
+        if deferred:
+            self.get_logger().info(f"resumed {len(deferred)} keyframes the last run deferred: integrated first")
+
+    def _prepare_kernels(self, stop: threading.Event | None) -> None:
+        """The mapping kernels compiled (in a child, when numba's cache is empty) and loaded before the node
+        subscribes: a replay that waits for subscribers then waits for a node that can integrate."""
+        log = self.get_logger()
+        if not kernels_cached():
+            log.info("mapping kernels not in numba's cache (`monovoc warm-up` fills it at install): compiling them now")
+            try:
+                seconds = compile_kernels(stop)
+            except RuntimeError as exc:  # the first keyframes will compile in this process instead
+                log.warning(f"{exc}; kernels compile on first use")
+            else:
+                self.stats.update(kernel_compile_ms=1e3 * seconds)
+                log.info(f"mapping kernels compiled in {seconds:.1f} s")
+        check_stop(stop, "the kernels were compiling")
+        try:
+            seconds = warm_up(self.params.mapper)
+        except Exception as exc:  # the real keyframes will show the same error, counted; mapping goes on
+            log.warning(f"kernel warm-up failed: {type(exc).__name__}: {exc}")
+            return
+        self.stats.update(warm_up_ms=1e3 * seconds)
+        log.info(f"mapping kernels loaded in {seconds:.1f} s")
 
     def _create_subscriptions(self) -> None:
         from sensor_msgs.msg import PointCloud2
@@ -478,8 +519,13 @@ def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
-        node = MappingNode()
+        node = MappingNode(stop=stop.requested)
         components = compose(node) if compose is not None else []
+        check_stop(stop.requested, "starting components")
+    except StartupAborted as exc:
+        print(f"{NODE_NAME}: {exc}: exiting, nothing written", file=sys.stderr)
+        _abort(node)
+        return 0
     except ParameterError as exc:
         print(f"{NODE_NAME}: invalid parameter {exc}", file=sys.stderr)
         _abort(node)

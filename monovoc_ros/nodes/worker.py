@@ -31,7 +31,7 @@ import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,10 +50,11 @@ from monovoc_ros.core.session import (
     MappingSession,
     SaveListener,
 )
-from monovoc_ros.core.warm_up import kernels_cached, warm_up
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
+# How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
+STOP_GRACE_S = 1.0
 
 
 class OutputSink(Protocol):
@@ -271,38 +272,77 @@ class MapWorker:
         self._thread = threading.Thread(target=self._run, name="monovoc-mapper-worker", daemon=True)
         self._thread.start()
 
-    def stop(self, *, final_snapshot: bool = True, timeout: float | None = None) -> SnapshotInfo | None:
-        """Stops after the task in progress; pending tasks are discarded (calls fail with WorkerStopped).
+    def stop(self, *, final_snapshot: bool = True, drain_s: float = 0.0) -> SnapshotInfo | None:
+        """Stops the worker, integrating what is queued for up to `drain_s` seconds; bounded: never waits
+        for the worker thread longer than that (plus a second for the task in progress).
 
-        With a map directory, unsaved evidence is written as a final snapshot (on this thread: the
-        worker has exited by then).
+        Keyframes, maps and pose corrections queued are applied in order until the bound; keyframes left over
+        are deferred: saved with the final snapshot (with a map directory) and integrated first on resume.
+        Queued calls fail with WorkerStopped. Runs on the caller's thread once the worker has left its loop.
         """
+        deadline = time.monotonic() + max(drain_s, 0.0)
         self.queue.close()
         if self._thread is not None:
-            self._thread.join(timeout)
+            self._thread.join(max(drain_s, 0.0) + STOP_GRACE_S)
             if self._thread.is_alive():
-                self.log.error("worker did not stop in time; skipping the final snapshot")
+                self.log.error(
+                    f"shutdown: the worker is still busy after {drain_s + STOP_GRACE_S:.1f} s; no final snapshot "
+                    f"({self.keyframes_waiting} keyframes not integrated since the last one)"
+                )
                 return None
-        pending = self.queue.drain()
-        keyframes = sum(t.kind == "keyframe" for t in pending) + self.session.waiting
-        for task in pending:
-            if task.future is not None:
-                task.future.set_exception(WorkerStopped(f"{task.name or 'call'}: the node is shutting down"))
-        if keyframes:
-            self.log.warning(f"shutting down with {keyframes} queued keyframes not integrated")
-        if final_snapshot and self.settings.map_directory and self._unsaved and self.session.mapper is not None:
-            try:
-                info = self.save(self.settings.map_directory)
-                self.log.info(f"final snapshot: {info.path} ({info.keyframes} keyframes)")
-                return info
-            except Exception as exc:  # a full disk must not turn a clean shutdown into a crash
-                self.log.error(f"final snapshot failed: {exc}")
+        drained, deferred = self._drain(deadline)
+        if drained or deferred:
+            self.log.info(f"shutdown: integrated {drained} queued keyframes, deferred {len(deferred)}")
+        if not (final_snapshot and self.settings.map_directory and self.session.mapper is not None):
+            if deferred:
+                why = "no map directory" if not self.settings.map_directory else "no map to save them with"
+                self.log.warning(f"shutting down with {len(deferred)} keyframes not integrated ({why})")
+            return None
+        if not (self._unsaved or deferred):
+            return None
+        try:
+            info = self.save(self.settings.map_directory, deferred)
+            held = f", {len(deferred)} deferred to resume" if deferred else ""
+            self.log.info(f"final snapshot: {info.path} ({info.keyframes} keyframes{held})")
+            return info
+        except Exception as exc:  # a full disk must not turn a clean shutdown into a crash
+            self.log.error(f"final snapshot failed: {exc}")
         return None
+
+    def _drain(self, deadline: float) -> tuple[int, list[Keyframe]]:
+        """Applies the queued tasks in order until `deadline` (on the caller's thread: the worker has left);
+        returns (keyframes integrated, keyframes left over, oldest first)."""
+        integrated = 0
+        for task in self.queue.drain():
+            if task.kind == "call":
+                assert task.future is not None
+                task.future.set_exception(WorkerStopped(f"{task.name or 'call'}: the node is shutting down"))
+                continue
+            late = time.monotonic() >= deadline
+            if late and task.kind == "keyframe":
+                self.session.add_keyframe(task.payload)  # deferred below, in order
+                continue
+            if late and not (task.kind == "map" and self.session.mapper is None):
+                continue  # a map update too late to apply (the SLAM sends its map again); a first map is cheap
+            try:
+                self._execute(task)
+                while self.session.keyframes_ready and time.monotonic() < deadline:
+                    if self.session.integrate_next() is not None:
+                        integrated += 1
+                        self._changed()
+            except Exception as exc:
+                self.stats.add(worker_errors=1)
+                self.log.error(f"shutdown: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+        while self.session.keyframes_ready and time.monotonic() < deadline:
+            if self.session.integrate_next() is not None:
+                integrated += 1
+                self._changed()
+        return integrated, self.session.take_waiting()
 
     # ------------------------------------------------------------------ operations (worker thread)
 
-    def save(self, directory: str) -> SnapshotInfo:
-        info = self.session.save(directory)
+    def save(self, directory: str, deferred: Sequence[Keyframe] = ()) -> SnapshotInfo:
+        info = self.session.save(directory, deferred)
         if Path(directory).resolve() == _resolved(self.settings.map_directory):
             self._unsaved = False
             self._last_save = time.monotonic()
@@ -331,7 +371,6 @@ class MapWorker:
     # ------------------------------------------------------------------ the loop
 
     def _run(self) -> None:
-        self._warm_up()
         while not self.queue.closed:
             # Keyframes the session holds are older than anything queued: they go first.
             ready = self.session.keyframes_ready
@@ -353,21 +392,6 @@ class MapWorker:
             except Exception as exc:  # the worker must outlive any single bad task or listener
                 self.stats.add(worker_errors=1)
                 self.log.error(f"worker: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-
-    def _warm_up(self) -> None:
-        # Before the first task: a map or keyframe that arrives meanwhile waits in the queue, as it would
-        # have waited for the kernels on its first call. Not when they would be compiled (an empty cache):
-        # then the first keyframe compiles what it needs, and a stop does not wait for all of them.
-        if not kernels_cached():
-            self.log.info("mapping kernels not in numba's cache yet: compiled on first use")
-            return
-        try:
-            seconds = warm_up(self.session.config)
-        except Exception as exc:  # the real keyframes will show the same error, counted; mapping goes on
-            self.log.warning(f"kernel warm-up failed: {type(exc).__name__}: {exc}")
-            return
-        self.stats.update(warm_up_ms=1e3 * seconds)
-        self.log.info(f"mapping kernels loaded in {seconds:.1f} s")
 
     def _execute(self, task: _Task) -> None:
         if task.kind == "keyframe":

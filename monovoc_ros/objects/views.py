@@ -94,6 +94,18 @@ def _label_image(mask: np.ndarray, palette_ids: np.ndarray | None) -> tuple[np.n
     return ids, labels
 
 
+def warm_up_views() -> float:
+    """Runs both view kernels once on a tiny mask (compiled into numba's cache, or loaded); returns seconds."""
+    import time
+
+    start = time.perf_counter()
+    mask = np.zeros((4, 4, 3), np.uint8)
+    mask[:, 2:] = 255
+    ids, labels = _label_image(mask, np.array([0, VOID_ID], np.uint32))
+    vk.label_boxes(labels, ids.size)
+    return time.perf_counter() - start
+
+
 def label_image_reference(mask: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """Plain twin of views_kernels.label_image: (H, W) int32 index of each pixel's color in ``ids``, -1."""
     packed = pack_rgb(mask)
