@@ -38,7 +38,8 @@ class MapperStats(SessionStats):
     maps_coalesced: int = 0  # pending maps replaced by a newer one before being applied
     snapshot_errors: int = 0
     publishes: int = 0
-    worker_errors: int = 0
+    worker_errors: int = 0  # tasks, listeners or background calls that raised (logged with a traceback)
+    ingest_errors: int = 0  # messages the keyframe assembler raised on (a bug, not bad input: logged with a traceback)
     service_errors: int = 0  # service callbacks that failed unexpectedly (answered success=false)
 
 

@@ -28,6 +28,7 @@ import contextlib
 import signal
 import sys
 import threading
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,6 @@ from rclpy.signals import SignalHandlerOptions
 
 import msg_adapters as ma
 from monovoc_ros.contract import (
-    BAD_MESSAGE,
     DEFAULT_NAMESPACE,
     KEYFRAME_POSES_ROLE,
     KEYFRAME_POSES_TYPE,
@@ -201,7 +201,18 @@ class MappingNode(Node):
                 self._republish_queued = False  # labels changing from here on need another pass
             return self.outputs.republish_objects()
 
-        self.worker.call(republish, "republish_objects")
+        self.worker.call(republish, "republish_objects").add_done_callback(self._report_failure)
+
+    def _report_failure(self, future: concurrent.futures.Future) -> None:
+        """Done-callback of the worker tasks nobody waits for: a failure is logged with its traceback and counted
+        (a task discarded by a stopping worker is not a failure)."""
+        exc = None if future.cancelled() else future.exception()
+        if exc is None or isinstance(exc, WorkerStopped):
+            return
+        self.stats.add(worker_errors=1)
+        self.get_logger().error(
+            f"worker task failed: {type(exc).__name__}: {exc}\n" + "".join(traceback.format_exception(exc))
+        )
 
     def submit(self, fn: Callable[[SemanticMapper | None], Any]) -> concurrent.futures.Future:
         """Runs fn(mapper) on the worker thread, in order with keyframes and map updates."""
@@ -349,11 +360,13 @@ class MappingNode(Node):
         for role, msg in messages:
             try:
                 keyframes, rejections = self.assembler.push(role, msg)
-            except Exception as exc:  # a conversion bug must cost one message, not the subscription
-                reason = BAD_MESSAGE[role]
+            except Exception as exc:  # a bug must cost one message, not the subscription, and show as a bug
                 keyframes, rejections = [], []
-                self.stats.reject(reason)
-                self._reject_log(reason, f"{role}: unexpected {type(exc).__name__}: {exc}")
+                self.stats.add(ingest_errors=1)
+                self.get_logger().error(
+                    f"{role}: the keyframe assembler failed ({type(exc).__name__}: {exc}); message dropped\n"
+                    + "".join(traceback.format_exception(exc))
+                )
             for r in rejections:
                 self.stats.reject(r.reason)
                 self._reject_log(r.reason, f"{r.role} stamp {r.stamp_ns}: {r.detail}")
@@ -383,7 +396,8 @@ class MappingNode(Node):
             self.stats.reject("bad_keyframe_poses")
             self._reject_log("bad_keyframe_poses", f"keyframe poses ignored: {exc}")
             return
-        self.worker.submit_keyframe_poses(poses, f"stamp {ma.header_stamp_ns(msg)}")
+        future = self.worker.submit_keyframe_poses(poses, f"stamp {ma.header_stamp_ns(msg)}")
+        future.add_done_callback(self._report_failure)
 
     def _reset_ingest(self) -> None:
         # A reset forgets the stamps seen so far, so the same sequence can be sent again.
