@@ -20,7 +20,7 @@ from test_bags_convert import assert_same_map, moved, small_scene
 import msg_adapters as ma
 from monovoc_ros.bags import bag_info, iter_messages, record, replay, sequence_to_bag, topic_names
 from monovoc_ros.bags.schemas import canonical_cdr
-from monovoc_ros.ros_harness import ClientNode, MessageCollector, NodeProcess, wait_until
+from monovoc_ros.ros_harness import ClientNode, HarnessError, MessageCollector, NodeProcess, wait_until
 from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
@@ -60,7 +60,12 @@ def replay_process(bag: Path, env: dict, *args: str) -> NodeProcess:
 
 def finish(process: NodeProcess, timeout: float = 60.0) -> dict:
     """Waits for the process to exit with 0; returns the JSON summary it printed."""
-    wait_until(lambda: process.returncode is not None, timeout, f"{process.name} to exit")
+    try:
+        wait_until(lambda: process.returncode is not None, timeout, f"{process.name} to exit")
+    except HarnessError:
+        # Interrupted, the recorder prints what it received per topic: whether a message was lost, and where.
+        process.stop()
+        raise AssertionError(f"{process.name} did not exit within {timeout} s\n{process.describe()}") from None
     assert process.returncode == 0, process.describe()
     return printed_summary(process)
 
