@@ -48,10 +48,9 @@ class IngestConfig:
     rectified: bool = False  # CameraInfo: use P (rectified images) instead of K
     allow_distortion: bool = False
     max_pending: int = 32  # per-stream synchronizer buffer
-    # A stamp more than this ahead of the newest stamp of every other topic is held until another topic confirms
-    # it (the streams resumed after a pause) or a later message of its own topic shows it an outlier (rejected:
-    # stamp_future; core.sync.StampEpochs); a waiting message this far ahead of a later one of its own topic is
-    # dropped. 0 = no such check.
+    # A stamp more than this ahead of the node's clock is refused (stamp_future); more than this ahead of the
+    # newest stamp of every other topic it is held until every topic resumes near it (a pause ended) or a later
+    # message of its own topic shows it an outlier (core.sync.StampEpochs). 0 = no such check.
     max_stamp_lead_s: float = 30.0
 
     def __post_init__(self) -> None:

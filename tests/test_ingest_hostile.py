@@ -33,24 +33,54 @@ def test_one_far_future_pose_does_not_block_later_poses():
 @pytest.mark.parametrize("gap_s", [100, 3600, 30 * 24 * 3600])
 def test_streams_that_resume_after_a_pause_are_integrated(gap_s):
     """A robot that stood still, a restarted SLAM or a later bag: every topic resumes far ahead of the
-    stamps the pause froze. The first message is held until another topic agrees; nothing is lost."""
+    stamps the pause froze. The first messages are held until every topic agrees; nothing is lost."""
     asm = KeyframeAssembler()
     for k in range(1, 4):
         assert len(feed(asm, messages(k * S))[0]) == 1
-    resumed = 0
+    made = []
     for k in range(4, 8):
         keyframes, rejections = feed(asm, messages(gap_s * S + k * S))
-        assert rejections == [] and len(keyframes) == 1, rejections
-        resumed += len(keyframes)
-    assert resumed == 4 and asm.epochs.epochs == 1 and sum(asm.rejected.values()) == 0
+        assert rejections == [], rejections
+        made.append(len(keyframes))
+    # The first resumed keyframe waits for the second (a stream, not one keyframe), then both go on.
+    assert made == [0, 2, 1, 1] and asm.epochs.epochs == 1 and sum(asm.rejected.values()) == 0
+
+
+def test_one_whole_keyframe_stamped_in_the_future_blocks_nothing():
+    """Every topic of one keyframe with the same bad stamp (a camera's header copied by the segmenter and the
+    SLAM) agrees with itself, but one keyframe is not a resumed stream: it is held, then refused."""
+    asm = KeyframeAssembler()
+    assert len(feed(asm, messages(1 * S))[0]) == 1
+    assert feed(asm, messages(10**6 * S)) == ([], [])  # held on every topic
+    keyframes, rejections = feed(asm, messages(2 * S))
+    assert len(keyframes) == 1 and [r.reason for r in rejections] == ["stamp_future"] * 4
+    for k in range(3, 6):
+        assert len(feed(asm, messages(k * S))[0]) == 1
+    assert asm.epochs.epochs == 0 and asm.epochs.held == 0
+
+
+def test_messages_held_behind_a_late_topics_epoch_are_refused_not_kept():
+    """Three topics resume, the fourth only 45 s later: what the others sent before the last 30 s can never
+    be matched; it is refused when the epoch opens, and nothing stays held."""
+    asm = KeyframeAssembler()
+    assert len(feed(asm, messages(1 * S))[0]) == 1
+    gap = 1000 * S
+    for k in range(20):  # image, camera_info and mask every 5 s for 95 s, no pose
+        feed(asm, messages(gap + 5 * k * S), order=("image", "camera_info", "mask"))
+    keyframes = []
+    for k in range(16, 20):  # the pose resumes 80 s later
+        keyframes += asm.push("pose", messages(gap + 5 * k * S)["pose"])[0]
+    assert len(keyframes) == 4 and asm.epochs.epochs == 1 and asm.epochs.held == 0
+    assert asm.rejected["stamp_future"] == 3 * 10  # the first 50 s of three topics: behind the epoch
 
 
 def test_a_lone_far_future_message_after_a_pause_is_still_an_outlier():
     asm = KeyframeAssembler()
     assert len(feed(asm, messages(1 * S))[0]) == 1
     asm.push("mask", messages(FAR)["mask"])  # held
-    keyframes, rejections = feed(asm, messages(100 * S))  # the streams resume 99 s later, far from the outlier
-    assert len(keyframes) == 1 and [r.reason for r in rejections] == ["stamp_future"]
+    assert feed(asm, messages(100 * S)) == ([], [])  # the streams resume 99 s later, far from the outlier
+    keyframes, rejections = feed(asm, messages(101 * S))
+    assert len(keyframes) == 2 and [r.reason for r in rejections] == ["stamp_future"]
     assert asm.epochs.epochs == 1 and rejections[0].stamp_ns == FAR
 
 
@@ -59,9 +89,12 @@ def test_a_far_future_stamp_is_refused_at_once_against_the_clock():
     asm = KeyframeAssembler(clock=lambda: now)
     assert len(feed(asm, messages(1 * S))[0]) == 1
     _, rejections = asm.push("pose", messages(now + 31 * S)["pose"])
-    assert [r.reason for r in rejections] == ["stamp_future"] and "31 s ahead of the clock" in rejections[0].detail
-    keyframes, rejections = feed(asm, messages(now + 29 * S))  # a pause within the clock: an epoch
-    assert len(keyframes) == 1 and rejections == [] and asm.epochs.epochs == 1
+    assert [r.reason for r in rejections] == ["stamp_future"] and "31 s ahead of this host's clock" in rejections[
+        0
+    ].detail
+    assert feed(asm, messages(now + 28 * S)) == ([], [])  # a pause within the clock: an epoch
+    keyframes, rejections = feed(asm, messages(now + 29 * S))
+    assert len(keyframes) == 2 and rejections == [] and asm.epochs.epochs == 1
     unknown = KeyframeAssembler(clock=lambda: None)  # sim time before the first /clock: no clock rule
     assert unknown.push("pose", messages(FAR)["pose"]) == ([], [])
 
@@ -102,7 +135,7 @@ def test_reorder_takes_streams_that_resume_after_a_pause_in_stamp_order():
     gap = 3600 * S
     assert reorder.add("pose", messages(gap + 2 * S)["pose"]) == []  # held: alone so far ahead
     assert reorder.add("pose", messages(gap + 3 * S)["pose"]) == []
-    out = reorder.add("mask", messages(gap + 2 * S)["mask"])  # another topic agrees: a new epoch
+    out = reorder.add("mask", messages(gap + 2 * S)["mask"])  # every topic agrees: a new epoch
     assert [(r, ma.header_stamp_ns(m)) for r, m in out] == [("mask", gap + 2 * S), ("pose", gap + 2 * S)]
     assert reorder.epochs.epochs == 1 and len(reorder) == 1  # pose gap + 3 s waits for its mask
 

@@ -363,3 +363,21 @@ def test_stop_is_bounded_when_the_worker_is_busy(tmp_path):
     assert time.monotonic() - start < 0.5 + 1.0 + 0.5  # the bound plus the grace for the task in progress
     assert any("still busy" in m for _, m in log.lines)
     release.set()
+
+
+def test_stop_applies_queued_calls_in_order_before_its_bound_and_refuses_them_after(tmp_path):
+    worker, _, _ = make_worker(map_directory=str(tmp_path / "map"), queue_size=100)
+    worker.submit_map(plane_map())
+    worker.submit_keyframe(rgb_keyframe(1))
+    saved = worker.call(lambda: worker.save(str(tmp_path / "between")), "save_map")
+    worker.submit_keyframe(rgb_keyframe(2))
+    assert worker.stop(drain_s=60.0).keyframes == 2
+    assert saved.result(0).keyframes == 1  # run in its place: after keyframe 1, before keyframe 2
+
+    late, _, _ = make_worker(map_directory=str(tmp_path / "late"), queue_size=100)
+    late.submit_map(plane_map())
+    refused = late.call(lambda: late.save(str(tmp_path / "never")), "save_map")
+    late.submit_keyframe(rgb_keyframe(1))
+    assert late.stop(drain_s=0.0).keyframes == 0 and [k.stamp_ns for k in load_deferred(tmp_path / "late")] == [1]
+    with pytest.raises(WorkerStopped):
+        refused.result(0)

@@ -36,3 +36,5 @@ def test_kernels_count_as_cached_once_their_cache_is_written(tmp_path, monkeypat
     cache_file = numba_kernels.accumulate_tiles._cache._cache_file
     monkeypatch.setattr(cache_file, "_index_path", str(tmp_path / "absent.nbi"))
     assert not kernels_cached()
+    (tmp_path / "absent.nbi").write_bytes(b"an index of another numba")  # stale: numba would compile
+    assert not kernels_cached()

@@ -171,12 +171,13 @@ class MappingSession:
         """True when `integrate_next` has a keyframe to integrate."""
         return self._mapper is not None and bool(self._waiting)
 
-    def take_waiting(self) -> list[Keyframe]:
-        """The keyframes given and not integrated, oldest first, removed from the session (a stopping node
-        defers them to its final snapshot)."""
-        out = list(self._waiting)
+    def take_waiting(self, later: Sequence[Keyframe] = ()) -> list[Keyframe]:
+        """The keyframes given and not integrated, oldest first, then `later` ones (still queued elsewhere),
+        removed from the session with the pose corrections it holds for them applied (a stopping node defers
+        them to its final snapshot)."""
+        out = [*self._waiting, *later]
         self._waiting.clear()
-        return out
+        return [replace(k, cam_to_world=self._pending_poses.pop(k.stamp_ns, k.cam_to_world)) for k in out]
 
     # ------------------------------------------------------------------ listeners
 

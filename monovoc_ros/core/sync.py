@@ -17,9 +17,8 @@ from typing import Any
 
 
 def lead_over_others(stamp: int, others: Iterable[int | None], max_lead_ns: int) -> int | None:
-    """The far-future rule (ingest's stamp_future, the node's reorder stage): how far `stamp` is ahead of
-    the newest stamp of every other topic (`others`, None = nothing yet) when that is more than
-    `max_lead_ns` (> 0; 0 disables the rule), else None."""
+    """How far `stamp` is ahead of the newest stamp of every other topic (`others`, None = nothing yet) when
+    that is more than `max_lead_ns` (> 0; 0 disables the rule), else None (StampEpochs' test)."""
     known = [t for t in others if t is not None]
     if not max_lead_ns or not known:
         return None
@@ -39,15 +38,15 @@ class StampEpochs:
 
     A stamp more than `max_lead_ns` ahead of the node's clock (where there is one: ROS time, `/clock` under
     sim time) is refused at once. A stamp more than `max_lead_ns` ahead of the newest stamp of every other
-    topic is either a lone outlier (one bad header) or the first message after a pause (a robot that stood
-    still, a restarted driver or SLAM, a later bag): the keyframe topics all resume at once, far ahead of the
-    stamps the pause froze. Such a message is held, not refused. Once every other topic has sent a message
-    within `max_lead_ns` of it, the topics agree on a new epoch: the held messages near it go on, in stamp
-    order (counted in `epochs`, not as rejections). A later message of the held one's own topic far behind
-    it shows it was an outlier: it is refused then. So a pause of any length locks nothing out, and a lone
-    outlier blocks nothing. A whole keyframe stamped in the future (every topic agreeing, within the clock)
-    cannot be told from a resumed stream and is taken as one. Stamps that jump back are not an epoch: they
-    stay out of order (the watermark)."""
+    topic is either an outlier (a bad header, possibly copied onto every message of one keyframe) or the
+    first message after a pause (a robot that stood still, a restarted driver or SLAM, a later bag): the
+    keyframe topics all resume at once, far ahead of the stamps the pause froze. Such a message is held, not
+    refused. The topics agree on a new epoch once every topic holds a message within `max_lead_ns` of it and
+    one topic holds two such stamps (a stream, not one keyframe): then the held messages near it go on, in
+    stamp order (counted in `epochs`, not as rejections), and held ones behind the new epoch are refused. A
+    later message of the held one's own topic far behind it shows it was an outlier: it is refused then. So
+    a pause of any length locks nothing out, and neither a lone outlier nor one whole keyframe stamped in
+    the future blocks anything. Stamps that jump back are not an epoch: they stay out of order."""
 
     def __init__(
         self,
@@ -79,38 +78,41 @@ class StampEpochs:
             return [this], []
         now = self.clock() if self.clock is not None else None
         if now and this.stamp_ns > now + lead_ns:
+            ahead = (this.stamp_ns - now) / 1e9
             return [], [
-                (this, f"{role} stamp {this.stamp_ns} is {(this.stamp_ns - now) / 1e9:.3g} s ahead of the clock")
+                (this, f"{role} stamp {this.stamp_ns} is {ahead:.3g} s ahead of this host's clock (time sync?)")
             ]
         own = self._held[role]
         if lead_over_others(this.stamp_ns, (t for r, t in newest.items() if r != role), lead_ns) is None:
-            go = [this]
-        elif all(
-            any(abs(h.stamp_ns - this.stamp_ns) <= lead_ns for h in self._held[r]) for r in self.roles if r != role
-        ):
-            self.epochs += 1  # every other topic agrees on this stamp: the streams resumed
-            go = [this]
+            refused = [(h, self._ahead(h, this)) for h in own if h.stamp_ns > this.stamp_ns + lead_ns]
+            if refused:
+                self._held[role] = deque(h for h in own if h.stamp_ns <= this.stamp_ns + lead_ns)
+            return [this], refused
+        own.append(this)
+        if self._agreed(this.stamp_ns):
+            self.epochs += 1  # every topic resumed near this stamp: a new epoch
+            go, refused = [], []
             for r, q in self._held.items():
                 go += [h for h in q if abs(h.stamp_ns - this.stamp_ns) <= lead_ns]
-                self._held[r] = deque(h for h in q if abs(h.stamp_ns - this.stamp_ns) > lead_ns)
-            go.sort(key=lambda h: h.stamp_ns)
-        else:
-            own.append(this)
-            if len(own) <= self.max_held:
-                return [], []
-            gone = own.popleft()
-            return [], [
-                (gone, f"{role} stamp {gone.stamp_ns}: {self.max_held + 1} far-future messages, none agreed on")
-            ]
-        own = self._held[role]
-        refused = [
-            (h, f"{role} stamp {h.stamp_ns} was {(h.stamp_ns - this.stamp_ns) / 1e9:.3g} s ahead of a later one")
-            for h in own
-            if h.stamp_ns > this.stamp_ns + lead_ns
-        ]
-        if refused:
-            self._held[role] = deque(h for h in own if h.stamp_ns <= this.stamp_ns + lead_ns)
-        return go, refused
+                refused += [(h, f"{r} stamp {h.stamp_ns} held behind the new epoch") for h in q
+                            if h.stamp_ns < this.stamp_ns - lead_ns]  # fmt: skip
+                self._held[r] = deque(h for h in q if h.stamp_ns > this.stamp_ns + lead_ns)
+            return sorted(go, key=lambda h: h.stamp_ns), refused
+        if len(own) <= self.max_held:
+            return [], []
+        gone = own.popleft()
+        return [], [(gone, f"{role} stamp {gone.stamp_ns}: {self.max_held + 1} far-future messages, none agreed on")]
+
+    def _agreed(self, stamp_ns: int) -> bool:
+        near = {
+            r: {h.stamp_ns for h in q if abs(h.stamp_ns - stamp_ns) <= self.max_lead_ns} for r, q in self._held.items()
+        }
+        return all(near[r] for r in self.roles) and any(len(stamps) >= 2 for stamps in near.values())
+
+    def _ahead(self, held: Held, later: Held) -> str:
+        return (
+            f"{held.role} stamp {held.stamp_ns} was {(held.stamp_ns - later.stamp_ns) / 1e9:.3g} s ahead of a later one"
+        )
 
     def clear(self) -> None:
         for q in self._held.values():

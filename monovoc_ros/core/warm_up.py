@@ -11,7 +11,6 @@ every path.
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -44,16 +43,20 @@ def warm_up_scene() -> tuple[GaussianMap, list[Keyframe]]:
 
 
 def kernels_cached() -> bool:
-    """Whether the main tile kernel is in numba's on-disk cache for this copy of the code. Loading cached
-    kernels takes ~1 s; compiling an empty cache takes 25 s or more, which a warm-up must not add to start-up
-    (a node stopped meanwhile would wait for it: its worker cannot leave a compilation)."""
+    """Whether the main tile kernel has entries in numba's on-disk cache that fit this copy of the code (an
+    index written for another source file or numba version reads as empty). Loading cached kernels takes
+    ~1 s; compiling an empty cache takes 25 s or more, which a node does in a child process (nodes.startup):
+    numba cannot be interrupted while it compiles."""
     from monovoc_ros.core.raster import numba_kernels
 
     try:
-        index = numba_kernels.accumulate_tiles._cache._cache_file._index_path
+        cache_file = numba_kernels.accumulate_tiles._cache._cache_file
     except AttributeError:  # another numba: assume cached and warm up
         return True
-    return os.path.exists(index)
+    try:
+        return bool(cache_file._load_index())
+    except Exception:  # an unreadable index: numba would compile
+        return False
 
 
 def warm_up(config: MapperConfig, *, map_update: bool = False) -> float:

@@ -93,6 +93,7 @@ class MappingNode(Node):
             self.params.reorder_wait_s,
             max_lead_s=self.params.ingest.max_stamp_lead_s,
             clock_ns=self._clock_ns,
+            max_held=self.params.ingest.max_pending,
         )
         self._reject_log = RejectionLog(self.get_logger().warning)
         self._warned_frame: set[str] = set()
@@ -130,9 +131,13 @@ class MappingNode(Node):
             mapper=self._initial_mapper(),
         )
         self.worker.add_reset_listener(self._reset_ingest)
-        check_stop(stop, "loading the map")
-        self._queue_deferred()
-        self._prepare_kernels(stop)
+        try:
+            check_stop(stop, "loading the map")
+            self._queue_deferred()
+            self._prepare_kernels(stop)
+        except StartupAborted:
+            self.destroy_node()  # nothing subscribed or written yet
+            raise
         self._create_subscriptions()
         self._create_services()
         self._diagnostics = self.create_publisher(_diagnostic_array_type(), "/diagnostics", DIAGNOSTICS_QOS)
@@ -261,9 +266,13 @@ class MappingNode(Node):
         p = self.params
         if not (p.resume and p.map_directory and self.worker.mapper is not None):
             return
-        deferred = load_deferred(p.map_directory)
+        try:
+            deferred = load_deferred(p.map_directory)
+        except MapStoreError as exc:  # auxiliary: the map itself resumed; keep the file for inspection
+            self.get_logger().error(f"deferred keyframes not resumed: {exc}")
+            return
         for keyframe in deferred:
-            self.worker.submit_keyframe(keyframe)
+            self.worker.submit_keyframe(keyframe, bounded=False)
         if deferred:
             self.get_logger().info(f"resumed {len(deferred)} keyframes the last run deferred: integrated first")
 
@@ -275,8 +284,9 @@ class MappingNode(Node):
             log.info("mapping kernels not in numba's cache (`monovoc warm-up` fills it at install): compiling them now")
             try:
                 seconds = compile_kernels(stop)
-            except RuntimeError as exc:  # the first keyframes will compile in this process instead
-                log.warning(f"{exc}; kernels compile on first use")
+            except (RuntimeError, OSError) as exc:  # the first keyframes compile in this process instead
+                log.warning(f"{exc}; the kernels compile on first use")
+                return
             else:
                 self.stats.update(kernel_compile_ms=1e3 * seconds)
                 log.info(f"mapping kernels compiled in {seconds:.1f} s")
@@ -402,7 +412,7 @@ class MappingNode(Node):
     def _reset_ingest(self) -> None:
         # A reset forgets the stamps seen so far, so the same sequence can be sent again.
         with self._ingest_lock:
-            self.assembler = KeyframeAssembler(self.params.ingest)
+            self.assembler = KeyframeAssembler(self.params.ingest, clock=self._clock_ns)
             self._reorder.clear()
 
     # ------------------------------------------------------------------ services

@@ -38,7 +38,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("sync_tolerance_s", _INGEST.sync_tolerance_s, "max stamp difference (s) between a mask and its image / camera_info / pose", low=0),
     Param("sync_max_pending", _INGEST.max_pending, "messages buffered per input stream while waiting for their partners", low=1),
     Param("reorder_wait_s", 3.0, "max time a message waits for the other topics so all reach the synchronizer in stamp order", low=0),
-    Param("max_stamp_lead_s", _INGEST.max_stamp_lead_s, "stamps further ahead of every other input topic wait until another topic agrees (streams resumed after a pause) or their own topic shows them outliers (stamp_future); 0 = off", low=0),
+    Param("max_stamp_lead_s", _INGEST.max_stamp_lead_s, "stamps further ahead of every other input topic wait until every topic resumes near them (a pause ended) or their own topic shows them outliers (stamp_future); further ahead of the node's clock: refused; 0 = off", low=0),
     Param("use_image", _INGEST.use_image, "subscribe to `image` (RGB is only needed by object views; SCD needs mask + pose)"),
     Param("use_segments", _INGEST.use_segments, "subscribe to `segments` (SegmentArray: class names of the mask's segments); every mask then waits for one of its stamp"),
     Param("rectified", _INGEST.rectified, "CameraInfo describes rectified images: use P instead of K"),

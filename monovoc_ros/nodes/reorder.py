@@ -17,11 +17,13 @@ images, and a wait counted from the image's arrival alone lost 23 of 60 keyframe
 topic's callbacks also stalled for more than 0.5 s while another's ran (a backlog lost up to half its
 keyframes), hence the 3 s default. Per-topic order is
 never changed: out-of-order and duplicate stamps still reach the assembler as sent, and are rejected there.
-The one exception are far-future stamps (more than `max_lead_s` ahead of every other topic, or of a later
-message of their own topic): they are held aside (core.sync.StampEpochs, as in the assembler) until another
-topic confirms their stamps (the streams resumed after a pause: they are queued then) or a later message of
-their own topic shows them outliers (passed on at once, the assembler rejects them: stamp_future), so one
-outlier neither holds its topic's later messages back nor releases the other topics early.
+The one exception are far-future stamps (more than `max_lead_s` ahead of every other topic): they are held
+aside (core.sync.StampEpochs, as in the assembler; at most `max_held` per topic) until every topic agrees on
+their epoch (the streams resumed after a pause: they are queued then) or a later message of their own topic
+shows them outliers (passed on at once, the assembler rejects them: stamp_future), so one outlier neither
+holds its topic's later messages back nor releases the other topics early. A far-future message that comes
+before any other topic has sent anything cannot be judged yet: it is queued, and goes out as an outlier
+when a later message of its topic shows it one.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ class StampReorder:
         roles: Sequence[str],
         max_wait_s: float = 3.0,
         max_buffered: int = 1000,
+        max_held: int = 32,
         clock: Callable[[], float] = time.monotonic,
         max_lead_s: float = 30.0,
         clock_ns: Callable[[], int | None] | None = None,
@@ -56,7 +59,7 @@ class StampReorder:
         self._last_arrival = dict.fromkeys(self.roles, -float("inf"))
         self._passed: dict[str, int | None] = dict.fromkeys(self.roles)  # newest stamp each topic delivered
         self.epochs = StampEpochs(
-            self.roles, self.max_lead_ns, max_buffered, clock_ns
+            self.roles, self.max_lead_ns, max_held, clock_ns
         )  # far-future stamps: outliers or a pause
         self.released_early = 0  # messages let go without their partners (waited too long, or overflow)
 

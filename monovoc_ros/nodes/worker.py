@@ -107,11 +107,12 @@ class TaskQueue:
     def __len__(self) -> int:
         return len(self._tasks)
 
-    def put_keyframe(self, keyframe: Keyframe) -> Keyframe | None:
-        """Queues a keyframe; returns the keyframe dropped to make room, if any."""
+    def put_keyframe(self, keyframe: Keyframe, bounded: bool = True) -> Keyframe | None:
+        """Queues a keyframe; returns the keyframe dropped to make room, if any (none when not `bounded`:
+        keyframes a previous run deferred, which must not push each other out)."""
         dropped = None
         with self._cond:
-            if self._keyframes >= self.max_keyframes:
+            if bounded and self._keyframes >= self.max_keyframes:
                 for i, task in enumerate(self._tasks):
                     if task.kind == "keyframe":
                         del self._tasks[i]
@@ -243,9 +244,10 @@ class MapWorker:
         """See MappingSession.add_load_check; runs on the worker thread."""
         self.session.add_load_check(fn)
 
-    def submit_keyframe(self, keyframe: Keyframe) -> Keyframe | None:
-        """Queues a keyframe; returns the one dropped to make room (already counted), if any."""
-        dropped = self.queue.put_keyframe(keyframe)
+    def submit_keyframe(self, keyframe: Keyframe, bounded: bool = True) -> Keyframe | None:
+        """Queues a keyframe; returns the one dropped to make room (already counted), if any (see
+        TaskQueue.put_keyframe for `bounded`)."""
+        dropped = self.queue.put_keyframe(keyframe, bounded)
         if dropped is not None:
             self.stats.add(keyframes_dropped=1)
         self.stats.update(queue_length=self.keyframes_waiting)
@@ -311,33 +313,39 @@ class MapWorker:
 
     def _drain(self, deadline: float) -> tuple[int, list[Keyframe]]:
         """Applies the queued tasks in order until `deadline` (on the caller's thread: the worker has left);
-        returns (keyframes integrated, keyframes left over, oldest first)."""
-        integrated = 0
-        for task in self.queue.drain():
-            if task.kind == "call":
-                assert task.future is not None
-                task.future.set_exception(WorkerStopped(f"{task.name or 'call'}: the node is shutting down"))
-                continue
-            late = time.monotonic() >= deadline
-            if late and task.kind == "keyframe":
-                self.session.add_keyframe(task.payload)  # deferred below, in order
-                continue
-            if late and not (task.kind == "map" and self.session.mapper is None):
-                continue  # a map update too late to apply (the SLAM sends its map again); a first map is cheap
+        returns (keyframes integrated, keyframes left over, oldest first, with any pose correction the
+        session holds for them). After the deadline keyframes are kept, calls fail (WorkerStopped) and map
+        updates are dropped (the SLAM sends its map again); a first map is still applied, or nothing could
+        be saved."""
+        integrated, late = 0, []
+
+        def guarded(step: Callable[[], Any]) -> Any:
             try:
-                self._execute(task)
-                while self.session.keyframes_ready and time.monotonic() < deadline:
-                    if self.session.integrate_next() is not None:
-                        integrated += 1
-                        self._changed()
-            except Exception as exc:
+                return step()
+            except Exception as exc:  # a stop must end in the final snapshot whatever one task does
                 self.stats.add(worker_errors=1)
                 self.log.error(f"shutdown: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-        while self.session.keyframes_ready and time.monotonic() < deadline:
-            if self.session.integrate_next() is not None:
-                integrated += 1
-                self._changed()
-        return integrated, self.session.take_waiting()
+                return None
+
+        def integrate_ready() -> None:
+            nonlocal integrated
+            while self.session.keyframes_ready and time.monotonic() < deadline:
+                if guarded(self.session.integrate_next) is not None:
+                    integrated += 1
+                    self._changed()
+
+        # Twice: an input callback still running when the queue closed may have put one more task.
+        for _ in range(2):
+            for task in self.queue.drain():
+                integrate_ready()  # the session's keyframes are older than any queued task, as in _run
+                if time.monotonic() < deadline or (task.kind == "map" and self.session.mapper is None):
+                    guarded(lambda task=task: self._execute(task))
+                elif task.kind == "keyframe":
+                    late.append(task.payload)
+                elif task.future is not None and task.future.set_running_or_notify_cancel():
+                    task.future.set_exception(WorkerStopped(f"{task.name or 'call'}: the node is shutting down"))
+            integrate_ready()
+        return integrated, self.session.take_waiting(late)
 
     # ------------------------------------------------------------------ operations (worker thread)
 
