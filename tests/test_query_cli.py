@@ -24,3 +24,10 @@ def test_offline_query_json_and_errors(capsys, tmp_path):
     assert cli_main(["query", "--map", str(tmp_path), "a chair"]) == 2
     assert "no object database" in capsys.readouterr().err
     assert cli_main(["query", "--map", str(room_directory()), "a chair", "--top-k", "-1"]) == 1
+
+
+def test_offline_query_reads_spatial_language(capsys):
+    assert cli_main(["query", "--map", str(room_directory()), "the chair right of the table", "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["objects"][0]["hex"] == "#ff00ff"  # from the viewpoint objects.db keeps: the last keyframe
+    assert "read as 'chair' right of 'table'" in answer["message"] and "from the robot's viewpoint" in answer["message"]

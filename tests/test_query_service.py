@@ -97,6 +97,11 @@ def test_query_service_on_a_resumed_map(tmp_path):
         boxes = [m for m in markers.messages[-1].markers if m.ns == "monovoc/query/boxes"]
         assert sorted(m.id for m in boxes) == sorted(expected)
 
+        # Spatial language: the head object first, and the message says how the text was read.
+        book = _query(service, "the book on the table", top_k=3, process=node)
+        assert book.success and book.objects[0].id == room_id("book", 0), book.message
+        assert "read as 'book' on 'table'" in book.message
+
         # Edge cases: clear answers, never a crash.
         for text in ("", "   "):
             empty = _query(service, text, process=node)

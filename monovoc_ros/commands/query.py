@@ -72,10 +72,11 @@ def _offline(args: argparse.Namespace) -> int:
     from monovoc_ros.embed.model_store import ModelMissingError
     from monovoc_ros.objects.database import ObjectDatabaseError, load_object_index
     from monovoc_ros.objects.records import QueryError
+    from monovoc_ros.objects.spatial import answer
 
     try:
         index = load_object_index(args.map)
-        result = index.query(args.text, args.top_k, args.min_score)
+        result = answer(index, args.text, args.top_k, args.min_score)
     except ObjectDatabaseError as exc:
         print(f"monovoc query: {exc}", file=sys.stderr)
         return 2

@@ -48,6 +48,7 @@ from monovoc_ros.nodes.object_query_params import PARAMETERS
 from monovoc_ros.nodes.param_spec import declare
 from monovoc_ros.nodes.qos import SERVICE_QOS
 from monovoc_ros.nodes.services import guarded
+from monovoc_ros.objects import spatial
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase, ObjectDatabaseError, load_object_index
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
@@ -354,7 +355,7 @@ class ObjectQueryComponent:
         index = self.index
         response.header = ma.make_header(self.host.frame_id, self.host.clock.now().nanoseconds)
         try:
-            result = index.query(request.text, int(request.top_k), float(request.min_score))
+            result = spatial.answer(index, request.text, int(request.top_k), float(request.min_score))
         except QueryError as exc:
             response.success, response.message = False, str(exc)
             return response

@@ -230,6 +230,7 @@ class ObjectDatabase:
             "config": index.config.to_dict(),
             "floor": index.floor_height(),
             "up": [float(v) for v in index.up_vector()],
+            "viewpoint": None if index.viewpoint is None else [float(v) for v in index.viewpoint.ravel()],
             "keyframes_seen": index.views.keyframes,
             "saved_unix": time.time(),
             "snapshot": snapshot,
@@ -461,6 +462,7 @@ def load_object_index(
         object_ids=None if gaussian_index is None else gaussian_index.object_ids,
         floor=float(meta.get("floor") or 0.0),
         up=meta.get("up"),
+        viewpoint=meta.get("viewpoint"),
         backend_info=stored,
         embeddings_valid=valid,
     )

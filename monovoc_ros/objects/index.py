@@ -165,6 +165,8 @@ class ObjectIndex:
         self._floor = 0.0
         self._upright: dict[int, tuple[np.ndarray, float]] = {}  # id -> (extent with height last, height)
         self._up_sum = np.zeros(3)  # sum of the keyframes' camera up directions (up_axis "auto")
+        # The latest keyframe's camera pose (4, 4) cam_to_world: the robot's viewpoint for spatial queries.
+        self.viewpoint: np.ndarray | None = None
         self._up: np.ndarray | None = None  # "auto": refined by the map's horizontal surfaces
         self._up_key: int | None = None
         self._geometry_key: tuple | None = None
@@ -217,6 +219,7 @@ class ObjectIndex:
     def observe(self, keyframe: Keyframe, palette_ids: np.ndarray | None = None) -> list[int]:
         """Offers a keyframe's object views (cheap; see ObjectViews.observe)."""
         self._up_sum += camera_up(keyframe.cam_to_world)
+        self.viewpoint = np.array(keyframe.cam_to_world, np.float64)
         return self.views.observe(keyframe, palette_ids)
 
     def keyframe_listener(self, keyframe: Keyframe, mapper) -> None:
@@ -495,6 +498,7 @@ class ObjectIndex:
         object_ids: np.ndarray | None = None,
         floor: float = 0.0,
         up: np.ndarray | None = None,
+        viewpoint: np.ndarray | None = None,
         backend_info: dict | None = None,
         embeddings_valid: bool = True,
     ) -> None:
@@ -514,6 +518,8 @@ class ObjectIndex:
             self._upright = {r.id: (np.asarray(r.upright_extent, np.float64), r.height_above_floor) for r in records}
             if up is not None:
                 self._up = np.asarray(up, np.float64)
+            if viewpoint is not None:
+                self.viewpoint = np.asarray(viewpoint, np.float64).reshape(4, 4)
             self._geometry_key = None
             self._floor = float(floor)
             self.object_ids = object_ids
