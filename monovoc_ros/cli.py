@@ -16,6 +16,7 @@ COMMAND_MODULES: list[str] = [
     "replay",
     "record",
     "query",
+    "ask",
     "eval_retrieval",
     "demo",
     "merge",

@@ -102,6 +102,26 @@ def test_query_service_on_a_resumed_map(tmp_path):
         assert book.success and book.objects[0].id == room_id("book", 0), book.message
         assert "read as 'book' on 'table'" in book.message
 
+        # Questions: the node's ask service and `monovoc ask` against it.
+        from monovoc_interfaces.srv import Ask
+
+        asker = client.node.create_client(Ask, "/monovoc/ask")
+        wait_for_service(asker, 30.0, process=node)
+        chairs = call_service(asker, Ask.Request(question="how many chairs are there?"), 20.0, process=node)
+        assert chairs.success and chairs.count == 2 and {o.label for o in chairs.objects} == {"chair"}
+        where = call_service(asker, Ask.Request(question="where is the cup"), 20.0, process=node)
+        assert where.success and where.count == -1 and where.answer.startswith("the cup is on the table")
+        unknown = call_service(asker, Ask.Request(question="why"), 20.0, process=node)
+        assert not unknown.success and "I understand" in unknown.answer
+        run = subprocess.run(
+            [*CLI[:-1], "ask", "what is on the cabinet", "--json", "--timeout", "20"],
+            env=env,
+            capture_output=True,
+            text=True,
+        )
+        assert run.returncode == 0, run.stderr
+        assert json.loads(run.stdout)["count"] == 1 and json.loads(run.stdout)["objects"][0]["label"] == "vase"
+
         # Edge cases: clear answers, never a crash.
         for text in ("", "   "):
             empty = _query(service, text, process=node)

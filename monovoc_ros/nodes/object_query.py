@@ -10,6 +10,8 @@ The full node `semantic_mapper` (monovoc_ros.nodes.semantic_mapper) composes it 
   It used to live on a second node with its own executor, for latency: once the mapping node's executor
   no longer fought BLAS threads for the cores, both gave the same tails (benchmarks/bench_query.py), and
   the second node had cost a second name under `__node` remaps and `ros2 node info` the service;
+* service ``ask`` (monovoc_interfaces/srv/Ask): questions answered from the same index
+  (monovoc_ros.objects.questions: how many, what is on, where is, is there);
 * topics ``query/highlight`` (PointCloud2 in the semantic-cloud schema: the Gaussians of the objects of
   the last successful query) and ``query/markers`` (MarkerArray: their boxes and labels), both latched;
 * ``objects.db`` (monovoc_ros.objects.database) beside the map snapshots, written whenever the node
@@ -48,7 +50,7 @@ from monovoc_ros.nodes.object_query_params import PARAMETERS
 from monovoc_ros.nodes.param_spec import declare
 from monovoc_ros.nodes.qos import SERVICE_QOS
 from monovoc_ros.nodes.services import guarded
-from monovoc_ros.objects import spatial
+from monovoc_ros.objects import questions, spatial
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase, ObjectDatabaseError, load_object_index
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
@@ -102,7 +104,7 @@ class ObjectQueryComponent:
         from sensor_msgs.msg import PointCloud2
         from visualization_msgs.msg import MarkerArray
 
-        from monovoc_interfaces.srv import TextQuery
+        from monovoc_interfaces.srv import Ask, TextQuery
         from monovoc_ros.nodes.qos import latched_qos
 
         self.host = host
@@ -129,6 +131,8 @@ class ObjectQueryComponent:
 
         handler = guarded(TextQuery, "query", self._on_query, log=self.log.error, on_error=count_error)
         self.service = host.create_service(TextQuery, "query", handler, SERVICE_QOS)
+        handler = guarded(Ask, "ask", self._on_ask, log=self.log.error, on_error=count_error)
+        self.ask_service = host.create_service(Ask, "ask", handler, SERVICE_QOS)
         self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
         self.highlight = host.create_publisher(PointCloud2, "query/highlight", latched_qos())
         self.markers = host.create_publisher(MarkerArray, "query/markers", latched_qos())
@@ -370,24 +374,27 @@ class ObjectQueryComponent:
             return response
         response.success = True
         response.message = result.message
-        for record, score in result.matches:
-            response.objects.append(
-                ma.semantic_object(
-                    record.id,
-                    centroid=record.centroid,
-                    bbox_min=record.bbox_min,
-                    bbox_max=record.bbox_max,
-                    label=record.label,
-                    label_source=record.label_source,
-                    description=record.description,
-                    score=score,
-                    num_gaussians=record.num_gaussians,
-                    num_observations=record.num_observations,
-                )
-            )
+        response.objects = _semantic_objects(result.matches)
         if self.settings.highlight:
             self._highlight_request = (index, result.matches)
             self._highlight_wake.set()
+        return response
+
+    def _on_ask(self, request: Any, response: Any) -> Any:
+        response.header = ma.make_header(self.host.frame_id, self.host.clock.now().nanoseconds)
+        response.count = -1
+        try:
+            answer = questions.ask(self.index, request.question)
+        except QueryError as exc:
+            response.success, response.answer = False, str(exc)
+        else:
+            response.success, response.answer = answer.success, answer.answer
+            response.count = -1 if answer.count is None else int(answer.count)
+            response.objects = _semantic_objects(answer.objects)
+        if response.success:
+            self.queries_answered += 1
+        else:
+            self.queries_failed += 1
         return response
 
     def _run_highlights(self) -> None:
@@ -439,3 +446,22 @@ class ObjectQueryComponent:
                 up=self.host.marker_up,
             )
         )
+
+
+def _semantic_objects(matches: list) -> list:
+    """SemanticObject messages of (record, score) pairs, in order."""
+    return [
+        ma.semantic_object(
+            record.id,
+            centroid=record.centroid,
+            bbox_min=record.bbox_min,
+            bbox_max=record.bbox_max,
+            label=record.label,
+            label_source=record.label_source,
+            description=record.description,
+            score=score,
+            num_gaussians=record.num_gaussians,
+            num_observations=record.num_observations,
+        )
+        for record, score in matches
+    ]

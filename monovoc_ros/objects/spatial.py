@@ -23,7 +23,7 @@ phrase's ranking, saying so. Nothing here imports ROS.
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -154,7 +154,7 @@ def _singular(word: str) -> str:
         return word[:-3] + "y"
     if word.endswith(("ches", "shes", "sses", "xes")):
         return word[:-2]
-    if word.endswith("s") and not word.endswith("ss") and len(word) > 3:
+    if word.endswith("s") and not word.endswith(("ss", "us", "is")) and len(word) > 2:
         return word[:-1]
     return word
 
@@ -343,60 +343,82 @@ def superlative_key(superlative: str, box: UprightBox, view: tuple[np.ndarray, n
 
 # ---------------------------------------------------------------------------------------------- answers
 
-Ranker = Callable[[str], QueryResult]  # a phrase -> every object ranked by embedding (ObjectIndex.query)
 
+class Scene:
+    """An index's objects as the relations see them: records, boxes in the upright frame, the viewpoint in
+    that frame, and noun phrases resolved to objects (each phrase ranked once)."""
 
-def resolve(phrase: str, records: Sequence[ObjectRecord], ranked: QueryResult) -> list[ObjectRecord]:
-    """The objects a noun phrase names: every object but the room's structure for a generic noun ("object",
-    "thing"), by label where labels name its head noun, else the embedding's best (all within
-    EMBEDDING_MARGIN of the top score)."""
-    noun = head_noun(phrase)
-    if noun in GENERIC_NOUNS:
-        return [r for r, _ in ranked.matches if head_noun(r.label) not in STRUCTURE]
-    labelled = [r for r in records if r.label and r.label_source != "guess" and head_noun(r.label) == noun]
-    if labelled:
-        order = {r.id: k for k, (r, _) in enumerate(ranked.matches)}
-        return sorted(labelled, key=lambda r: order.get(r.id, len(order)))
-    if not ranked.matches:
-        return []
-    best = ranked.matches[0][1]
-    return [r for r, s in ranked.matches if s >= best - EMBEDDING_MARGIN]
+    def __init__(self, index, view: Viewpoint | None) -> None:
+        self.index = index
+        self.records = index.records()
+        rotation = upright_rotation(index.up_vector())
+        self.boxes = {r.id: upright_box(r, rotation, index.floor_height()) for r in self.records}
+        self.view = view.in_frame(rotation) if view is not None else None
+        self._ranked: dict[str, QueryResult] = {}
+
+    def ranked(self, phrase: str) -> QueryResult:
+        """Every object ranked by embedding similarity to `phrase`."""
+        if phrase not in self._ranked:
+            self._ranked[phrase] = self.index.query(phrase, len(self.records))
+        return self._ranked[phrase]
+
+    def named(self, phrase: str, margin: float = EMBEDDING_MARGIN) -> list[ObjectRecord]:
+        """The objects a noun phrase names, best first: every object but the room's structure for a generic
+        noun ("object", "thing"); by label where labels name its head noun; else the embedding's best (all
+        within `margin` of the top score)."""
+        ranked = self.ranked(phrase)
+        noun = head_noun(phrase)
+        if noun in GENERIC_NOUNS:
+            return [r for r, _ in ranked.matches if head_noun(r.label) not in STRUCTURE]
+        labelled = {r.id for r in self.records if r.label and r.label_source != "guess" and head_noun(r.label) == noun}
+        if labelled:
+            return [r for r, _ in ranked.matches if r.id in labelled]
+        if not ranked.matches:
+            return []
+        best = ranked.matches[0][1]
+        return [r for r, s in ranked.matches if s >= best - margin]
+
+    def by_label(self, phrase: str) -> bool:
+        """Whether `phrase` resolves through labels (or is generic) rather than by appearance."""
+        noun = head_noun(phrase)
+        return noun in GENERIC_NOUNS or any(
+            r.label and r.label_source != "guess" and head_noun(r.label) == noun for r in self.records
+        )
+
+    def grades(self, query: SpatialQuery, heads: Sequence[ObjectRecord]) -> tuple[dict[int, float], str]:
+        """Each head's relation grade (its best over the anchors' objects), and what the anchors resolved to."""
+        anchor_sets = [self.named(p) for p in query.anchors]
+        grades = {}
+        for h in heads:
+            grades[h.id] = max(
+                (
+                    relation_grade(query.relation, self.boxes[h.id], [self.boxes[a.id] for a in combo], self.view)
+                    for combo in _combinations(anchor_sets, exclude=h.id)
+                ),
+                default=0.0,
+            )
+        return grades, ", ".join(f"{p!r}: {len(s)}" for p, s in zip(query.anchors, anchor_sets, strict=True))
 
 
 def spatial_answer(
-    query: SpatialQuery,
-    records: Sequence[ObjectRecord],
-    rank: Ranker,
-    up: np.ndarray,
-    floor: float,
-    view: Viewpoint | None,
-    top_k: int,
+    query: SpatialQuery, scene: Scene, top_k: int
 ) -> tuple[list[tuple[ObjectRecord, float]] | None, str]:
     """Objects best first for a parsed query, each with its score (relation grade, or the head's embedding
     score when no relation holds), and a message saying how the text was read and what was found; None
     instead of the objects when no object satisfies the relation (the caller ranks the whole text)."""
-    head_ranked = rank(query.head)
-    heads = resolve(query.head, records, head_ranked)
+    head_ranked = scene.ranked(query.head)
+    heads = scene.named(query.head)
     embedding = {r.id: s for r, s in head_ranked.matches}
-    rotation = upright_rotation(up)
-    boxes = {r.id: upright_box(r, rotation, floor) for r in records}
-    seen_from = view.in_frame(rotation) if view is not None else None
     notes = [f"read as {query.reading()}"]
     if query.relation in ("left_of", "right_of", "in_front_of", "behind") or query.superlative in (
         "closest",
         "farthest",
     ):
-        notes.append("from the robot's viewpoint" if view is not None else "no robot viewpoint known")
+        notes.append("from the robot's viewpoint" if scene.view is not None else "no robot viewpoint known")
     grades: dict[int, float] = {}
     if query.relation is not None:
-        anchor_sets = [resolve(p, records, rank(p)) for p in query.anchors]
-        for h in heads:
-            best = 0.0
-            for combo in _combinations(anchor_sets, exclude=h.id):
-                best = max(best, relation_grade(query.relation, boxes[h.id], [boxes[a.id] for a in combo], seen_from))
-            grades[h.id] = best
+        grades, anchors_found = scene.grades(query, heads)
         satisfied = [h for h in heads if grades[h.id] > 0]
-        anchors_found = ", ".join(f"{p!r}: {len(s)}" for p, s in zip(query.anchors, anchor_sets, strict=True))
         if not satisfied:
             notes.append(f"no {query.head!r} satisfies it ({anchors_found}): ranked by the whole text")
             return None, "; ".join(notes)
@@ -405,8 +427,9 @@ def spatial_answer(
     else:
         pool = heads
     if query.superlative is not None:
+        key = query.superlative
         ordered = sorted(
-            pool, key=lambda r: (-superlative_key(query.superlative, boxes[r.id], seen_from), -grades.get(r.id, 0.0))
+            pool, key=lambda r: (-superlative_key(key, scene.boxes[r.id], scene.view), -grades.get(r.id, 0.0))
         )
     else:
         ordered = sorted(pool, key=lambda r: (-grades.get(r.id, 0.0), -embedding.get(r.id, -1.0)))
@@ -417,25 +440,28 @@ def spatial_answer(
     return answer[: top_k or len(answer)], "; ".join(notes)
 
 
+def default_view(index, view: Viewpoint | None) -> Viewpoint | None:
+    """`view`, else the index's latest keyframe pose (the robot's viewpoint), else None."""
+    if view is None and index.viewpoint is not None:
+        return Viewpoint(index.viewpoint)
+    return view
+
+
 def answer(index, text: str, top_k: int = 0, min_score: float = -1.0, view: Viewpoint | None = None) -> QueryResult:
     """`index.query` (objects.index.ObjectIndex) with spatial language: the head object first and the reading
     in the message for relational text, today's ranking (and its errors) for everything else. `view`: the
     robot's viewpoint; default the index's latest keyframe pose."""
-    if view is None and index.viewpoint is not None:
-        view = Viewpoint(index.viewpoint)
     plain = index.query(text, top_k, min_score)
     query = parse(plain.text)
     if query is None or not plain.matches:
         return plain
-    records = index.records()
-    every = len(records)
-    ranked, message = spatial_answer(
-        query, records, lambda phrase: index.query(phrase, every), index.up_vector(), index.floor_height(), view, every
-    )
+    scene = Scene(index, default_view(index, view))
+    ranked, message = spatial_answer(query, scene, len(scene.records))
     if ranked is None:
         return QueryResult(plain.text, plain.matches, f"{plain.message}; {message}", plain.n_objects, plain.truncated)
     kept = [(r, s) for r, s in ranked if s >= min_score][: top_k or index.config.default_top_k]
-    return QueryResult(plain.text, kept, f"{len(kept)} of {every} objects; {message}", every, plain.truncated)
+    return QueryResult(plain.text, kept, f"{len(kept)} of {len(scene.records)} objects; {message}", len(scene.records),
+                       plain.truncated)  # fmt: skip
 
 
 def _combinations(sets: list[list[ObjectRecord]], exclude: int) -> list[tuple[ObjectRecord, ...]]:
