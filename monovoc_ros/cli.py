@@ -17,6 +17,7 @@ COMMAND_MODULES: list[str] = [
     "record",
     "query",
     "ask",
+    "approach",
     "eval_retrieval",
     "demo",
     "merge",

@@ -49,8 +49,8 @@ def office_index():
     from tests.object_room import backend
 
     sequence = open_sequence(REPLICA_OFFICE0)
-    _, index = map_with_objects(sequence, backend=backend())
-    return index, Viewpoint(sequence.keyframe(len(sequence) - 1).cam_to_world)
+    mapper, index = map_with_objects(sequence, backend=backend())
+    return index, Viewpoint(sequence.keyframe(len(sequence) - 1).cam_to_world), mapper
 
 
 def room_index():
@@ -76,7 +76,7 @@ def test_relational_queries_on_the_synthetic_room():
 
 
 def test_relational_queries_on_replica_office0(replica_office0):
-    index, view = office_index()
+    index, view, _ = office_index()
     accuracy, misses = top1(index, view, QUERIES["replica_office0"])
     assert accuracy >= 0.9, misses
 
