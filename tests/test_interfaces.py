@@ -83,11 +83,14 @@ SERVER = textwrap.dedent(
 )
 
 
-DEFINITIONS = sorted(p.relative_to(SOURCE).as_posix() for p in [*SOURCE.glob("msg/*.msg"), *SOURCE.glob("srv/*.srv")])
+DEFINITIONS = sorted(
+    p.relative_to(SOURCE).as_posix()
+    for p in [*SOURCE.glob("msg/*.msg"), *SOURCE.glob("srv/*.srv"), *SOURCE.glob("action/*.action")]
+)
 
 
 def test_every_definition_is_built() -> None:
-    assert len(DEFINITIONS) == 9, DEFINITIONS
+    assert len(DEFINITIONS) == 11, DEFINITIONS
     cmake = (SOURCE / "CMakeLists.txt").read_text()
     assert all(f'"{d}"' in cmake for d in DEFINITIONS), "CMakeLists.txt does not list every definition"
 

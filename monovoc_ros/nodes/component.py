@@ -47,6 +47,10 @@ class MappingHost:
     create_publisher: Callable[..., Any]
     # create_service(type, name, handler, qos): a service of the mapping node, in a callback group of its own
     create_service: Callable[..., Any]
+    # create_action_server(type, name, execute, goal, cancel) and create_action_client(type, name): actions of
+    # the mapping node, in one reentrant callback group (an execute callback waits for other callbacks)
+    create_action_server: Callable[..., Any]
+    create_action_client: Callable[..., Any]
     # Read-only settings of the mapping node.
     frame_id: str
     marker_up: tuple[float, float, float]

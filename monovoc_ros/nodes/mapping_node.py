@@ -156,6 +156,22 @@ class MappingNode(Node):
         group = self.callback_groups.setdefault(f"component.{name}", MutuallyExclusiveCallbackGroup())
         return self.create_service(srv_type, name, handler, qos_profile=qos, callback_group=group)
 
+    def _create_action_server(
+        self, action_type: Any, name: str, execute: Callable, goal: Callable, cancel: Callable
+    ) -> Any:
+        from rclpy.action import ActionServer
+
+        group = self.callback_groups.setdefault("actions", ReentrantCallbackGroup())
+        return ActionServer(
+            self, action_type, name, execute, goal_callback=goal, cancel_callback=cancel, callback_group=group
+        )
+
+    def _create_action_client(self, action_type: Any, name: str) -> Any:
+        from rclpy.action import ActionClient
+
+        group = self.callback_groups.setdefault("actions", ReentrantCallbackGroup())
+        return ActionClient(self, action_type, name, callback_group=group)
+
     def host(self) -> MappingHost:
         """What this node offers the components composed with it (monovoc_ros.nodes.component)."""
         p, worker = self.params, self.worker
@@ -164,6 +180,8 @@ class MappingNode(Node):
             clock=self.get_clock(),
             create_publisher=self.create_publisher,
             create_service=self._create_component_service,
+            create_action_server=self._create_action_server,
+            create_action_client=self._create_action_client,
             frame_id=p.frame_id,
             marker_up=tuple(p.marker_up),
             labels=dict(p.labels),

@@ -46,6 +46,7 @@ import msg_adapters as ma
 from monovoc_ros.core.segments.object_labels import ObjectLabel, display
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
+from monovoc_ros.nodes.navigation import NavigationSettings
 from monovoc_ros.nodes.object_query_params import PARAMETERS
 from monovoc_ros.nodes.param_spec import declare
 from monovoc_ros.nodes.qos import SERVICE_QOS
@@ -69,6 +70,7 @@ class QuerySettings:
     model_dir: str
     max_objects_per_refresh: int
     index: IndexConfig
+    navigation: NavigationSettings
 
 
 def read_settings(node: Any, labels: Mapping[int, str] | None = None) -> QuerySettings:
@@ -93,6 +95,7 @@ def read_settings(node: Any, labels: Mapping[int, str] | None = None) -> QuerySe
         model_dir=str(values["objects.model_dir"]),
         max_objects_per_refresh=int(values["objects.max_objects_per_refresh"]),
         index=index,
+        navigation=NavigationSettings.from_values(values),
     )
 
 
@@ -223,6 +226,12 @@ class ObjectQueryComponent:
         self._pending = (mapper.gaussians, result, mapper.object_labels())
         self._labelled = (mapper.gaussians, result.object_ids)
         self._wake.set()
+
+    def labelled_map(self, index: ObjectIndex | None = None) -> tuple[Any, Any]:
+        """The newest (Gaussian map, (N,) per-Gaussian object ids): the worker's last result, else the index's
+        (None, None before any); both immutable snapshots."""
+        index = index if index is not None else self.index
+        return self._labelled or (index.gaussians, index.object_ids)
 
     def _on_reset(self) -> None:
         self._labelled = None
@@ -415,7 +424,7 @@ class ObjectQueryComponent:
     def _publish_highlight(self, index: ObjectIndex, matches: list) -> None:
         ids = np.array([r.id for r, _ in matches], np.uint32)
         stamp = self.host.clock.now().nanoseconds
-        gaussians, object_ids = self._labelled or (index.gaussians, index.object_ids)
+        gaussians, object_ids = self.labelled_map(index)
         if gaussians is not None and object_ids is not None and len(object_ids) == len(gaussians):
             pick = np.isin(object_ids, ids)
             picked = object_ids[pick]

@@ -1,0 +1,198 @@
+"""Going to objects through the live node (issue 26): the go_to action with a real rclpy navigate_to_pose
+action server standing in for Nav2 (the goal arrives with the approach pose, feedback is relayed, cancel
+propagates), the same with navigation.mode goal_topic, the approach_pose service, and a clear stop when
+nav2_msgs is missing."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from monovoc_ros.embed import default_model_dir
+from monovoc_ros.ros_harness import ClientNode, NodeProcess, ros_args, wait_for_service, wait_until
+from tests.object_room import copy_directory, room_directory, room_id
+from tests.rosutil import ros_environment
+
+NODE = ["-m", "monovoc_ros.nodes.semantic_mapper"]
+
+pytestmark = pytest.mark.ros
+
+
+class FakeNav2:
+    """navigate_to_pose served by an rclpy node of its own (multi-threaded: a goal may wait for its cancel)."""
+
+    def __init__(self, env: dict, finish: bool) -> None:
+        self.env, self.finish = env, finish
+        self.goals: list = []
+        self.canceled = threading.Event()
+
+    @contextlib.contextmanager
+    def running(self):
+        import rclpy
+        from nav2_msgs.action import NavigateToPose
+        from rclpy.action import ActionServer, CancelResponse
+        from rclpy.callback_groups import ReentrantCallbackGroup
+        from rclpy.executors import MultiThreadedExecutor
+
+        def execute(goal_handle):
+            self.goals.append(goal_handle.request.pose)
+            for remaining in (1.5, 0.5):
+                feedback = NavigateToPose.Feedback()
+                feedback.distance_remaining = remaining
+                goal_handle.publish_feedback(feedback)
+                time.sleep(0.1)
+            deadline = time.monotonic() + 20.0
+            while not self.finish and time.monotonic() < deadline:
+                if goal_handle.is_cancel_requested:
+                    self.canceled.set()
+                    goal_handle.canceled()
+                    return NavigateToPose.Result()
+                time.sleep(0.02)
+            goal_handle.succeed()
+            return NavigateToPose.Result()
+
+        with ClientNode(self.env, name="fake_nav2") as holder:
+            # The holder's single-threaded executor only keeps the context; the server gets its own executor.
+            node = rclpy.create_node("fake_bt_navigator", context=holder.context)
+            group = ReentrantCallbackGroup()
+            server = ActionServer(node, NavigateToPose, "navigate_to_pose", execute, callback_group=group,
+                                  cancel_callback=lambda _g: CancelResponse.ACCEPT)  # fmt: skip
+            executor = MultiThreadedExecutor(num_threads=4, context=holder.context)
+            executor.add_node(node)
+            thread = threading.Thread(target=executor.spin, daemon=True)
+            thread.start()
+            try:
+                yield self
+            finally:
+                executor.shutdown(timeout_sec=5.0)
+                server.destroy()
+                node.destroy_node()
+
+
+def node_params(directory, mode: str) -> dict:
+    return {
+        "map_directory": str(directory),
+        "resume": True,
+        "labels_file": str(directory / "labels.json"),
+        "navigation.mode": mode,
+        "navigation.nav2_wait_s": 10.0,
+        "diagnostics_period_s": 5.0,
+    }
+
+
+def send(client, action, goal, feedback: list):
+    """Sends a GoTo goal; returns its goal handle once accepted."""
+    future = action.send_goal_async(goal, feedback_callback=lambda msg: feedback.append(msg.feedback))
+    wait_until(future.done, 30.0, "the go_to goal to be accepted")
+    handle = future.result()
+    assert handle.accepted
+    return handle
+
+
+def result_of(handle, timeout: float = 30.0):
+    future = handle.get_result_async()
+    wait_until(future.done, timeout, "the go_to result")
+    return future.result()
+
+
+def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
+    from rclpy.action import ActionClient
+
+    from monovoc_interfaces.action import GoTo
+
+    directory = copy_directory(room_directory(), tmp_path / "map")
+    env = ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
+    sofa = room_id("sofa")
+    with NodeProcess.python([*NODE, *ros_args(node_params(directory, "nav2"))], env, name="go_to_nav2") as node:
+        finishing = FakeNav2(env, finish=True)
+        with finishing.running(), ClientNode(env) as client:
+            action = ActionClient(client.node, GoTo, "/monovoc/go_to")
+            wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 60.0, "the go_to action", process=node)
+            feedback: list = []
+            handle = send(client, action, GoTo.Goal(text="the sofa", standoff=0.0), feedback)
+            done = result_of(handle)
+            result = done.result
+            assert result.success and result.object_id == sofa, result.message
+            assert "Nav2 reached the pose" in result.message
+            # Nav2 got exactly the approach pose go_to answered with, in the map frame.
+            wait_until(lambda: finishing.goals, 5.0, "Nav2's goal")
+            sent = finishing.goals[0]
+            assert sent.header.frame_id == "map" == result.pose.header.frame_id
+            np.testing.assert_allclose(
+                [sent.pose.position.x, sent.pose.position.y], [result.pose.pose.position.x, result.pose.pose.position.y]
+            )
+            states = [f.state for f in feedback]
+            assert states[0] == "planned" and "navigating" in states, states
+            assert [f.distance_remaining for f in feedback if f.state == "navigating"][:2] == [1.5, 0.5]
+            assert all(f.object_id == sofa for f in feedback)
+
+        waiting = FakeNav2(env, finish=False)
+        with waiting.running(), ClientNode(env) as client:
+            action = ActionClient(client.node, GoTo, "/monovoc/go_to")
+            wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)
+            feedback = []
+            handle = send(client, action, GoTo.Goal(text="the table"), feedback)
+            wait_until(lambda: waiting.goals, 20.0, "Nav2's goal", process=node)
+            cancel = handle.cancel_goal_async()
+            wait_until(cancel.done, 20.0, "the cancel answer", process=node)
+            assert waiting.canceled.wait(20.0)  # the cancel reached Nav2
+            done = result_of(handle)
+            assert not done.result.success and "Nav2's goal canceled too" in done.result.message
+
+        with ClientNode(env) as client:  # no Nav2 at all: a clear failure, not a hang
+            action = ActionClient(client.node, GoTo, "/monovoc/go_to")
+            wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)
+            done = result_of(send(client, action, GoTo.Goal(text="the sofa"), []), timeout=60.0)
+            assert not done.result.success and "navigate_to_pose is not available" in done.result.message
+        node.check_running()
+
+
+def test_go_to_publishes_on_the_goal_topic_and_approach_pose_answers(tmp_path):
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.action import ActionClient
+
+    from monovoc_interfaces.action import GoTo
+    from monovoc_interfaces.srv import ApproachPose
+    from monovoc_ros.ros_harness import MessageCollector, call_service
+
+    directory = copy_directory(room_directory(), tmp_path / "map")
+    env = ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
+    params = node_params(directory, "goal_topic")
+    with NodeProcess.python([*NODE, *ros_args(params)], env, name="go_to_topic") as node, ClientNode(env) as client:
+        poses = MessageCollector()
+        client.node.create_subscription(PoseStamped, "/goal_pose", poses, 10)
+        service = client.node.create_client(ApproachPose, "/monovoc/approach_pose")
+        wait_for_service(service, 60.0, process=node)
+        planned = call_service(service, ApproachPose.Request(text="the chair right of the table"), 20.0, process=node)
+        assert planned.success and planned.object.id == room_id("chair", 1), planned.message
+        ceiling = call_service(service, ApproachPose.Request(text="the ceiling"), 20.0, process=node)
+        assert not ceiling.success and "overhead" in ceiling.message
+
+        action = ActionClient(client.node, GoTo, "/monovoc/go_to")
+        wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)
+        wait_until(lambda: client.node.count_publishers("/goal_pose") >= 1, 20.0, "the goal publisher", process=node)
+        done = result_of(send(client, action, GoTo.Goal(text="the sofa", standoff=0.8), []))
+        assert done.result.success and "published on /goal_pose" in done.result.message
+        wait_until(lambda: poses.messages, 10.0, "the goal pose", process=node)
+        got = poses.messages[-1].pose.position
+        want = done.result.pose.pose.position
+        assert (got.x, got.y, got.z) == (want.x, want.y, want.z)
+        node.check_running()
+
+
+def test_navigation_mode_nav2_without_nav2_msgs_stops_with_one_line(tmp_path):
+    shadow = tmp_path / "shadow" / "nav2_msgs"
+    shadow.mkdir(parents=True)
+    (shadow / "__init__.py").write_text("raise ImportError('nav2_msgs is not installed here')\n")
+    env = ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
+    env["PYTHONPATH"] = f"{tmp_path / 'shadow'}:{env['PYTHONPATH']}"
+    with NodeProcess.python([*NODE, *ros_args({"navigation.mode": "nav2"})], env, name="no_nav2") as node:
+        wait_until(lambda: not node.running(), 60.0, "the node to stop")
+        assert node.returncode == 1
+    lines = [line for line in node.output().splitlines() if "nav2_msgs" in line]
+    assert len(lines) == 1 and "navigation.mode nav2 needs nav2_msgs" in lines[0], node.output()[-2000:]
+    assert "Traceback" not in node.output()
