@@ -44,7 +44,7 @@ from monovoc_ros.core.map_store import save_snapshot  # noqa: E402
 from monovoc_ros.core.mapping import MapperConfig  # noqa: E402
 from monovoc_ros.embed.backend import load_backend  # noqa: E402
 from monovoc_ros.objects.database import save_object_index  # noqa: E402
-from monovoc_ros.objects.evaluation import class_key, evaluate_map, load_queries  # noqa: E402
+from monovoc_ros.objects.evaluation import RetrievalQuery, class_key, evaluate_map, load_queries  # noqa: E402
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex  # noqa: E402
 from monovoc_ros.segment import evaluation as ev  # noqa: E402
 from monovoc_ros.segment.backend import load_segmenter  # noqa: E402
@@ -53,6 +53,7 @@ from monovoc_ros.segment.sequence import SegmentedSequence  # noqa: E402
 
 REPLICA = REPO.parent / "shared" / "data" / "replica_office0"
 QUERIES = REPO / "config" / "queries" / "replica_office0.json"
+RELATIONAL = REPO / "tests" / "data" / "relational_queries.json"
 # Replica classes of office_0 that COCO (the default models' classes) knows, and COCO's names for them.
 REPLICA_TO_COCO = {
     "chair": "chair",
@@ -118,6 +119,7 @@ def run_variant(seq, model: str, options: SegmenterOptions, every: int) -> dict:
     present = [i for i in instances if i in map_once]
 
     retrieval = score_retrieval(mapper, index, instances, names)
+    relations = score_relations(mapper, index)
     seg_ms = 1e3 * np.asarray(view.seconds)
     map_ms, obj_ms = 1e3 * np.asarray(t_map), 1e3 * np.asarray(t_objects)
     chain_s = (seg_ms.sum() + map_ms.sum() + obj_ms.sum()) / 1e3 + refresh_s
@@ -137,11 +139,33 @@ def run_variant(seq, model: str, options: SegmenterOptions, every: int) -> dict:
         "objects_over_reference": round(len(known_objects) / max(1, len(present)), 2),
         "map_objects": len(shown),
         **retrieval,
+        **relations,
         "segmenter_ms_median": round(float(np.median(seg_ms)), 1),
         "mapper_ms_median": round(float(np.median(map_ms)), 1),
         "objects_ms_median": round(float(np.median(obj_ms)), 1),
         "chain_keyframes_per_s": round(len(seq) / chain_s, 2),
     }
+
+
+def score_relations(mapper, index) -> dict:
+    """The relational office_0 queries of tests/data/relational_queries.json (issue 26) with the segmenter's
+    labels: their expected reference instances renamed to the map objects matched to them; a query whose
+    expected instances no map object was matched to is a miss."""
+    from monovoc_ros.objects.spatial import answer
+
+    entries = json.loads(RELATIONAL.read_text())["replica_office0"]
+    queries = [RetrievalQuery(q["text"], q["expected"], "relational") for q in entries]
+    with tempfile.TemporaryDirectory() as tmp:
+        snapshot = save_snapshot(mapper, tmp)
+        save_object_index(
+            index, tmp, snapshot=snapshot.path.name, map_version=mapper.map_version, keyframes=mapper.n_keyframes
+        )
+        renamed, _, _ = matched_queries(tmp, str(REPLICA), queries)
+    hits = []
+    for q in renamed:  # expected: the map objects matched to the reference instances (unmatched keep their id)
+        result = answer(index, q.text, 1)
+        hits.append(bool(result.matches) and result.matches[0][0].hex in q.expected)
+    return {"relational_queries": len(queries), "relational_top1": round(float(np.mean(hits)), 2)}
 
 
 def score_retrieval(mapper, index, instances, names) -> dict:

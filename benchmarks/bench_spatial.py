@@ -1,5 +1,5 @@
 """Spatial-language query latency (issue 26): `objects.spatial.answer` on an index of 100 objects. Prints
-one JSON object.
+one JSON object (questions too: `objects.questions.ask`).
 
 The objects are 100 boxes of 20 classes scattered over a 10 x 10 m floor (some on others), labelled and
 embedded with the default (conse) backend as a map with given labels would be. Timed: relational,
@@ -24,6 +24,7 @@ sys.path.insert(0, str(REPO))
 
 from monovoc_ros.embed import load_backend  # noqa: E402
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex  # noqa: E402
+from monovoc_ros.objects.questions import ask  # noqa: E402
 from monovoc_ros.objects.records import ObjectRecord  # noqa: E402
 from monovoc_ros.objects.spatial import Viewpoint, answer  # noqa: E402
 
@@ -37,6 +38,10 @@ QUERIES = [
     "the nearest chair to the bed", "what is on the desk",
 ]  # fmt: skip
 PLAIN = ["a chair", "the gray sofa", "a potted plant", "a wooden table"]
+QUESTIONS = [
+    "how many chairs are there", "what is on the desk", "where is the lamp", "is there a plant next to the bed",
+    "how many cups are on the table", "is there a giraffe",
+]  # fmt: skip
 
 
 def objects(n: int, backend, rng: np.random.Generator) -> list[ObjectRecord]:
@@ -57,11 +62,14 @@ def objects(n: int, backend, rng: np.random.Generator) -> list[ObjectRecord]:
     return out
 
 
-def timed(index, texts: list[str], view: Viewpoint) -> list[float]:
+def timed(index, texts: list[str], view: Viewpoint, question: bool = False) -> list[float]:
     out = []
     for text in texts:
         t0 = time.perf_counter()
-        answer(index, text, 5, view=view)
+        if question:
+            ask(index, text, view)
+        else:
+            answer(index, text, 5, view=view)
         out.append(time.perf_counter() - t0)
     return out
 
@@ -87,6 +95,8 @@ def main() -> int:
     first = timed(index, QUERIES, view)
     repeated = timed(index, QUERIES * args.repeats, view)
     plain = timed(index, PLAIN * args.repeats, view)
+    questions_first = timed(index, QUESTIONS, view, question=True)
+    questions = timed(index, QUESTIONS * args.repeats, view, question=True)
     print(
         json.dumps(
             {
@@ -94,6 +104,8 @@ def main() -> int:
                 "relational_first": stats(first),
                 "relational_repeated": stats(repeated),
                 "plain_repeated": stats(plain),
+                "ask_first": stats(questions_first),
+                "ask_repeated": stats(questions),
                 "target_p99_ms": 20.0,
             }
         )
