@@ -83,3 +83,11 @@ def test_offline_monovoc_ask(capsys):
     assert json.loads(capsys.readouterr().out)["count"] is None
     assert cli_main(["ask", "--map", str(room_directory()), "tell me a joke"]) == 1
     assert "I cannot answer" in capsys.readouterr().out
+
+
+def test_next_to_in_a_question_means_within_a_metre_and_the_sentence_reads_well():
+    _, index = room_map()
+    near = ask(index, "what is next to the vase")
+    assert near.success and "#ff0066" in hexes(near) and "#cc99ff" not in hexes(near)  # the cabinet, not the sofa
+    books = ask(index, "how many red books are on the table")
+    assert books.answer.startswith("1 red book on 'table'"), books.answer

@@ -115,3 +115,22 @@ def test_support_and_under_are_directional():
     assert spatial.relation_grade("on", cup, [table], None) > 0.9
     assert spatial.relation_grade("on", table, [cup], None) == 0
     assert spatial.relation_grade("under", table, [cup], None) > 0.9
+
+
+def test_an_anchor_that_names_nothing_here_leaves_the_query_plain():
+    """No object stands out as "giraffe", so the text is ranked as it always was."""
+    index, view = room_index()
+    text = "the lamp next to the giraffe"
+    answer = spatial.answer(index, text, 3, view=view)
+    assert "no object stands out as 'giraffe'" in answer.message, answer.message
+    assert [r.id for r, _ in answer.matches] == [r.id for r, _ in index.query(text, 3).matches]
+
+
+def test_containment_counts_as_on_only_when_held_above_the_anchors_base():
+    desk = spatial.UprightBox(np.array([0.0, 0.0, 0.0]), np.array([1.2, 0.6, 0.75]))
+    bin_under = spatial.UprightBox(np.array([0.2, 0.1, 0.0]), np.array([0.5, 0.4, 0.35]))
+    shelf = spatial.UprightBox(np.array([0.0, 0.0, 0.0]), np.array([0.4, 1.0, 1.8]))
+    book_in = spatial.UprightBox(np.array([0.05, 0.4, 0.63]), np.array([0.25, 0.45, 0.88]))
+    assert spatial.relation_grade("on", bin_under, [desk], None) == 0
+    assert spatial.relation_grade("under", bin_under, [desk], None) > 0.9
+    assert spatial.relation_grade("on", book_in, [shelf], None) > 0.8

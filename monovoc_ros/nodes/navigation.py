@@ -18,6 +18,7 @@ here to transform them. Every answer also publishes an arrow on ``approach/marke
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Callable
@@ -26,6 +27,7 @@ from typing import Any
 
 import msg_adapters as ma
 from monovoc_ros.nodes.component import MappingHost
+from monovoc_ros.nodes.outputs import semantic_objects
 from monovoc_ros.nodes.qos import SERVICE_QOS, latched_qos
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.objects import approach as ap
@@ -103,7 +105,10 @@ class NavigationComponent:
         self.marker = host.create_publisher(MarkerArray, "approach/marker", latched_qos())
         self._grid_lock = threading.Lock()
         self._grid: tuple[Any, ap.FreeSpaceGrid] | None = None  # (the Gaussian map it was built from, grid)
-        self.goals = {"succeeded": 0, "failed": 0, "canceled": 0}
+        self.goals = {"succeeded": 0, "failed": 0, "canceled": 0, "rejected": 0}
+        # One goal at a time: its execute callback waits on Nav2 in an executor thread, and the robot has one body.
+        self._active = threading.Lock()
+        self._stopping = threading.Event()
         self.action = host.create_action_server(GoTo, "go_to", self._execute, self._on_goal, self._on_cancel)
         handler = guarded(ApproachPose, "approach_pose", self._on_approach, log=self.log.error)
         self.service = host.create_service(ApproachPose, "approach_pose", handler, SERVICE_QOS)
@@ -113,6 +118,9 @@ class NavigationComponent:
         pass
 
     def stop(self) -> None:
+        self._stopping.set()  # a goal waiting on Nav2 ends (Nav2's goal canceled) instead of waiting forever
+        with contextlib.suppress(Exception):
+            self._active.acquire(timeout=self.settings.nav2_wait_s + 1.0)
         self.action.destroy()
 
     # ------------------------------------------------------------------ the approach pose
@@ -176,12 +184,7 @@ class NavigationComponent:
         response.success, response.message = goal.approach.success, goal.approach.message
         response.pose = self._pose_msg(goal)
         if goal.record is not None:
-            r = goal.record
-            response.object = ma.semantic_object(
-                r.id, centroid=r.centroid, bbox_min=r.bbox_min, bbox_max=r.bbox_max, label=r.label,
-                label_source=r.label_source, description=r.description, score=goal.score,
-                num_gaussians=r.num_gaussians, num_observations=r.num_observations,
-            )  # fmt: skip
+            response.object = semantic_objects([(goal.record, goal.score)])[0]
         self._publish_marker(goal, response.pose)
         return response
 
@@ -190,6 +193,9 @@ class NavigationComponent:
     def _on_goal(self, _request: Any) -> Any:
         from rclpy.action import GoalResponse
 
+        if self._stopping.is_set() or self._active.locked():
+            self.goals["rejected"] += 1
+            return GoalResponse.REJECT  # cancel the goal in progress first
         return GoalResponse.ACCEPT
 
     def _on_cancel(self, _goal_handle: Any) -> Any:
@@ -198,6 +204,16 @@ class NavigationComponent:
         return CancelResponse.ACCEPT
 
     def _execute(self, goal_handle: Any) -> Any:
+        from monovoc_interfaces.action import GoTo
+
+        if not self._active.acquire(blocking=False):  # accepted while another began: ends at once
+            return self._end(goal_handle, GoTo.Result(message="another go_to goal is in progress"), "failed")
+        try:
+            return self._execute_one(goal_handle)
+        finally:
+            self._active.release()
+
+    def _execute_one(self, goal_handle: Any) -> Any:
         from monovoc_interfaces.action import GoTo
 
         request = goal_handle.request
@@ -226,37 +242,59 @@ class NavigationComponent:
         return self._end(goal_handle, result, "succeeded")
 
     def _navigate_there(self, goal_handle: Any, result: Any, feedback: Any) -> Any:
-        client, name = self._navigate, self.settings.nav2_action
-        if not client.wait_for_server(timeout_sec=self.settings.nav2_wait_s):
+        client, name, wait_s = self._navigate, self.settings.nav2_action, self.settings.nav2_wait_s
+        if not client.wait_for_server(timeout_sec=wait_s):
             return self._end(goal_handle, result, "failed", f"Nav2's {name} is not available")
         nav_goal = self._navigate_type.Goal(pose=result.pose)
+        lock = threading.Lock()  # Nav2's feedback arrives on another thread than this one's state changes
 
         def relay(msg: Any) -> None:
-            feedback.state = "navigating"
-            feedback.distance_remaining = float(msg.feedback.distance_remaining)
-            goal_handle.publish_feedback(feedback)
+            with lock:
+                feedback.state = "navigating"
+                feedback.distance_remaining = float(msg.feedback.distance_remaining)
+                goal_handle.publish_feedback(feedback)
 
-        sent = _wait(client.send_goal_async(nav_goal, feedback_callback=relay), goal_handle)
+        sending = client.send_goal_async(nav_goal, feedback_callback=relay)
+        sent = self._wait(sending, goal_handle, wait_s)
         if sent is None:
-            return self._end(goal_handle, result, "canceled", "canceled before Nav2 accepted the goal")
+            # Canceled or stopping before Nav2 answered: if it accepts after all, its goal is canceled too.
+            late = self._wait(sending, None, wait_s)
+            if late is not None and late.accepted:
+                self._wait(late.cancel_goal_async(), None, wait_s)
+            if goal_handle.is_cancel_requested or self._stopping.is_set():
+                return self._end(goal_handle, result, "canceled", "canceled before Nav2 started")
+            return self._end(goal_handle, result, "failed", f"Nav2's {name} did not answer in {wait_s:g} s")
         if not sent.accepted:
             return self._end(goal_handle, result, "failed", f"Nav2 rejected the goal ({name})")
-        feedback.state = "sent"
-        goal_handle.publish_feedback(feedback)
-        outcome_future = sent.get_result_async()
-        while not outcome_future.done():
-            if goal_handle.is_cancel_requested:
-                _wait(sent.cancel_goal_async(), None, timeout_s=self.settings.nav2_wait_s)
-                _wait(outcome_future, None, timeout_s=self.settings.nav2_wait_s)
-                return self._end(goal_handle, result, "canceled", "canceled; Nav2's goal canceled too")
-            time.sleep(POLL_S)
+        with lock:
+            if feedback.state != "navigating":
+                feedback.state = "sent"
+                goal_handle.publish_feedback(feedback)
+        outcome = self._wait(sent.get_result_async(), goal_handle)
+        if outcome is None:  # canceled (or the node stopping)
+            canceling = self._wait(sent.cancel_goal_async(), None, wait_s)
+            accepted = canceling is not None and len(canceling.goals_canceling) > 0
+            note = "canceled; Nav2's goal canceled too" if accepted else "canceled; Nav2 did not confirm its cancel"
+            return self._end(goal_handle, result, "canceled", note)
         from action_msgs.msg import GoalStatus
 
-        status = outcome_future.result().status
+        status = outcome.status
         if status == GoalStatus.STATUS_SUCCEEDED:
             return self._end(goal_handle, result, "succeeded", "Nav2 reached the pose")
         why = {GoalStatus.STATUS_CANCELED: "Nav2 canceled the goal", GoalStatus.STATUS_ABORTED: "Nav2 aborted the goal"}
         return self._end(goal_handle, result, "failed", why.get(status, f"Nav2 ended with status {status}"))
+
+    def _wait(self, future: Any, goal_handle: Any | None, timeout_s: float | None = None) -> Any:
+        """The future's result once done; None when `goal_handle` is canceled first, the node stops or
+        `timeout_s` passes."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not future.done():
+            if goal_handle is not None and (goal_handle.is_cancel_requested or self._stopping.is_set()):
+                return None
+            if deadline is not None and time.monotonic() > deadline:
+                return None
+            time.sleep(POLL_S)
+        return future.result()
 
     def _end(self, goal_handle: Any, result: Any, state: str, note: str = "") -> Any:
         if note:
@@ -270,15 +308,3 @@ class NavigationComponent:
         else:
             goal_handle.abort()
         return result
-
-
-def _wait(future: Any, goal_handle: Any | None, timeout_s: float | None = None) -> Any:
-    """The future's result once done; None when `goal_handle` is canceled first or `timeout_s` passes."""
-    deadline = None if timeout_s is None else time.monotonic() + timeout_s
-    while not future.done():
-        if goal_handle is not None and goal_handle.is_cancel_requested:
-            return None
-        if deadline is not None and time.monotonic() > deadline:
-            return None
-        time.sleep(POLL_S)
-    return future.result()

@@ -48,6 +48,7 @@ from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
 from monovoc_ros.nodes.navigation import NavigationSettings
 from monovoc_ros.nodes.object_query_params import PARAMETERS
+from monovoc_ros.nodes.outputs import semantic_objects
 from monovoc_ros.nodes.param_spec import declare
 from monovoc_ros.nodes.qos import SERVICE_QOS
 from monovoc_ros.nodes.services import guarded
@@ -134,7 +135,7 @@ class ObjectQueryComponent:
 
         handler = guarded(TextQuery, "query", self._on_query, log=self.log.error, on_error=count_error)
         self.service = host.create_service(TextQuery, "query", handler, SERVICE_QOS)
-        handler = guarded(Ask, "ask", self._on_ask, log=self.log.error, on_error=count_error)
+        handler = guarded(Ask, "ask", self._on_ask, log=self.log.error, on_error=count_error, text_field="answer")
         self.ask_service = host.create_service(Ask, "ask", handler, SERVICE_QOS)
         self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
         self.highlight = host.create_publisher(PointCloud2, "query/highlight", latched_qos())
@@ -191,6 +192,9 @@ class ObjectQueryComponent:
 
         def commit() -> None:
             self._replace_index(index)
+            # The loaded map's Gaussians with its objects (none known yet without objects.db): never the old map's.
+            ids = None if index is None else index.object_ids
+            self._labelled = (mapper.gaussians, ids) if ids is not None else None
             if index is not None:
                 self.log.info(f"restored {len(index)} objects from {db}")
 
@@ -383,7 +387,7 @@ class ObjectQueryComponent:
             return response
         response.success = True
         response.message = result.message
-        response.objects = _semantic_objects(result.matches)
+        response.objects = semantic_objects(result.matches)
         if self.settings.highlight:
             self._highlight_request = (index, result.matches)
             self._highlight_wake.set()
@@ -399,7 +403,7 @@ class ObjectQueryComponent:
         else:
             response.success, response.answer = answer.success, answer.answer
             response.count = -1 if answer.count is None else int(answer.count)
-            response.objects = _semantic_objects(answer.objects)
+            response.objects = semantic_objects(answer.objects)
         if response.success:
             self.queries_answered += 1
         else:
@@ -455,22 +459,3 @@ class ObjectQueryComponent:
                 up=self.host.marker_up,
             )
         )
-
-
-def _semantic_objects(matches: list) -> list:
-    """SemanticObject messages of (record, score) pairs, in order."""
-    return [
-        ma.semantic_object(
-            record.id,
-            centroid=record.centroid,
-            bbox_min=record.bbox_min,
-            bbox_max=record.bbox_max,
-            label=record.label,
-            label_source=record.label_source,
-            description=record.description,
-            score=score,
-            num_gaussians=record.num_gaussians,
-            num_observations=record.num_observations,
-        )
-        for record, score in matches
-    ]

@@ -39,4 +39,3 @@ PARAMETERS: tuple[Param, ...] = (
     Param("approach.min_obstacle_height", _SHAPE.min_obstacle_height, "metres above the floor: lower Gaussians are floor", low=0),
     Param("approach.cell", _SHAPE.cell, "free-space grid resolution, metres", above=0),
 )  # fmt: skip
-NAVIGATION_PARAMETERS = tuple(p for p in PARAMETERS if p.name.split(".")[0] in ("navigation", "approach"))

@@ -141,3 +141,22 @@ class SemanticOutputs:
                 )
             )
         return out
+
+
+def semantic_objects(matches: list) -> list:
+    """SemanticObject messages of (record, score) pairs, in order."""
+    return [
+        ma.semantic_object(
+            record.id,
+            centroid=record.centroid,
+            bbox_min=record.bbox_min,
+            bbox_max=record.bbox_max,
+            label=record.label,
+            label_source=record.label_source,
+            description=record.description,
+            score=score,
+            num_gaussians=record.num_gaussians,
+            num_observations=record.num_observations,
+        )
+        for record, score in matches
+    ]

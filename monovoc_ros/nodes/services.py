@@ -23,9 +23,10 @@ def guarded(
     *,
     log: Callable[[str], Any] | None = None,
     on_error: Callable[[], None] | None = None,
+    text_field: str = "message",
 ) -> Handler:
-    """`handler(request, response)` that never raises; failures answer success=false (and are counted
-    through `on_error`, logged through `log`)."""
+    """`handler(request, response)` that never raises; failures answer success=false with the reason in
+    `text_field` (`answer` for Ask), counted through `on_error`, logged through `log`."""
 
     def call(request: Any, response: Any) -> Any:
         try:
@@ -37,7 +38,7 @@ def guarded(
                 log(f"service {name} failed: {type(exc).__name__}: {exc}\n{traceback.format_exc(limit=4)}")
             fresh = srv_type.Response()
             fresh.success = False
-            fresh.message = f"{name} failed: {type(exc).__name__}: {exc}"
+            setattr(fresh, text_field, f"{name} failed: {type(exc).__name__}: {exc}")
             return fresh
 
     return call

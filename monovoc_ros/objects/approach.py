@@ -69,9 +69,6 @@ class FreeSpaceGrid:
         rc = np.asarray(rc, np.float64)
         return self.origin + (rc[..., ::-1] + 0.5) * self.cell
 
-    def inside(self, rc: np.ndarray) -> bool:
-        return bool(0 <= rc[0] < self.cells.shape[0] and 0 <= rc[1] < self.cells.shape[1])
-
     def to_map(self, xy: np.ndarray) -> np.ndarray:
         """Upright-frame x, y on the floor -> (3,) map-frame point."""
         return self.rotation.T @ np.array([xy[0], xy[1], self.floor])
@@ -87,9 +84,12 @@ def free_space(
     points = np.asarray(means, np.float64)[keep] @ rotation.T
     if len(points) == 0:
         raise ValueError("the map has no Gaussians to build free space from")
+    # The grid spans the map without its far floaters (one stray Gaussian must not make it huge).
+    lo, hi = np.percentile(points[:, :2], 0.1, axis=0), np.percentile(points[:, :2], 99.9, axis=0)
+    points = points[np.all((points[:, :2] >= lo) & (points[:, :2] <= hi), axis=1)]
     height = points[:, 2] - floor
-    origin = points[:, :2].min(0) - 2 * shape.cell
-    size = np.ceil((points[:, :2].max(0) + 2 * shape.cell - origin) / shape.cell).astype(np.int64)
+    origin = lo - 2 * shape.cell
+    size = np.ceil((hi + 2 * shape.cell - origin) / shape.cell).astype(np.int64)
     grid = FreeSpaceGrid(
         np.zeros((size[1], size[0]), np.uint8), origin, shape.cell, rotation, floor, np.zeros((size[1], size[0]))
     )
@@ -144,7 +144,8 @@ def approach_pose(
     if len(points) == 0:
         return Approach(False, "the object has no Gaussians")
     cells = grid.to_cell(points[:, :2])
-    cells = cells[[grid.inside(rc) for rc in cells]]
+    h, w = grid.cells.shape
+    cells = cells[(cells[:, 0] >= 0) & (cells[:, 0] < h) & (cells[:, 1] >= 0) & (cells[:, 1] < w)]
     if len(cells) == 0:
         return Approach(False, "the object lies outside the mapped area")
     # Its Gaussians are centimetres apart: the footprint is the area they close (a ceiling covers the room).
@@ -240,14 +241,11 @@ def _line_of_sight(grid: FreeSpaceGrid, own: np.ndarray, a: np.ndarray, b: np.nd
 
 def _orientation(rotation: np.ndarray, yaw: float) -> np.ndarray:
     """Quaternion (x, y, z, w), map frame, of a body whose x axis faces `yaw` in the upright frame and z is up."""
+    from scipy.spatial.transform import Rotation
+
     facing = rotation.T @ np.array([np.cos(yaw), np.sin(yaw), 0.0])
     up = rotation.T @ np.array([0.0, 0.0, 1.0])
-    m = np.column_stack([facing, np.cross(up, facing), up])
-    w = np.sqrt(max(0.0, 1.0 + m[0, 0] + m[1, 1] + m[2, 2])) / 2
-    x = np.copysign(np.sqrt(max(0.0, 1.0 + m[0, 0] - m[1, 1] - m[2, 2])) / 2, m[2, 1] - m[1, 2])
-    y = np.copysign(np.sqrt(max(0.0, 1.0 - m[0, 0] + m[1, 1] - m[2, 2])) / 2, m[0, 2] - m[2, 0])
-    z = np.copysign(np.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2, m[1, 0] - m[0, 1])
-    return np.array([x, y, z, w])
+    return Rotation.from_matrix(np.column_stack([facing, np.cross(up, facing), up])).as_quat()
 
 
 def plot(
@@ -300,7 +298,6 @@ class Goal:
     approach: Approach
     record: object | None = None  # objects.records.ObjectRecord
     score: float = 0.0
-    reading: str = ""  # how the text was read (the query's message)
 
     def to_dict(self, frame_id: str) -> dict:
         """The JSON of `monovoc approach --json` and of the node's answers."""
@@ -334,10 +331,10 @@ def goal_for_text(
 
     result = answer(index, text, 1)
     if not result.matches:
-        return Goal(Approach(False, f"no object to go to: {result.message}"), reading=result.message)
+        return Goal(Approach(False, f"no object to go to: {result.message}"))
     record, score = result.matches[0]
     points = np.asarray(means)[np.asarray(object_ids) == record.id]
     approach = approach_pose(grid, points, standoff, robot_position, robot_height)
     name = record.label or record.hex
     approach.message = f"{name} {record.hex}: {approach.message}"
-    return Goal(approach, record, score, result.message)
+    return Goal(approach, record, score)

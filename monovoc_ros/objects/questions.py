@@ -10,7 +10,7 @@ Forms (case, articles and a trailing "?" do not matter):
 
 Noun phrases resolve as in queries (objects.spatial): by label where labels name their head noun, exactly;
 for objects known only by appearance (no label) a count takes those within ``COUNT_MARGIN`` of the best
-embedding score, and only when the best stands out from the rest (``APPEARANCE_MIN_Z``); the answer says it
+embedding score, and only when the best stands out from the rest (``spatial.APPEARANCE_MIN_Z``); the answer says it
 is by appearance. Calibrated on the synthetic room without labels (ConSE): appearance alone finds the right
 objects poorly (margin 0.02: precision 0.18, recall 0.29), so the margin is kept small and the answer says
 so. Anything else gets an answer that lists the forms understood.
@@ -37,10 +37,6 @@ from monovoc_ros.objects.spatial import (
 )
 
 COUNT_MARGIN = 0.02  # appearance-only counting: objects this close to the best embedding score
-# Appearance only, something is there when its best match stands out from the other objects' scores by this
-# many standard deviations (the synthetic room, ConSE: a mug 3.4, a couch 3.1, a television 3.7; a giraffe
-# 2.2, an elephant 1.4, a bicycle 2.0; but a toilet 3.1: appearance alone is a weak witness).
-APPEARANCE_MIN_Z = 2.5
 FORMS = "how many X are there, what is on / next to / ... Y, where is X, is there an X"
 _RELATIONS_FOR_WHERE = ("on", "in", "under", "above", "near")
 
@@ -85,14 +81,16 @@ def _phrase_objects(scene: Scene, text: str) -> tuple[list[tuple[ObjectRecord, f
     how = "by label"
     if not scene.by_label(query.head):
         how = "by appearance only (no label names it)"
-        scores = np.array([s for _, s in scene.ranked(query.head).matches])
-        spread = float(scores.std()) if len(scores) > 1 else 0.0
-        if spread <= 0 or (scores[0] - scores.mean()) / spread < APPEARANCE_MIN_Z:
+        if not scene.stands_out(query.head):
             heads = []  # nothing stands out from the rest: what the phrase names is not in the map
     if query.relation is None:
         return [(h, 1.0) for h in heads], query, how
+    if not all(scene.stands_out(p) for p in query.anchors):
+        return [], query, how
     grades, _ = scene.grades(query, heads)
-    found = sorted(((h, g) for h, g in grades.items() if g > 0), key=lambda hg: -hg[1])
+    # "next to" in a question is a yes or no: within NEAR_M (a grade of 0.5), "far from" beyond it.
+    least = 0.5 if query.relation in ("near", "far") else 0.0
+    found = sorted(((h, g) for h, g in grades.items() if g > least), key=lambda hg: -hg[1])
     by_id = {r.id: r for r in heads}
     return [(by_id[i], g) for i, g in found], query, how
 
@@ -100,7 +98,7 @@ def _phrase_objects(scene: Scene, text: str) -> tuple[list[tuple[ObjectRecord, f
 def _how_many(scene: Scene, text: str) -> Answer:
     found, query, how = _phrase_objects(scene, _strip_article(text))
     noun = query.head if len(found) != 1 else _singular_phrase(query.head)
-    where = f" {query.reading().split(' ', 1)[1]}" if query.relation else ""
+    where = f" {query.relation_text()}" if query.relation else ""
     return Answer(True, f"{len(found)} {noun}{where} ({how})", len(found), found)
 
 
@@ -117,8 +115,8 @@ def _what_is(scene: Scene, text: str) -> Answer:
         return Answer(False, f"I cannot answer that kind of question; I understand: {FORMS}")
     found, _, _ = _phrase_objects(scene, "thing " + text)
     if not found:
-        return Answer(True, f"nothing {query.reading().split(' ', 1)[1]}", len(found), [])
-    return Answer(True, f"{query.reading().split(' ', 1)[1]}: {_names(found)}", len(found), found)
+        return Answer(True, f"nothing {query.relation_text()}", 0, [])
+    return Answer(True, f"{query.relation_text()}: {_names(found)}", len(found), found)
 
 
 def _where_is(scene: Scene, text: str) -> Answer:
