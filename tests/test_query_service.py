@@ -101,6 +101,17 @@ def test_query_service_on_a_resumed_map(tmp_path):
         book = _query(service, "the book on the table", top_k=3, process=node)
         assert book.success and book.objects[0].id == room_id("book", 0), book.message
         assert "read as 'book' on 'table'" in book.message
+        # A robot pose given in the request: the closest chair from the sofa's side is the other chair.
+        request = TextQuery.Request(text="the closest chair", top_k=1)
+        request.viewpoint.header.frame_id = "map"
+        request.viewpoint.pose.position.x, request.viewpoint.pose.position.y = 0.0, 2.0
+        request.viewpoint.pose.orientation.z, request.viewpoint.pose.orientation.w = -0.7071068, 0.7071068  # facing -y
+        given = call_service(service, request, 20.0, process=node)
+        assert given.success and given.objects[0].id == room_id("chair", 1), given.message
+        assert _query(service, "the closest chair", top_k=1, process=node).objects[0].id == room_id("chair", 0)
+        request.viewpoint.header.frame_id = "odom"
+        elsewhere = call_service(service, request, 20.0, process=node)
+        assert not elsewhere.success and "no tf here" in elsewhere.message
 
         # Questions: the node's ask service and `monovoc ask` against it.
         from monovoc_interfaces.srv import Ask

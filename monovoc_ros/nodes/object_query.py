@@ -372,7 +372,8 @@ class ObjectQueryComponent:
         index = self.index
         response.header = ma.make_header(self.host.frame_id, self.host.clock.now().nanoseconds)
         try:
-            result = spatial.answer(index, request.text, int(request.top_k), float(request.min_score))
+            view = self._viewpoint(request.viewpoint)
+            result = spatial.answer(index, request.text, int(request.top_k), float(request.min_score), view)
         except QueryError as exc:
             response.success, response.message = False, str(exc)
             return response
@@ -393,11 +394,24 @@ class ObjectQueryComponent:
             self._highlight_wake.set()
         return response
 
+    def _viewpoint(self, pose: Any) -> spatial.Viewpoint | None:
+        """A request's robot pose (REP-103 body, map frame) as a viewpoint; None when it gives none. Raises
+        QueryError for a pose in another frame (there is no tf here) or an invalid one."""
+        frame = str(pose.header.frame_id)
+        if not frame:
+            return None
+        if frame != self.host.frame_id:
+            raise QueryError(f"viewpoint in frame {frame!r}, the map is {self.host.frame_id!r} (no tf here)")
+        try:
+            return spatial.Viewpoint(ma.pose_stamped_to_matrix(pose, "body"))
+        except ValueError as exc:
+            raise QueryError(f"viewpoint: {exc}") from None
+
     def _on_ask(self, request: Any, response: Any) -> Any:
         response.header = ma.make_header(self.host.frame_id, self.host.clock.now().nanoseconds)
         response.count = -1
         try:
-            answer = questions.ask(self.index, request.question)
+            answer = questions.ask(self.index, request.question, self._viewpoint(request.viewpoint))
         except QueryError as exc:
             response.success, response.answer = False, str(exc)
         else:
