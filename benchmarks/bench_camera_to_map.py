@@ -24,10 +24,12 @@ Frames: every 3rd keyframe for all scores (the splats protocol's frames), plus t
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -147,6 +149,17 @@ def run_variant(seq, model: str, options: SegmenterOptions, every: int) -> dict:
     }
 
 
+@contextlib.contextmanager
+def saved_map(mapper, index) -> Iterator[str]:
+    """A temporary map directory (snapshot + objects.db) of `mapper` and `index`, as `monovoc map` writes it."""
+    with tempfile.TemporaryDirectory() as tmp:
+        snapshot = save_snapshot(mapper, tmp)
+        save_object_index(
+            index, tmp, snapshot=snapshot.path.name, map_version=mapper.map_version, keyframes=mapper.n_keyframes
+        )
+        yield tmp
+
+
 def score_relations(mapper, index) -> dict:
     """The relational office_0 queries of tests/data/relational_queries.json (issue 26) with the segmenter's
     labels: their expected reference instances renamed to the map objects matched to them; a query whose
@@ -155,11 +168,7 @@ def score_relations(mapper, index) -> dict:
 
     entries = json.loads(RELATIONAL.read_text())["replica_office0"]
     queries = [RetrievalQuery(q["text"], q["expected"], "relational") for q in entries]
-    with tempfile.TemporaryDirectory() as tmp:
-        snapshot = save_snapshot(mapper, tmp)
-        save_object_index(
-            index, tmp, snapshot=snapshot.path.name, map_version=mapper.map_version, keyframes=mapper.n_keyframes
-        )
+    with saved_map(mapper, index) as tmp:
         renamed, _, _ = matched_queries(tmp, str(REPLICA), queries)
     hits = []
     for q in renamed:  # expected: the map objects matched to the reference instances (unmatched keep their id)
@@ -173,11 +182,7 @@ def score_retrieval(mapper, index, instances, names) -> dict:
     queries = load_queries(str(QUERIES))
     known_hex = {f"#{i:06x}" for i in instances}
     kept = [q for q in queries if all(e in REPLICA_TO_COCO or e in known_hex for e in q.expected)]
-    with tempfile.TemporaryDirectory() as tmp:
-        snapshot = save_snapshot(mapper, tmp)
-        save_object_index(
-            index, tmp, snapshot=snapshot.path.name, map_version=mapper.map_version, keyframes=mapper.n_keyframes
-        )
+    with saved_map(mapper, index) as tmp:
         renamed, truth, noun_labels = matched_queries(tmp, str(REPLICA), kept)
         # A query whose class no map object was matched to is a miss (the map lost that object).
         found = {class_key(n) for n in truth.values()}

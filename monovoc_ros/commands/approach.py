@@ -11,10 +11,6 @@ import argparse
 import json
 import sys
 
-from monovoc_ros.objects.approach import RobotShape
-
-_SHAPE = RobotShape()
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -28,11 +24,10 @@ def register(subparsers) -> None:
     p.add_argument("text", help="e.g. 'the sofa', 'the chair next to the table'")
     p.add_argument("--map", metavar="DIR", required=True, help="a saved map directory (snapshot and objects.db)")
     p.add_argument("--standoff", type=float, default=0.6, help="metres from the object (default 0.6)")
-    p.add_argument("--robot-radius", type=float, default=_SHAPE.robot_radius, help="inflation, metres")
-    p.add_argument("--robot-height", type=float, default=_SHAPE.robot_height, help="metres; higher is passed under")
-    p.add_argument(
-        "--min-obstacle-height", type=float, default=_SHAPE.min_obstacle_height, help="metres; lower is floor"
-    )
+    # Defaults: objects.approach.RobotShape's (imported in run: building the parser stays light).
+    p.add_argument("--robot-radius", type=float, help="inflation, metres (default 0.25)")
+    p.add_argument("--robot-height", type=float, help="metres; higher is passed under (default 1.2)")
+    p.add_argument("--min-obstacle-height", type=float, help="metres; lower is floor (default 0.1)")
     p.add_argument("--frame-id", default="map", help="frame of the printed pose (default map)")
     p.add_argument("--json", action="store_true", help='print {"success", "message", "pose", "object"}')
     p.add_argument("--plot", metavar="PNG", help="draw the grid, the objects and the pose into this image")
@@ -46,8 +41,10 @@ def run(args: argparse.Namespace) -> int:
     from monovoc_ros.objects.database import ObjectDatabaseError, load_object_index
     from monovoc_ros.objects.records import QueryError
 
+    given = {"robot_radius": args.robot_radius, "robot_height": args.robot_height,
+             "min_obstacle_height": args.min_obstacle_height}  # fmt: skip
     try:
-        shape = RobotShape(args.robot_radius, args.robot_height, args.min_obstacle_height)
+        shape = ap.RobotShape(**{k: v for k, v in given.items() if v is not None})
         if not args.standoff > 0:
             raise ValueError(f"--standoff must be > 0, got {args.standoff}")
     except ValueError as exc:

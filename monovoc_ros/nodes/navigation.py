@@ -18,7 +18,6 @@ here to transform them. Every answer also publishes an arrow on ``approach/marke
 
 from __future__ import annotations
 
-import contextlib
 import threading
 import time
 from collections.abc import Callable
@@ -119,8 +118,8 @@ class NavigationComponent:
 
     def stop(self) -> None:
         self._stopping.set()  # a goal waiting on Nav2 ends (Nav2's goal canceled) instead of waiting forever
-        with contextlib.suppress(Exception):
-            self._active.acquire(timeout=self.settings.nav2_wait_s + 1.0)
+        # Wait (bounded) for a goal in progress to end; the lock stays held: no goal starts any more.
+        self._active.acquire(timeout=self.settings.nav2_wait_s + 1.0)
         self.action.destroy()
 
     # ------------------------------------------------------------------ the approach pose

@@ -21,8 +21,6 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from monovoc_ros.objects.records import ObjectRecord, QueryError
 from monovoc_ros.objects.spatial import (
     STRUCTURE,
@@ -34,6 +32,7 @@ from monovoc_ros.objects.spatial import (
     head_noun,
     parse,
     relation_grade,
+    strip_articles,
 )
 
 COUNT_MARGIN = 0.02  # appearance-only counting: objects this close to the best embedding score
@@ -75,7 +74,7 @@ def _phrase_objects(scene: Scene, text: str) -> tuple[list[tuple[ObjectRecord, f
     """The objects `text` (a noun phrase, maybe with a relation) names, with their grades; its reading; and
     how they were found."""
     text = " ".join(w for w in text.split() if w not in ("are", "is", "there"))  # "chairs are next to the table"
-    query = parse(text) or SpatialQuery(_strip_article(text))
+    query = parse(text) or SpatialQuery(strip_articles(text.split()))
     margin = 0.0 if query.superlative else COUNT_MARGIN
     heads = scene.named(query.head, margin=margin)
     how = "by label"
@@ -96,14 +95,14 @@ def _phrase_objects(scene: Scene, text: str) -> tuple[list[tuple[ObjectRecord, f
 
 
 def _how_many(scene: Scene, text: str) -> Answer:
-    found, query, how = _phrase_objects(scene, _strip_article(text))
+    found, query, how = _phrase_objects(scene, strip_articles(text.split()))
     noun = query.head if len(found) != 1 else _singular_phrase(query.head)
     where = f" {query.relation_text()}" if query.relation else ""
     return Answer(True, f"{len(found)} {noun}{where} ({how})", len(found), found)
 
 
 def _is_there(scene: Scene, text: str) -> Answer:
-    found, query, how = _phrase_objects(scene, _strip_article(text))
+    found, query, how = _phrase_objects(scene, strip_articles(text.split()))
     if not found:
         return Answer(True, f"no, I see no {query.reading()}", 0, [])
     return Answer(True, f"yes, {len(found)}: {_names(found)} ({how})", len(found), found)
@@ -120,7 +119,7 @@ def _what_is(scene: Scene, text: str) -> Answer:
 
 
 def _where_is(scene: Scene, text: str) -> Answer:
-    phrase = _strip_article(text)
+    phrase = strip_articles(text.split())
     found, _, _ = _phrase_objects(scene, phrase)
     if not found:
         return Answer(True, f"I see no {phrase}", None, [])
@@ -137,7 +136,7 @@ def _where_is(scene: Scene, text: str) -> Answer:
     if scene.view is not None:
         position, right, forward = scene.view
         offset = box.centre - position
-        distance = float(np.linalg.norm(np.maximum(np.maximum(box.lo - position, position - box.hi), 0.0)))
+        distance = box.distance_to(position)
         side = "to your right" if offset @ right > 0.3 else "to your left" if offset @ right < -0.3 else "ahead"
         if offset @ forward < -0.3:
             side = "behind you" if side == "ahead" else side + ", behind you"
@@ -169,11 +168,6 @@ def _landmark(scene: Scene, target: ObjectRecord) -> tuple[ObjectRecord, str] | 
 def _names(found: list[tuple[ObjectRecord, float]]) -> str:
     names = [r.label or f"object {r.hex}" for r, _ in found]
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
-
-
-def _strip_article(text: str) -> str:
-    words = text.split()
-    return " ".join(words[1:]) if words and words[0] in ("a", "an", "the", "any", "some") else text
 
 
 def _singular_phrase(phrase: str) -> str:

@@ -127,7 +127,7 @@ def parse(text: str) -> SpatialQuery | None:
         links = [k for k, w in enumerate(words) if k > 0 and w in ("to", "from")]
         if superlative in ("closest", "farthest") and links:
             k = links[0]
-            head, anchor = _phrase(words[:k]), _phrase(words[k + 1 :])
+            head, anchor = strip_articles(words[:k]), strip_articles(words[k + 1 :])
             if head and anchor:
                 return SpatialQuery(head, "near" if superlative == "closest" else "far", (anchor,))
     phrases = sorted(RELATION_WORDS, key=lambda p: -len(p.split()))
@@ -136,25 +136,26 @@ def parse(text: str) -> SpatialQuery | None:
             n = len(phrase.split())
             if words[i : i + n] != phrase.split():
                 continue
-            head, rest = _phrase(words[:i]), words[i + n :]
+            head, rest = strip_articles(words[:i]), words[i + n :]
             relation = RELATION_WORDS[phrase]
             if relation == "between":
                 if "and" not in rest:
                     continue
                 k = rest.index("and")
-                first, second = _phrase(rest[:k]), _phrase(rest[k + 1 :])
+                first, second = strip_articles(rest[:k]), strip_articles(rest[k + 1 :])
                 if head and first and second:
                     return SpatialQuery(head, relation, (first, second), superlative)
                 continue
-            anchor = _phrase(rest)
+            anchor = strip_articles(rest)
             if head and anchor:
                 return SpatialQuery(head, relation, (anchor,), superlative)
     if superlative and words:
-        return SpatialQuery(_phrase(words), None, (), superlative)
+        return SpatialQuery(strip_articles(words), None, (), superlative)
     return None
 
 
-def _phrase(words: Sequence[str]) -> str:
+def strip_articles(words: Sequence[str]) -> str:
+    """A noun phrase without its leading articles: ["the", "red", "cup"] -> "red cup"."""
     words = list(words)
     while words and words[0] in _ARTICLES:
         words = words[1:]
@@ -208,6 +209,10 @@ class UprightBox:
     @property
     def volume(self) -> float:
         return float(np.prod(np.maximum(self.hi - self.lo, 0.0)))
+
+    def distance_to(self, point: np.ndarray) -> float:
+        """Euclidean distance from `point` (3,) to the box (0 inside)."""
+        return float(np.linalg.norm(np.maximum(np.maximum(self.lo - point, point - self.hi), 0.0)))
 
 
 def upright_box(record: ObjectRecord, rotation: np.ndarray, floor: float) -> UprightBox:
@@ -349,9 +354,7 @@ def superlative_key(superlative: str, box: UprightBox, view: tuple[np.ndarray, n
         return -box.bottom
     if view is None:
         return 0.0
-    position = view[0]
-    gap = np.maximum(np.maximum(box.lo - position, position - box.hi), 0.0)
-    distance = float(np.linalg.norm(gap))
+    distance = box.distance_to(view[0])
     return -distance if superlative == "closest" else distance
 
 
@@ -396,7 +399,7 @@ class Scene:
         noun = head_noun(phrase)
         if noun in GENERIC_NOUNS:
             return [r for r, _ in ranked.matches if head_noun(r.label) not in STRUCTURE]
-        labelled = {r.id for r in self.records if r.label and r.label_source != "guess" and head_noun(r.label) == noun}
+        labelled = self._labelled(noun)
         if labelled:
             return [r for r, _ in ranked.matches if r.id in labelled]
         if not ranked.matches:
@@ -407,9 +410,11 @@ class Scene:
     def by_label(self, phrase: str) -> bool:
         """Whether `phrase` resolves through labels (or is generic) rather than by appearance."""
         noun = head_noun(phrase)
-        return noun in GENERIC_NOUNS or any(
-            r.label and r.label_source != "guess" and head_noun(r.label) == noun for r in self.records
-        )
+        return noun in GENERIC_NOUNS or bool(self._labelled(noun))
+
+    def _labelled(self, noun: str) -> set[int]:
+        """Ids of the objects whose label (given or a segmenter's, never a guess) has `noun` as head noun."""
+        return {r.id for r in self.records if r.label and r.label_source != "guess" and head_noun(r.label) == noun}
 
     def grades(self, query: SpatialQuery, heads: Sequence[ObjectRecord]) -> tuple[dict[int, float], str]:
         """Each head's relation grade (its best over the anchors' objects), and what the anchors resolved to."""
