@@ -50,8 +50,7 @@ def test_sigint_while_the_kernels_compile_ends_the_start_at_once_and_writes_noth
     env = ros_environment(tmp_path, extra={"NUMBA_CACHE_DIR": str(cold)})
     params = {"map_directory": str(map_dir), "resume": True, "save_period_s": 0.0}
     with NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node:
-        node.wait_for_output("compiling them now", 60.0)  # printed before the compilation starts
-        wait_until(lambda: bool(warm_up_children()), 30.0, "the warm-up child to start", process=node)
+        wait_until(lambda: bool(warm_up_children()), 60.0, "the warm-up child to start", process=node)
         start = time.monotonic()
         os.kill(node.pid, signal.SIGINT)
         wait_until(lambda: not node.running(), 10.0, "the node to exit")
