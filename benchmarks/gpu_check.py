@@ -1,6 +1,6 @@
 """The torch vote kernel on CUDA held against the numba kernel and timed; prints one JSON object.
 
-    python benchmarks/gpu_check.py            # 140k and 560k Gaussians at 616x344 (Replica office_0 if present)
+    python benchmarks/gpu_check.py            # 140k, 560k and 1.12M Gaussians at 616x344 (Replica office_0 if present)
 
 Per size: the dense per-object votes of `accumulate_votes(impl="torch", device="cuda")` against the numba
 kernel (largest difference relative to the largest vote; float32 compositing on both sides, so ~1e-4 is
@@ -54,7 +54,7 @@ def main() -> int:
     scene = "replica" if (REPLICA / "gaussians.ply").exists() else "synthetic"
     report = {"cuda": True, "device": torch.cuda.get_device_name(0), "torch": torch.__version__, "scene": scene}
     runs = []
-    for n in (140_000, 560_000):
+    for n in (140_000, 560_000, 1_120_000):
         gmap, k, views = SCENES[scene](n, 616, 344)
         worst, t_cuda, t_numba = 0.0, [], []
         for pose, mask in views:
