@@ -192,7 +192,8 @@ def percentile_boxes(gaussians: GaussianMap, object_ids: np.ndarray) -> list[Obj
     rows = np.flatnonzero((object_ids != UNOBSERVED_ID) & (object_ids != VOID_ID))
     if rows.size == 0:
         return []
-    return _boxes(gaussians, *_slots(object_ids[rows]), rows)
+    distinct, slot = _slots(object_ids[rows])
+    return _boxes(gaussians, distinct, rows, slot)
 
 
 def main_cluster_ids(
