@@ -191,8 +191,8 @@ class SemanticResult:
 
         Computed once per result and shared by everything that reports objects (the objects topic and its
         markers on the worker thread, the object index and objects.db on theirs), so they agree. After the
-        previous result's geometry of the same map (``follows``): ~20 ms at 1M Gaussians after one keyframe
-        of office_0; else from scratch, ~25 / 130 ms at 200k / 1M (benchmarks/bench_object_geometry.py)."""
+        previous result's geometry of the same map (``follows``): 18 ms at 1M Gaussians after one keyframe
+        of office_0; else (a map update) from scratch, 23 / 127 ms at 200k / 1M (bench_object_geometry.py)."""
         with self._objects_lock:
             if self._objects is None or self._objects[0] is not gaussians:
                 before = self._before._objects if self._before is not None else None
