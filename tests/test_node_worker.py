@@ -381,3 +381,26 @@ def test_stop_applies_queued_calls_in_order_before_its_bound_and_refuses_them_af
     assert late.stop(drain_s=0.0).keyframes == 0 and [k.stamp_ns for k in load_deferred(tmp_path / "late")] == [1]
     with pytest.raises(WorkerStopped):
         refused.result(0)
+
+
+def test_worker_time_is_accounted_by_activity(tmp_path):
+    worker, sink, _ = make_worker(tmp_path, map_directory=str(tmp_path / "map"), save_period_s=0.01)
+    worker.start()
+    try:
+        worker.submit_map(plane_map())
+        for stamp in range(1, 6):
+            worker.submit_keyframe(keyframe(stamp))
+        drain(worker)
+        worker.submit_map(plane_map(seed=1, ids=False))
+        drain(worker)
+        time.sleep(0.05)  # past the save period: the next task saves
+        worker.submit_keyframe(keyframe(9))
+        drain(worker)
+    finally:
+        worker.stop(final_snapshot=False)
+    stats = worker.stats.snapshot()
+    assert stats["keyframes_processed"] == 6
+    for activity in ("keyframes", "map_updates", "labels", "objects", "publish", "snapshots", "calls"):
+        assert stats[f"worker_s_{activity}"] > 0, activity
+    # The activities are disjoint slices of the worker's time: together less than it ran.
+    assert sum(v for k, v in stats.items() if k.startswith("worker_s_")) < 10.0

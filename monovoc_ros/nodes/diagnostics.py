@@ -41,6 +41,18 @@ class MapperStats(SessionStats):
     worker_errors: int = 0  # tasks, listeners or background calls that raised (logged with a traceback)
     ingest_errors: int = 0  # messages the keyframe assembler raised on (a bug, not bad input: logged with a traceback)
     service_errors: int = 0  # service callbacks that failed unexpectedly (answered success=false)
+    # Seconds of the worker thread by activity since start (their sum over wall time is its load), and of
+    # decoding Gaussian map messages (in the map callback's thread, beside the worker).
+    worker_s_keyframes: float = 0.0  # integration, association and the keyframe listeners (object views)
+    worker_s_map_updates: float = 0.0  # checks, registration and evidence transfer of new SLAM maps
+    worker_s_reintegration: float = 0.0  # re-integration steps after a map update that bent the map
+    worker_s_labels: float = 0.0  # the semantic result (labels of every Gaussian) for a publication
+    worker_s_objects: float = 0.0  # the object geometry of a publication
+    worker_s_publish: float = 0.0  # the cloud, objects and markers messages and the result listeners
+    worker_s_snapshots: float = 0.0  # periodic snapshots into map_directory
+    worker_s_calls: float = 0.0  # services and other calls run on the worker (save, load, queries of it)
+    map_decode_s: float = 0.0
+    maps_decoded: int = 0
 
 
 def diagnostic_status(stats: dict[str, Any], *, name: str, hardware_id: str, extra: dict[str, Any] | None = None):

@@ -28,6 +28,7 @@ import contextlib
 import signal
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable
 from pathlib import Path
@@ -405,12 +406,14 @@ class MappingNode(Node):
                     self._reject_log("queue_full", f"keyframe {dropped.stamp_ns} dropped: queue_size reached")
 
     def _on_gaussians(self, msg: Any) -> None:
+        start = time.perf_counter()
         try:
             gaussians = ma.cloud_to_gaussian_map(msg)
         except ValueError as exc:
             self.stats.reject("bad_gaussians")
             self._reject_log("bad_gaussians", f"Gaussian map ignored: {exc}")
             return
+        self.stats.add(map_decode_s=time.perf_counter() - start, maps_decoded=1)
         frame = str(msg.header.frame_id)
         if frame and frame != self.params.frame_id and frame not in self._warned_frame:
             self._warned_frame.add(frame)

@@ -57,6 +57,10 @@ ResultListener = Callable[[SemanticMapper, SemanticResult], None]
 STOP_GRACE_S = 1.0
 
 
+# The MapperStats field that a task's worker time is added to.
+_ACTIVITY = {"keyframe": "worker_s_keyframes", "map": "worker_s_map_updates", "call": "worker_s_calls"}
+
+
 class OutputSink(Protocol):
     """Where results go (the node's publishers); called on the worker thread."""
 
@@ -387,13 +391,19 @@ class MapWorker:
             if task is None and self.queue.closed:
                 return
             try:
+                start = time.perf_counter()
                 if ready:
                     if self.session.integrate_next() is not None:
                         self._changed()
+                    self.stats.add(worker_s_keyframes=time.perf_counter() - start)
                 elif task is not None:
                     self._execute(task)
-                if self.session.reintegrating and not self.session.reintegration_step():
-                    self._changed()  # the re-integrated state was swapped in
+                    self.stats.add(**{_ACTIVITY[task.kind]: time.perf_counter() - start})
+                if self.session.reintegrating:
+                    start = time.perf_counter()
+                    if not self.session.reintegration_step():
+                        self._changed()  # the re-integrated state was swapped in
+                    self.stats.add(worker_s_reintegration=time.perf_counter() - start)
                 self.stats.update(queue_length=self.keyframes_waiting)
                 self._maybe_publish()
                 self._maybe_save()
@@ -449,8 +459,12 @@ class MapWorker:
         self._last_publish = time.monotonic()
         mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
-        # Outputs first: the worker computes (and caches on the result) the object geometry before a
-        # listener's thread, possibly of lower priority, asks the result for it and holds its lock.
+        labelled = time.perf_counter()
+        # The worker computes (and caches on the result) the object geometry before a listener's thread,
+        # possibly of lower priority, asks the result for it and holds its lock.
+        if result is not None:
+            result.objects(mapper.gaussians)
+        geometry = time.perf_counter()
         objects = self.sink.publish(mapper, result) if self.sink is not None else 0
         if mapper is not None and result is not None:
             for fn in self._result_listeners:
@@ -459,10 +473,14 @@ class MapWorker:
                 except Exception as exc:
                     self._listener_failed(fn, exc)
         observed = int(result.observed.sum()) if result is not None else 0
-        self.stats.update(
-            objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (time.perf_counter() - start)
+        end = time.perf_counter()
+        self.stats.update(objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
+        self.stats.add(
+            publishes=1,
+            worker_s_labels=labelled - start,
+            worker_s_objects=geometry - labelled,
+            worker_s_publish=end - geometry,
         )
-        self.stats.add(publishes=1)
         return result, objects
 
     def _save_enabled(self) -> bool:
@@ -474,7 +492,9 @@ class MapWorker:
         if time.monotonic() < self._last_save + self.settings.save_period_s:
             return
         try:
+            start = time.perf_counter()
             info = self.save(self.settings.map_directory)
+            self.stats.add(worker_s_snapshots=time.perf_counter() - start)
             self.log.info(f"snapshot {info.path.name}: {info.keyframes} keyframes in {info.seconds:.2f} s")
         except Exception as exc:
             self._last_save = time.monotonic()  # retry one period later, not on every task

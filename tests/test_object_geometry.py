@@ -1,0 +1,182 @@
+"""The fast and the incremental object geometry (core.object_geometry) held to the plain reference twin."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, Palette
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.mapping import SemanticResult
+from monovoc_ros.core.object_geometry import (
+    ObjectGeometry,
+    main_cluster_ids,
+    main_cluster_ids_reference,
+    object_geometry,
+    object_geometry_reference,
+    percentile_boxes,
+    percentile_boxes_reference,
+)
+
+
+def _map(means: np.ndarray, rng: np.random.Generator) -> GaussianMap:
+    n = len(means)
+    return GaussianMap(means, np.full((n, 3), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)), rng.uniform(0.05, 1, n))
+
+
+def _room(rng: np.random.Generator, n: int = 6000, objects: int = 12) -> tuple[GaussianMap, np.ndarray, np.ndarray]:
+    """Objects of one to three blobs each (so clusters compete), 10% of the Gaussians mislabeled anywhere,
+    some void and unobserved; confidence uniform in [0, 1]."""
+    colors = rng.choice(VOID_ID, objects, replace=False).astype(np.uint32)
+    blob_object = np.concatenate([np.arange(objects), rng.integers(0, objects, objects)])
+    centres = rng.uniform(-4, 4, (2 * objects, 3))
+    blob = rng.integers(0, blob_object.size, n)
+    means = centres[blob] + rng.normal(0, rng.uniform(0.05, 0.4, blob_object.size)[blob, None], (n, 3))
+    ids = colors[blob_object[blob]]
+    stray = rng.random(n) < 0.1
+    ids[stray] = rng.choice(colors, stray.sum())
+    ids[rng.random(n) < 0.05] = VOID_ID
+    ids[rng.random(n) < 0.05] = UNOBSERVED_ID
+    return _map(means, rng), ids, rng.random(n).astype(np.float32)
+
+
+def _assert_same(got: ObjectGeometry, want: ObjectGeometry) -> None:
+    np.testing.assert_array_equal(got.shape_ids, want.shape_ids)
+    assert [(s.id, s.rgb, s.num_gaussians) for s in got.objects] == [
+        (s.id, s.rgb, s.num_gaussians) for s in want.objects
+    ]
+    for a, b in zip(got.objects, want.objects, strict=True):  # the same rows in the same order: bit for bit
+        np.testing.assert_array_equal(a.bbox_min, b.bbox_min)
+        np.testing.assert_array_equal(a.bbox_max, b.bbox_max)
+        np.testing.assert_array_equal(a.centroid, b.centroid)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize(
+    "options", [{}, {"voxel": 0.1}, {"voxel": 0.5, "min_confidence": 0.6}, {"voxel": 0}, {"min_confidence": 0}]
+)
+def test_the_full_computation_equals_the_reference(seed, options):
+    gaussians, ids, confidence = _room(np.random.default_rng(seed))
+    for conf in (confidence, None):
+        _assert_same(
+            object_geometry(gaussians, ids, conf, **options), object_geometry_reference(gaussians, ids, conf, **options)
+        )
+
+
+@pytest.mark.parametrize("min_share", [1.0, 0.3, 0.0, 2.0])
+def test_main_cluster_ids_and_percentile_boxes_equal_the_reference(min_share):
+    gaussians, ids, confidence = _room(np.random.default_rng(7))
+    np.testing.assert_array_equal(
+        main_cluster_ids(gaussians.means, ids, confidence, min_share=min_share),
+        main_cluster_ids_reference(gaussians.means, ids, confidence, min_share=min_share),
+    )
+    got, want = percentile_boxes(gaussians, ids), percentile_boxes_reference(gaussians, ids)
+    _assert_same(ObjectGeometry(tuple(got), ids), ObjectGeometry(tuple(want), ids))
+
+
+def _changes(rng: np.random.Generator, ids: np.ndarray, confidence: np.ndarray):
+    """A sequence of (what, labels, confidence, the objects it changed), each a few changes from the one before."""
+    c = np.unique(ids[ids < VOID_ID])
+    ids, confidence = ids.copy(), confidence.copy()
+
+    def step(name, *changed):
+        return name, ids.copy(), confidence.copy(), {int(x) for x in changed}
+
+    rows = rng.choice(np.flatnonzero(ids == c[4]), 40, replace=False)  # a few Gaussians change object
+    ids[rows] = c[5]
+    yield step("relabelled", c[4], c[5])
+    near = np.flatnonzero((ids == c[6]) & (np.abs(confidence - 0.3) < 0.1))  # crossing the threshold
+    confidence[near] = 0.6 - confidence[near]
+    yield step("confidence crossed", c[6])
+    yield step("nothing changed")
+    ids[ids == c[0]] = UNOBSERVED_ID
+    yield step("emptied", c[0])
+    new = rng.choice(len(ids), 300, replace=False)
+    old = np.unique(ids[new])
+    ids[new] = 0x0A0B0C
+    yield step("new object", 0x0A0B0C, *old)
+    confidence[ids == c[1]] = 0.05  # the cluster filter leaves nothing: the object keeps all its Gaussians
+    yield step("unconfident object", c[1])
+    ids[ids == c[2]] = VOID_ID
+    confidence[ids == c[3]] = 0.9
+    yield step("voided", c[2], c[3])
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("options", [{}, {"voxel": 0}, {"voxel": 0.1, "min_confidence": 0.5}])
+def test_updates_after_label_changes_equal_the_full_computation(seed, options):
+    rng = np.random.default_rng(seed)
+    gaussians, ids, confidence = _room(rng)
+    geometry = object_geometry(gaussians, ids, confidence, **options)
+    unsure = np.unique(ids[ids < VOID_ID])[1]
+    for name, labels, conf, changed in _changes(rng, ids, confidence):
+        updated = object_geometry(gaussians, labels, conf, previous=geometry, **options)
+        _assert_same(updated, object_geometry_reference(gaussians, labels, conf, **options))
+        if name == "nothing changed":
+            assert updated.objects is geometry.objects
+        elif name == "unconfident object":
+            lone = labels == unsure
+            assert lone.any() and np.all(updated.shape_ids[lone] == unsure)
+        before = {s.id: s for s in geometry.objects}
+        assert all(before[s.id] is s for s in updated.objects if s.id not in changed)  # taken over
+        geometry = updated
+
+
+def test_an_update_takes_over_only_the_same_map_and_settings():
+    rng = np.random.default_rng(11)
+    gaussians, ids, confidence = _room(rng)
+    geometry = object_geometry(gaussians, ids, confidence)
+    moved = _map(gaussians.means + 0.3, rng)  # a map update: a new map object, everything again
+    _assert_same(
+        object_geometry(moved, ids, confidence, previous=geometry), object_geometry_reference(moved, ids, confidence)
+    )
+    coarse = object_geometry(gaussians, ids, confidence, voxel=0.5, previous=geometry)
+    _assert_same(coarse, object_geometry_reference(gaussians, ids, confidence, voxel=0.5))
+    _assert_same(
+        object_geometry(gaussians, ids, None, previous=geometry), object_geometry_reference(gaussians, ids, None)
+    )
+    ids2 = ids.copy()
+    ids2[:50] = ids[60]
+    again = object_geometry(gaussians, ids2, confidence, previous=geometry)
+    ids2[:] = UNOBSERVED_ID  # the caller's array may change afterwards: the geometry holds its own labels
+    _assert_same(
+        object_geometry(gaussians, ids, confidence, previous=again),
+        object_geometry_reference(gaussians, ids, confidence),
+    )
+
+
+def test_too_large_a_map_is_refused_as_before():
+    rng = np.random.default_rng(5)
+    gaussians, ids, confidence = _room(rng, n=2000)
+    means = gaussians.means.copy()
+    means[0] = [3000.0, 0, 0]  # 12000 voxels of 0.25 m from the rest
+    far = _map(means, rng)
+    confidence[0] = 0.1  # not confident: not among the keys, which fit
+    geometry = object_geometry(far, ids, confidence)
+    _assert_same(geometry, object_geometry_reference(far, ids, confidence))
+    ids[0], confidence[0] = ids[1] if ids[1] < VOID_ID else 0x0A0B0C, 0.9  # now it is
+    for compute in (
+        lambda: object_geometry(far, ids, confidence, previous=geometry),
+        lambda: object_geometry(far, ids, confidence),
+        lambda: object_geometry_reference(far, ids, confidence),
+    ):
+        with pytest.raises(ValueError, match="map too large"):
+            compute()
+
+
+def test_a_result_starts_from_the_geometry_of_the_one_it_follows():
+    rng = np.random.default_rng(13)
+    gaussians, ids, confidence = _room(rng)
+    palette = Palette.from_colors(np.array([[1, 2, 3]], np.uint8))
+    labellings = [(labels, conf) for _, labels, conf, _ in _changes(rng, ids, confidence)]
+    first = SemanticResult(palette, ids, confidence, ids != UNOBSERVED_ID)
+    first.objects(gaussians)
+    previous = first
+    for k, (labels, conf) in enumerate(labellings):
+        result = SemanticResult(palette, labels, conf, labels != UNOBSERVED_ID)
+        result.follows(previous)
+        assert result._before is not None and result._before._objects is not None  # never one never computed
+        if k % 2 == 0:  # every other result is never asked for its objects
+            _assert_same(result.objects(gaussians), object_geometry_reference(gaussians, labels, conf))
+            assert result._before is None  # the previous result is let go
+        previous = result
