@@ -383,8 +383,17 @@ def test_stop_applies_queued_calls_in_order_before_its_bound_and_refuses_them_af
         refused.result(0)
 
 
+class GeometrySink(Sink):
+    """Reports objects, as the node's outputs do (the geometry after the cloud)."""
+
+    def publish(self, mapper, result):
+        super().publish(mapper, result)
+        return 0 if result is None else len(result.objects(mapper.gaussians).objects)
+
+
 def test_worker_time_is_accounted_by_activity(tmp_path):
-    worker, sink, _ = make_worker(tmp_path, map_directory=str(tmp_path / "map"), save_period_s=0.01)
+    settings = WorkerSettings(queue_size=8, publish_period_s=0.0, save_period_s=0.01, map_directory=str(tmp_path / "m"))
+    worker = MapWorker(MapperConfig(), settings, sink=GeometrySink(), log=RecordingLog())
     worker.start()
     try:
         worker.submit_map(plane_map())

@@ -177,6 +177,7 @@ class SemanticResult:
     _objects_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
     # The result this one follows (``follows``): its geometry, once computed, is where ours starts.
     _before: SemanticResult | None = field(default=None, init=False, repr=False, compare=False)
+    objects_seconds: float | None = field(default=None, init=False, repr=False, compare=False)  # once computed
 
     def follows(self, previous: SemanticResult | None) -> None:
         """Lets ``objects`` start from ``previous``'s geometry (the result of the keyframe before): only the
@@ -197,7 +198,9 @@ class SemanticResult:
             if self._objects is None or self._objects[0] is not gaussians:
                 before = self._before._objects if self._before is not None else None
                 previous = before[1] if before is not None and before[0] is gaussians else None
+                start = time.perf_counter()
                 geometry = object_geometry(gaussians, self.object_ids, self.confidence, previous=previous)
+                self.objects_seconds = time.perf_counter() - start
                 self._objects, self._before = (gaussians, geometry), None
             return self._objects[1]
 

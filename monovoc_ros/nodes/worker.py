@@ -460,12 +460,11 @@ class MapWorker:
         mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
         labelled = time.perf_counter()
-        # The worker computes (and caches on the result) the object geometry before a listener's thread,
-        # possibly of lower priority, asks the result for it and holds its lock.
-        if result is not None:
-            result.objects(mapper.gaussians)
-        geometry = time.perf_counter()
+        computed = result is None or result.objects_seconds is not None
+        # Outputs first: the worker computes (and caches on the result) the object geometry before a
+        # listener's thread, possibly of lower priority, asks the result for it and holds its lock.
         objects = self.sink.publish(mapper, result) if self.sink is not None else 0
+        geometry_s = 0.0 if computed else (result.objects_seconds or 0.0)
         if mapper is not None and result is not None:
             for fn in self._result_listeners:
                 try:
@@ -478,8 +477,8 @@ class MapWorker:
         self.stats.add(
             publishes=1,
             worker_s_labels=labelled - start,
-            worker_s_objects=geometry - labelled,
-            worker_s_publish=end - geometry,
+            worker_s_objects=geometry_s,
+            worker_s_publish=end - labelled - geometry_s,
         )
         return result, objects
 

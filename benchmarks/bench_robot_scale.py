@@ -1,0 +1,262 @@
+"""The live semantic_mapper at robot scale (issue 25): a building's map with SLAM map updates; prints JSON.
+
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py                       # 1M and 2M Gaussians
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
+
+The scene: Replica office_0's 204k-Gaussian map tiled side by side to the size (benchmarks/bench_map_churn.py's
+`tiled`, per-Gaussian ids dropped: most SLAM front-ends have none), its 81 RGB keyframes replayed in every tile
+in turn (keyframe k in tile k mod tiles, the tile's own object colors), and every `--update-period-s` of
+stamps a new map: 2% of the Gaussians split, 1% pruned, every mean jittered 2 mm, and a small loop closure
+(a 0.1 degree bend and 1 cm; the keyframes after it posed in the bent map). Written as a bag
+(`sequence_to_bag`) and replayed over loopback into `semantic_mapper` (object database, query service, periodic
+snapshots into a map directory) running as its own process. Runs per size:
+
+- ``robot``: keyframes at `--robot-rate` (2/s) with the semantic cloud published whenever the queue is empty
+  (`publish_rate_hz` 0): per keyframe the latency from its scheduled publication to the first semantic cloud
+  holding it (p50 / p95 / max); open-loop text queries at 5/s meanwhile (p99, lost);
+- ``fast``: keyframes stamped at 10/s (the issue's target rate) replayed at `--fast-rate` times that rate
+  (`publish_rate_hz` 1, the default): keyframes/s sustained from the first message to the last integrated, and
+  keyframes dropped. (An as-fast-as-possible replay cannot hold the map updates: the map topic keeps the
+  newest map only, as a SLAM's does, so DDS replaces maps published faster than ~50 MB messages travel.)
+
+Both report the worker thread's share of the wall time by activity (diagnostics `worker_s_*`: keyframes, map
+updates, re-integration, labels, object geometry, publication, snapshots, calls), the map messages' decoding
+(beside the worker), map updates applied, and the node's peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import random
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from bench_map_churn import REPLICA, tiled  # noqa: E402
+
+from monovoc_ros.bags import bag_info, iter_messages, replay, sequence_to_bag, topic_names  # noqa: E402
+from monovoc_ros.core.evaluation.datasets import Sequence, open_sequence  # noqa: E402
+from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb, unpack_rgb  # noqa: E402
+from monovoc_ros.core.keyframe import Keyframe  # noqa: E402
+from monovoc_ros.core.map.gaussians import GaussianMap  # noqa: E402
+from monovoc_ros.ros_harness import (  # noqa: E402
+    SEMANTIC_MAPPER,
+    ClientNode,
+    CloudMonitor,
+    DiagnosticsMonitor,
+    NodeProcess,
+    loopback_environment,
+    ros_args,
+)
+from monovoc_ros.synthetic import churn  # noqa: E402
+
+ACTIVITIES = ("keyframes", "map_updates", "reintegration", "labels", "objects", "publish", "snapshots", "calls")
+TILE_COLORS = 4096  # object colors per tile: tile t's copy of color j is 1 + t * TILE_COLORS + j
+
+
+class TiledSequence(Sequence):
+    """office_0's keyframes replayed in every tile of the tiled map, with the map updates' pose corrections."""
+
+    def __init__(self, base: Sequence, n_gaussians: int, count: int, rate_hz: float, update_every: int) -> None:
+        base_map = base.load_gaussians()
+        big, self.tiles = tiled(base_map, n_gaussians)
+        self.name = f"office0_x{self.tiles}"
+        self.base = base
+        self.width = float(np.ptp(base_map.means[:, 0])) + 1.0
+        self.intrinsics = base.intrinsics
+        self.stamps_ns = (10**9 + np.arange(count) * (1e9 / rate_hz)).astype(np.int64)
+        self.poses = np.stack([self._pose(k) for k in range(count)])
+        self._map = dataclasses.replace(big, ids=None)
+        colors = np.unique(np.concatenate([pack_rgb(base.keyframe(i).mask).ravel() for i in range(len(base))]))
+        self._colors = colors[colors != VOID_ID]  # (C,) the base masks' object colors, sorted
+        self.updates: dict[int, GaussianMap] = {}
+        current = self._map
+        for k in range(update_every, count, update_every):
+            current = churn.densify(current, split=0.02, prune=0.01, jitter=0.002, seed=k).gaussians
+            bent = churn.drift_correction(current, degrees=0.1, translation=(0.01, 0.01, 0.0), seed=k)
+            current = bent.gaussians
+            self.updates[k] = current
+            for j in range(k, count):  # the keyframes after the update are posed in the bent map
+                self.poses[j] = bent.move_pose(self.poses[j])
+
+    def _pose(self, k: int) -> np.ndarray:
+        pose = np.array(self.base.poses[k % len(self.base)], np.float64)
+        pose[0, 3] += (k % self.tiles) * self.width
+        return pose
+
+    def load_gaussians(self) -> GaussianMap:
+        return self._map
+
+    def keyframe(self, i: int) -> Keyframe:
+        kf = self.base.keyframe(i % len(self.base))
+        packed = pack_rgb(kf.mask)
+        slot = np.searchsorted(self._colors, packed).clip(0, len(self._colors) - 1)
+        recolored = np.where(packed == VOID_ID, VOID_ID, 1 + (i % self.tiles) * TILE_COLORS + slot).astype(np.uint32)
+        mask = unpack_rgb(recolored.ravel()).reshape(kf.mask.shape).astype(np.uint8)
+        return dataclasses.replace(kf, index=i, stamp_ns=int(self.stamps_ns[i]), cam_to_world=self.poses[i], mask=mask)
+
+
+def peak_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def worker_shares(values: dict[str, str], wall_s: float) -> dict:
+    shares = {a: round(float(values[f"worker_s_{a}"]) / wall_s, 3) for a in ACTIVITIES}
+    shares["total"] = round(sum(shares.values()), 3)
+    shares["map_decoding_beside_the_worker"] = round(float(values["map_decode_s"]) / wall_s, 3)
+    return shares
+
+
+def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float, query_rate_hz: float = 5.0) -> dict:
+    """One run of the node on `bag` (`keyframes` keyframes, `maps` map messages, the first included)."""
+    mask_topic = topic_names()["mask"]
+    stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
+    first_log = bag_info(bag).start_ns  # the first map, just before the first keyframe
+    params = {
+        "publish_rate_hz": 0.0 if kind == "robot" else 1.0,
+        "diagnostics_period_s": 0.2,
+        "queue_size": keyframes + 8,
+        "map_directory": str(work / f"map_{kind}"),
+        "map_update_max_shrink": 1.0,
+    }
+    with (
+        NodeProcess.python(["-m", SEMANTIC_MAPPER, *ros_args(params)], name="semantic_mapper",
+                           output_path=work / f"mapper_{kind}.log") as node,
+        ClientNode() as client,
+    ):  # fmt: skip
+        from monovoc_ros.nodes.query_load import open_loop_queries, query_client
+
+        diagnostics = DiagnosticsMonitor(client.node, "semantic mapping")
+        clouds = CloudMonitor(client.node)
+        diagnostics.wait_for(lambda d: float(d.get("warm_up_ms", 0)) > 0, 300.0, what="warm-up", process=node)
+        started: list[float] = []
+        queries: dict = {}
+        querying = None
+        if kind == "robot":
+            client_ = query_client(client.node)
+            if not client_.wait_for_service(timeout_sec=30.0):
+                raise RuntimeError("no query service")
+            duration = (stamps[-1] - stamps[0]) / 1e9
+
+            def load() -> None:
+                while not started:
+                    time.sleep(0.01)
+                queries.update(open_loop_queries(client_, query_rate_hz, max(1, int(duration * query_rate_hz))))
+
+            querying = threading.Thread(target=load, daemon=True)
+            querying.start()
+        replay(
+            bag, rate=rate, wait_subscribers=1, wait_timeout=120.0, ack_timeout=300.0,
+            on_started=lambda: started.append(time.monotonic()),
+        )  # fmt: skip
+        done = diagnostics.wait_for(
+            lambda d: int(d["keyframes_processed"]) + int(d["keyframes_dropped"]) >= keyframes
+            and d["queue_length"] == "0",
+            900.0, what="all keyframes", process=node,
+        )  # fmt: skip
+        finished = time.monotonic()
+        if querying is not None:
+            querying.join(120.0)
+        time.sleep(1.0)  # the last cloud
+        values = diagnostics.values()
+        wall = finished - started[0]
+        out = {
+            "run": kind,
+            "keyframes_sent": keyframes,
+            "keyframes_processed": int(done["keyframes_processed"]),
+            "keyframes_dropped": int(done["keyframes_dropped"]),
+            "maps_sent": maps,
+            "maps_received": int(values["maps_decoded"]),
+            "map_updates_applied": int(values["map_updates"]),
+            "reintegrations": int(values["reintegrations"]),
+            "maps_coalesced": int(values["maps_coalesced"]),
+            "gaussians_at_end": int(values["gaussians"]),
+            "objects": int(values["objects"]),
+            "keyframes_per_s_sent": round(rate * (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9), 2),
+            "wall_s": round(wall, 1),
+            "keyframes_per_s": round(int(done["keyframes_processed"]) / wall, 2),
+            "integration_ms_mean": round(float(values["ms_per_keyframe_mean"]), 1),
+            "map_update_ms_last": round(float(values["ms_map_update_last"]), 1),
+            "map_decode_ms_mean": round(1e3 * float(values["map_decode_s"]) / max(1, int(values["maps_decoded"])), 1),
+            "snapshots": int(values["snapshots_saved"]),
+            "worker_share": worker_shares(values, wall),
+            "node_peak_rss_mb": round(peak_rss_mb(node.pid)),
+        }
+        if kind == "robot":
+            latencies = []
+            for stamp in stamps:
+                scheduled = started[0] + (stamp - first_log) / 1e9 / rate
+                # Clouds stamped after the last keyframe are the node's own (at start, on a map alone).
+                arrivals = [t for s, t in clouds.arrivals.items() if stamp <= s <= stamps[-1]]
+                if arrivals:
+                    latencies.append(1e3 * (min(arrivals) - scheduled))
+            lat = np.array(latencies)
+            out.update(
+                keyframes_with_cloud=len(lat),
+                latency_ms_p50=round(float(np.percentile(lat, 50)), 1) if len(lat) else None,
+                latency_ms_p95=round(float(np.percentile(lat, 95)), 1) if len(lat) else None,
+                latency_ms_max=round(float(lat.max()), 1) if len(lat) else None,
+                queries={k: queries.get(k) for k in ("sent", "answered", "lost", "p50_ms", "p99_ms", "max_ms")},
+            )
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", default="1000000,2000000")
+    parser.add_argument("--runs", default="robot,fast")
+    parser.add_argument("--robot-rate", type=float, default=2.0, help="keyframes/s of the robot run")
+    parser.add_argument("--robot-keyframes", type=int, default=40)
+    parser.add_argument("--fast-keyframes", type=int, default=120, help="stamped at 10/s")
+    parser.add_argument("--fast-rate", type=float, default=1.0, help="replay rate of the fast run (1: 10 keyframes/s)")
+    parser.add_argument("--update-period-s", type=float, default=2.0)
+    args = parser.parse_args()
+    if not (REPLICA / "traj.txt").exists():
+        print(f"{REPLICA} not present: nothing to measure", file=sys.stderr)
+        return 1
+    work = Path(tempfile.mkdtemp(prefix="monovoc_bench_scale_"))
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 232)))
+    loopback_environment(work / "ros_log")
+    base = open_sequence(str(REPLICA))
+    report = {"source": str(REPLICA), "cpus": os.cpu_count(), "update_period_s": args.update_period_s, "rows": []}
+    for n in (int(s) for s in args.sizes.split(",")):
+        for kind in args.runs.split(","):
+            rate, count = (args.robot_rate, args.robot_keyframes) if kind == "robot" else (10.0, args.fast_keyframes)
+            t0 = time.perf_counter()
+            seq = TiledSequence(base, n, count, rate, max(1, round(args.update_period_s * rate)))
+            bag = work / f"scale_{n}_{kind}.mcap"
+            sequence_to_bag(seq, bag, map_updates=seq.updates)
+            built = time.perf_counter() - t0
+            row = {
+                "gaussians": n,
+                "tiles": seq.tiles,
+                "bag_mb": round(bag.stat().st_size / 1e6),
+                "bag_build_s": round(built),
+            }
+            replay_rate = 1.0 if kind == "robot" else args.fast_rate
+            row.update(run(bag, work, kind, count, 1 + len(seq.updates), replay_rate))
+            seq.updates.clear()
+            bag.unlink()
+            report["rows"].append(row)
+            print(json.dumps(row), file=sys.stderr)
+    report["loadavg"] = [round(x, 2) for x in os.getloadavg()]
+    print(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
