@@ -169,7 +169,7 @@ def score_relations(mapper, index) -> dict:
     entries = json.loads(RELATIONAL.read_text())["replica_office0"]
     queries = [RetrievalQuery(q["text"], q["expected"], "relational") for q in entries]
     with saved_map(mapper, index) as tmp:
-        renamed, _, _ = matched_queries(tmp, str(REPLICA), queries)
+        renamed, _ = matched_queries(tmp, str(REPLICA), queries)
     hits = []
     for q in renamed:  # expected: the map objects matched to the reference instances (unmatched keep their id)
         result = answer(index, q.text, 1)
@@ -183,7 +183,7 @@ def score_retrieval(mapper, index, instances, names) -> dict:
     known_hex = {f"#{i:06x}" for i in instances}
     kept = [q for q in queries if all(e in REPLICA_TO_COCO or e in known_hex for e in q.expected)]
     with saved_map(mapper, index) as tmp:
-        renamed, truth, noun_labels = matched_queries(tmp, str(REPLICA), kept)
+        renamed, truth = matched_queries(tmp, str(REPLICA), kept)
         # A query whose class no map object was matched to is a miss (the map lost that object).
         found = {class_key(n) for n in truth.values()}
         answerable = [q for q in renamed if all(e.startswith("#") or class_key(e) in found for e in q.expected)]
@@ -195,7 +195,7 @@ def score_retrieval(mapper, index, instances, names) -> dict:
             description_weights=[0.3],
             labels=truth,
             label_nouns=[True],
-            noun_labels=noun_labels,
+            own_labels=True,
         )
     variant = report["variants"][0]["all"]
     labels = mapper.object_labels()

@@ -85,7 +85,7 @@ def test_geometry_and_descriptions_of_the_room():
 
 def test_class_and_attribute_queries_with_labels():
     _, index = room_map()
-    report = evaluate_index(index, load_queries(SYNTHETIC_QUERIES), room_labels(), backend())
+    report = evaluate_index(index, load_queries(SYNTHETIC_QUERIES), room_labels())
     assert report["all"]["top1"] >= 0.8 and report["all"]["top3"] >= 0.9, report["per_query"]
     assert report["class"]["top1"] >= 0.75
     (best, score), *_ = index.query("a sofa", top_k=3)

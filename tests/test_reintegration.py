@@ -271,6 +271,57 @@ def test_a_rebuild_that_lost_keyframes_to_the_bound_or_to_a_new_map_is_never_swa
     assert session.mapper.gaussians is closure
 
 
+def test_map_updates_faster_than_a_rebuild_cannot_keep_it_from_finishing():
+    """A SLAM sending maps while a rebuild runs (every two keyframes of it here): each update carries the
+    rebuild's evidence over with the live one's, the rebuild goes on where it was and is swapped in; an update
+    that needed a rebuild of its own starts the next one then."""
+    scene, kfs = small_scene(), _keyframes(8)
+    corrected = [_shifted(kf) for kf in kfs]
+    session = _session(scene.gaussians, kfs)
+    old = session.mapper
+    session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in corrected)))
+    current, moves, updates, steps = scene.gaussians, [], 0, 0
+    while session.reintegration_step():
+        steps += 1
+        if session.mapper is old and steps % 2 == 0:  # mid-rebuild: a new map
+            churned = churn.then(churn.densify(current, split=0.02, prune=0.0, seed=updates), churn.loop_closure,
+                                 degrees=0.2, translation=(0.005, 0.0, 0.0), seed=updates)  # fmt: skip
+            current = churned.gaussians
+            moves.append(churned.move_pose)
+            assert session.add_map(current) and session.reintegrating
+            updates += 1
+    assert updates == 3 and session.mapper is not old and session.mapper.gaussians is current
+    assert session.stats.reintegrations == 1 and session.stats.keyframes_reintegrated == 8
+    # The rebuilt log's poses moved with the maps as the live log's did (the corrected poses were in the frame
+    # of the first new map already: only the later ones moved them).
+    for entry, live, kf in zip(session.mapper.keyframe_log.entries, old.keyframe_log.entries, corrected, strict=True):
+        np.testing.assert_array_equal(entry.cam_to_world, live.cam_to_world)
+        np.testing.assert_allclose(entry.cam_to_world, moves[2](moves[1](kf.cam_to_world)), atol=2e-3)
+    # Its labels are those of a fresh mapping of the corrected keyframes on the final map, but for the few
+    # Gaussians whose evidence came over the updates.
+    entries = session.mapper.keyframe_log.entries
+    moved = [replace(kf, cam_to_world=e.cam_to_world) for kf, e in zip(corrected, entries, strict=True)]
+    fresh, _ = offline.map_events([current, *moved])
+    observed = fresh.result().object_ids != UNOBSERVED_ID
+    agree = np.mean(session.mapper.result().object_ids[observed] == fresh.result().object_ids[observed])
+    carried = np.mean(old.result().object_ids[observed] == fresh.result().object_ids[observed])  # no rebuild
+    assert agree > 0.95 and agree > carried, (agree, carried)
+
+    # An update that needed a rebuild of its own (10% of the map pruned), carried over mid-rebuild: the next
+    # rebuild starts once this one is swapped in, and both finish.
+    session = MappingSession(replace(offline.MapperConfig(), reintegrate_below=0.95))
+    session.add_map(scene.gaussians)
+    for kf in kfs:
+        session.add_keyframe(kf)
+        session.integrate_next()
+    session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in corrected)))
+    session.reintegration_step()
+    assert session.add_map(churn.densify(scene.gaussians, prune=0.1, split=0.0).gaussians)
+    while session.reintegration_step():
+        pass
+    assert session.stats.reintegrations == 2 and not session.reintegrating
+
+
 def _per_frame_closure(rates, seed: int, refine_m: float):
     """A per-frame-id session (the small scene's masks renumbered per frame, with segmenter-like noise when
     `rates` has some) of 8 keyframes, then a loop closure: the map moved 2 deg (re-ordered, ids kept so that

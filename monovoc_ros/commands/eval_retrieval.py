@@ -68,7 +68,7 @@ def _switches(text: str, what: str) -> list[bool]:
 
 def matched_queries(map_dir: str, source: str, queries: list):
     """Queries and ground truth translated to a per-frame map's own object ids (core.evaluation.instance_eval):
-    (queries with palette ids renamed, {map id: reference class name}, {map id: the map's label})."""
+    (queries with palette ids renamed, {map id: reference class name})."""
     import dataclasses
 
     from monovoc_ros import offline
@@ -95,7 +95,7 @@ def matched_queries(map_dir: str, source: str, queries: list):
 
     renamed = [dataclasses.replace(q, expected=[rename(e) for e in q.expected]) for q in queries]
     truth = {obj: names[ref] for obj, ref in match.mapping.items() if names.get(ref)}
-    return renamed, truth, mapper.object_labels()
+    return renamed, truth
 
 
 def run(args: argparse.Namespace) -> int:
@@ -111,9 +111,8 @@ def run(args: argparse.Namespace) -> int:
         weights = [args.description_weight if on else 0.0 for on in _switches(args.description, "--description")]
         nouns = _switches(args.label_nouns, "--label-nouns")
         labels = read_labels(args.labels) if args.labels else None
-        noun_labels = None
         if args.reference:
-            queries, labels, noun_labels = matched_queries(args.map, args.reference, queries)
+            queries, labels = matched_queries(args.map, args.reference, queries)
         stored = ObjectDatabase(args.map, create=False).meta().get("backend") or {}
         name = args.backend or stored.get("name", "conse")
         options = {}
@@ -131,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
             labels=labels,
             label_nouns=nouns,
             unlabeled_noun=args.unlabeled_noun,
-            noun_labels=noun_labels,
+            own_labels=bool(args.reference),
         )
     except (ValueError, ObjectDatabaseError, ModelMissingError, OSError) as exc:
         print(f"monovoc eval-retrieval: {exc}", file=sys.stderr)

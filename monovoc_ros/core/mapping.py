@@ -375,6 +375,10 @@ class SemanticMapper:
         """Object id -> the leading class name its segments were given (core.segments.segment_labels)."""
         return self.segment_labels.leading()
 
+    def object_label_confidence(self) -> dict[int, float]:
+        """Object id -> the share of its segments' class evidence that names its label (`object_labels`)."""
+        return self.segment_labels.leading_share()
+
     def result(self) -> SemanticResult:
         """Labels for every Gaussian (cached until the next keyframe or map update)."""
         if self._result is None:

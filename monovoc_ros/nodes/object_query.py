@@ -81,6 +81,7 @@ def read_settings(node: Any, labels: Mapping[int, str] | None = None) -> QuerySe
         crop_mode=str(values["objects.crop_mode"]),
         views_per_object=int(values["objects.views_per_object"]),
         description_weight=float(values["objects.description_weight"]),
+        label_weight=float(values["objects.label_weight"]),
         labels=dict(labels) if labels else None,
         min_gaussians=int(values["objects.min_gaussians"]),
         up_axis=str(values["objects.up_axis"]),
@@ -118,7 +119,8 @@ class ObjectQueryComponent:
         self._backend_source = backend if backend is not None else lazy_backend(settings.backend, **options)
         self._index_lock = threading.Lock()
         self.index = ObjectIndex(self._backend_source, settings.index)
-        self._pending: tuple[Any, Any, Any] | None = None  # newest (gaussians, result, segment labels) from the worker
+        # newest (gaussians, result, segment labels, their confidence) from the worker
+        self._pending: tuple[Any, Any, Any, Any] | None = None
         # The labels of the index's records, as last given to the host (replaced, never changed in place:
         # the worker thread reads it).
         self._labels: Mapping[int, ObjectLabel] = {}
@@ -227,7 +229,7 @@ class ObjectQueryComponent:
 
     def _on_result(self, mapper: Any, result: Any) -> None:
         # Gaussian maps and results are immutable snapshots: safe to hand to another thread.
-        self._pending = (mapper.gaussians, result, mapper.object_labels())
+        self._pending = (mapper.gaussians, result, mapper.object_labels(), mapper.object_label_confidence())
         self._labelled = (mapper.gaussians, result.object_ids)
         self._wake.set()
 
@@ -267,11 +269,17 @@ class ObjectQueryComponent:
             except Exception as exc:  # one bad refresh must not end the indexing thread
                 self.log.error(f"object index refresh failed: {type(exc).__name__}: {exc}")
 
-    def _refresh(self, pending: tuple[Any, Any, Any] | None) -> None:
+    def _refresh(self, pending: tuple[Any, Any, Any, Any] | None) -> None:
         index = self.index
         geometry = {}
         if pending is not None:
-            geometry = {"gaussians": pending[0], "result": pending[1], "segment_labels": pending[2]}
+            gaussians, result, names, confidence = pending
+            geometry = {
+                "gaussians": gaussians,
+                "result": result,
+                "segment_labels": names,
+                "label_confidence": confidence,
+            }
         if not geometry and index.pending() == 0:
             return
         report = index.refresh(**geometry, max_objects=self.settings.max_objects_per_refresh)

@@ -24,6 +24,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("objects.crop_mode", _INDEX.crop_mode, "object crops: 'soft' (context dimmed) or 'hard' (object only)", choices=CROP_MODES),
     Param("objects.views_per_object", _INDEX.views_per_object, "best keyframe views kept per object (by mask pixel count)", low=1),
     Param("objects.description_weight", _INDEX.description_weight, "share of the attribute description in each object's embedding (0-1)", low=0, high=1),
+    Param("objects.label_weight", _INDEX.label_weight, "a text naming an object's label ranks it up by this x the label's confidence (0 = embedding only)", low=0, high=2),
     Param("objects.min_gaussians", _INDEX.min_gaussians, "objects with fewer Gaussians are not listed", low=1),
     Param("objects.up_axis", _INDEX.up_axis, "up direction for sizes and heights: +x..-z, or 'auto' (cameras + flat surfaces)", choices=UP_AXES),
     Param("objects.max_objects_per_refresh", LIVE_OBJECTS_PER_REFRESH, "objects (re-)embedded per chunk of work", low=1),

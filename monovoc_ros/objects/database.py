@@ -40,7 +40,9 @@ from monovoc_ros.objects.views import ObjectView
 
 DB_NAME = "objects.db"
 FORMAT = "monovoc_objects"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# Version 1 lacked objects.label_confidence: opening one adds the column (every label counted sure, as then).
+_MIGRATIONS = {1: "ALTER TABLE objects ADD COLUMN label_confidence REAL NOT NULL DEFAULT 1.0"}
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -56,7 +58,8 @@ CREATE TABLE IF NOT EXISTS objects (
     num_gaussians INTEGER NOT NULL, num_observations INTEGER NOT NULL, num_views INTEGER NOT NULL,
     embedding BLOB NOT NULL, image_embedding BLOB NOT NULL,
     embedding_model TEXT NOT NULL, embedding_dim INTEGER NOT NULL,
-    updated_unix REAL NOT NULL
+    updated_unix REAL NOT NULL,
+    label_confidence REAL NOT NULL DEFAULT 1.0
 );
 CREATE TABLE IF NOT EXISTS views (
     object_id INTEGER NOT NULL, stamp_ns INTEGER NOT NULL,
@@ -188,6 +191,12 @@ class ObjectDatabase:
             if fmt != FORMAT:
                 raise ObjectDatabaseError(f"{self.path}: an SQLite file, but not a MonoVoc object database")
             version = json.loads(meta.get("schema_version", "null"))
+            if version in _MIGRATIONS:
+                db.execute("BEGIN IMMEDIATE")
+                db.execute(_MIGRATIONS[version])
+                db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (json.dumps(SCHEMA_VERSION),))
+                db.execute("COMMIT")
+                version = SCHEMA_VERSION
             if version != SCHEMA_VERSION:
                 raise ObjectDatabaseError(
                     f"{self.path}: schema version {version}, this version reads {SCHEMA_VERSION}; rebuild the objects"
@@ -256,7 +265,7 @@ class ObjectDatabase:
                 ],
             )
             db.execute("DELETE FROM objects")
-            db.executemany(f"INSERT INTO objects VALUES ({', '.join('?' * 32)})", object_rows)
+            db.executemany(f"INSERT INTO objects VALUES ({', '.join('?' * 33)})", object_rows)
             db.execute("DELETE FROM observations")
             db.executemany("INSERT INTO observations VALUES (?, ?)", sorted(index.views.observation_counts().items()))
             if index.object_ids is not None:
@@ -360,6 +369,7 @@ def _object_row(r: ObjectRecord, model: str, dim: int) -> tuple:
         model,
         dim or int(np.asarray(r.embedding).size),
         float(r.updated_unix),
+        float(r.label_confidence),
     )
 
 
@@ -378,6 +388,7 @@ def _record(row: sqlite3.Row) -> ObjectRecord:
         embedding=_vector(row["embedding"]),
         image_embedding=_vector(row["image_embedding"]),
         updated_unix=float(row["updated_unix"]),
+        label_confidence=float(row["label_confidence"]),
         num_views=int(row["num_views"]),
         upright_extent=np.array([row["upright_w"], row["upright_d"], row["upright_h"]], np.float64),
         height_above_floor=float(row["height_above_floor"]),

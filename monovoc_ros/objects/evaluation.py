@@ -34,7 +34,7 @@ import numpy as np
 
 from monovoc_ros.core.evidence.palette import format_object_id, parse_object_id
 from monovoc_ros.core.segments.object_labels import GUESS
-from monovoc_ros.embed.retrieval import chance_topk, rank
+from monovoc_ros.embed.retrieval import chance_topk
 from monovoc_ros.objects.database import ObjectDatabase
 from monovoc_ros.objects.index import CROP_MODES, IndexConfig, ObjectIndex
 from monovoc_ros.objects.labels import noun
@@ -112,13 +112,12 @@ def score_rankings(ranked_ids: Sequence[Sequence[int]], expected: Sequence[set[i
     return out
 
 
-def evaluate_index(index: ObjectIndex, queries: Sequence[RetrievalQuery], labels: Mapping[int, str], backend) -> dict:
-    """Scores one index (its current embeddings) on the queries, overall and per kind."""
-    ids, matrix = index.embedding_matrix()
+def evaluate_index(index: ObjectIndex, queries: Sequence[RetrievalQuery], labels: Mapping[int, str]) -> dict:
+    """Scores one index on the queries, overall and per kind, ranked as its `query` ranks them."""
+    ids, _ = index.embedding_matrix()
     if not ids:
         raise ValueError("the index has no embedded objects to rank")
-    order, _ = rank(backend.embed_texts([q.text for q in queries]), matrix)
-    ranked = [[ids[i] for i in row] for row in order]
+    ranked = [[r.id for r, _ in index.query(q.text, len(ids))] for q in queries]
     expected = [resolve_expected(q, labels) for q in queries]
     listed = set(ids)
     result = {"all": score_rankings(ranked, expected)}
@@ -156,11 +155,13 @@ def evaluate_map(
     label_nouns: Sequence[bool] = (False,),
     unlabeled_noun: str | None = None,
     noun_labels: Mapping[int, str] | None = None,
+    own_labels: bool = False,
 ) -> dict:
     """Every (mode, description weight, label nouns) variant of a saved map's objects, re-embedded from
     its stored views. ``labels``: ground truth for class-name expectations (default: the map's);
-    ``noun_labels``: the names the label-noun descriptions use (default: the ground truth; the map's
-    own labels, e.g. a segmenter's, to score what the map itself knows)."""
+    ``noun_labels``: the names the label-noun descriptions use (default: the ground truth, as given labels);
+    ``own_labels``: the map's own stored labels instead (a segmenter's, with their source and confidence), to
+    score what the map itself knows."""
     db = ObjectDatabase(location, create=False)
     meta = db.meta()
     base = IndexConfig.from_dict(meta.get("config") or {})
@@ -182,7 +183,10 @@ def evaluate_map(
                 if weight == 0 and nouns and False in label_nouns:
                     continue  # without a description the nouns do not matter
                 config = dataclasses.replace(
-                    base, crop_mode=mode, description_weight=float(weight), labels=named if nouns else None
+                    base,
+                    crop_mode=mode,
+                    description_weight=float(weight),
+                    labels=named if nouns and not own_labels else None,
                 )
                 if unlabeled_noun is not None:
                     config.unlabeled_noun = unlabeled_noun
@@ -197,7 +201,7 @@ def evaluate_map(
                     embeddings_valid=False,
                 )
                 index.refresh()
-                scores = evaluate_index(index, queries, truth, backend)
+                scores = evaluate_index(index, queries, truth)
                 scores.update(
                     mode=mode,
                     description_weight=float(weight),

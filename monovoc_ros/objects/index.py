@@ -38,7 +38,7 @@ from monovoc_ros.embed.arrays import l2_normalize
 from monovoc_ros.embed.attributes import best_class_name, combine, describe, dominant_color_name
 from monovoc_ros.embed.crops import crop_object
 from monovoc_ros.embed.model_store import ModelMissingError
-from monovoc_ros.objects.labels import noun
+from monovoc_ros.objects.labels import head_noun, noun
 from monovoc_ros.objects.records import ObjectRecord, QueryError, QueryResult
 from monovoc_ros.objects.upright import axis_vector, camera_up, estimate_up, upright_geometry
 from monovoc_ros.objects.views import ObjectView, ObjectViews, ViewConfig
@@ -67,6 +67,13 @@ class IndexConfig:
     # The noun of the description of an object without a given label: a fixed word ("object": attributes
     # only, the image embedding carries the class) or "imagenet" (its best ImageNet class).
     unlabeled_noun: str = "object"
+    # A text whose head noun is an object's label (given or a segmenter's; "the dark blue chairs" and "chair")
+    # ranks it up by label_weight x the label's confidence (segmenter: the share of the object's class evidence
+    # naming it). ConSE's cosines for one text spread over ~0.3, so 0.5 puts unanimously named objects first
+    # and lets a contested name (a table called "chair" in some frames, "dining table" in others) fall behind
+    # them; the embedding orders objects of equal confidence (attributes: "the gray sofa"). 0 = embedding only.
+    # office_0 with YOLOv5s-seg's labels (bench_camera_to_map): 0 -> top-1 0.67, 0.5 -> see docs/results.md.
+    label_weight: float = 0.5
     labels: dict[int, str] | None = None  # object id -> class name (e.g. from labels.json)
     min_gaussians: int = 10  # objects with fewer Gaussians are not listed (specks, mislabeled floaters)
     up_axis: str = "auto"  # see the module docstring; "+z" for REP-103 maps known to be level
@@ -81,6 +88,8 @@ class IndexConfig:
             raise ValueError(f"crop_mode must be one of {CROP_MODES}, got {self.crop_mode!r}")
         if not 0.0 <= self.description_weight <= 1.0:
             raise ValueError(f"description_weight must be in [0, 1], got {self.description_weight}")
+        if not 0.0 <= self.label_weight <= 2.0:
+            raise ValueError(f"label_weight must be in [0, 2], got {self.label_weight}")
         if self.up_axis not in UP_AXES:
             raise ValueError(f"up_axis must be one of {UP_AXES}, got {self.up_axis!r}")
         if not 0.0 <= self.floor_percentile <= 100.0:
@@ -162,6 +171,7 @@ class ObjectIndex:
         self._observations: dict[int, int] = {}
         # object id -> the segmenter's class (refresh(mapper) or refresh(segment_labels=...))
         self.segment_labels: dict[int, str] = {}
+        self.segment_confidence: dict[int, float] = {}  # object id -> its segment label's confidence
         self._floor = 0.0
         self._upright: dict[int, tuple[np.ndarray, float]] = {}  # id -> (extent with height last, height)
         self._up_sum = np.zeros(3)  # sum of the keyframes' camera up directions (up_axis "auto")
@@ -258,21 +268,24 @@ class ObjectIndex:
         gaussians: GaussianMap | None = None,
         result=None,
         segment_labels: Mapping[int, str] | None = None,
+        label_confidence: Mapping[int, float] | None = None,
         max_objects: int | None = None,
     ) -> RefreshReport:
         """Updates geometry from ``mapper`` (or ``gaussians`` + ``result``), re-embeds dirty objects (at
         most ``max_objects`` of them, never-embedded ones and large ones first) and publishes the new
-        records. Without geometry arguments only embeddings are brought up to date. ``segment_labels``
-        (the mapper's ``object_labels()``, taken with ``result``): the segmenter's class names, which
-        ``refresh(mapper)`` reads itself."""
+        records. Without geometry arguments only embeddings are brought up to date. ``segment_labels`` and
+        ``label_confidence`` (the mapper's ``object_labels()`` and ``object_label_confidence()``, taken with
+        ``result``): the segmenter's class names and how sure they are, which ``refresh(mapper)`` reads itself."""
         start = time.perf_counter()
         report = RefreshReport()
         with self._refresh_lock:
             if mapper is not None:
                 gaussians, result = mapper.gaussians, mapper.result()
                 self.segment_labels = mapper.object_labels()
+                self.segment_confidence = mapper.object_label_confidence()
             elif segment_labels is not None:
                 self.segment_labels = dict(segment_labels)
+                self.segment_confidence = dict(label_confidence or {})
             if (gaussians is None) != (result is None):
                 raise ValueError("refresh needs both gaussians and result (or a mapper)")
             if gaussians is not None:
@@ -339,7 +352,9 @@ class ObjectIndex:
 
     def _label(self, oid: int, backend) -> ObjectLabel:
         """The one rule (core.segments.object_labels.resolve), with the model's guess last."""
-        label = resolve(oid, self.config.labels or {}, self.segment_labels, self._restored_label)
+        label = resolve(
+            oid, self.config.labels or {}, self.segment_labels, self._restored_label, self.segment_confidence
+        )
         if label is not None:
             return label
         if oid not in self._guess:
@@ -348,7 +363,7 @@ class ObjectIndex:
 
     def labels(self) -> dict[int, ObjectLabel]:
         """Object id -> label of the queryable objects (what the answers and objects.db carry)."""
-        return {r.id: ObjectLabel(r.label, r.label_source) for r in self._snapshot[0] if r.label}
+        return {r.id: ObjectLabel(r.label, r.label_source, r.label_confidence) for r in self._snapshot[0] if r.label}
 
     def describe(self, oid: int, label: str) -> str:
         """The attribute description of a listed, embedded object under ``label``."""
@@ -387,6 +402,7 @@ class ObjectIndex:
                 id=oid,
                 label=label.name,
                 label_source=label.source,
+                label_confidence=float(label.confidence),
                 description=description,
                 color_name=self._color[oid],
                 centroid=np.asarray(s.centroid, np.float64),
@@ -430,7 +446,9 @@ class ObjectIndex:
         return [r.id for r in records], matrix
 
     def query(self, text: str, top_k: int = 0, min_score: float = -1.0) -> QueryResult:
-        """Objects ranked by cosine similarity of their embedding to the text's, best first.
+        """Objects ranked by cosine similarity of their embedding to the text's, best first; an object whose
+        label the text names (its head noun) ranks up by ``label_weight`` x the label's confidence. The scores
+        returned, and ``min_score``, are the cosine similarities.
 
         ``top_k`` 0 means ``config.default_top_k``; more than there are objects returns them all.
         ``min_score`` drops weaker matches (-1 keeps everything). Raises QueryError for empty text, bad
@@ -479,12 +497,15 @@ class ObjectIndex:
                 "the index was built with another embedding backend"
             )
         scores = matrix @ query
-        order = np.argsort(-scores, kind="stable")
+        named = label_match(records, cleaned)
+        order = np.argsort(-(scores + self.config.label_weight * named), kind="stable")
         k = min(top_k or self.config.default_top_k, len(records))
         kept = [int(i) for i in order if scores[i] >= min_score][:k]
         matches = [(records[i], float(scores[i])) for i in kept]
         below = "" if len(kept) == k else f" (others below min_score {min_score:g})"
         message = f"{len(matches)} of {len(records)} objects{below}"
+        if self.config.label_weight > 0 and named.any():
+            notes.append(f"{np.count_nonzero(named)} labelled {head_noun(cleaned)!r} ranked by label confidence")
         return QueryResult(cleaned, matches, "; ".join([message, *notes]), len(records), truncated)
 
     # ------------------------------------------------------------------ persistence support
@@ -530,7 +551,7 @@ class ObjectIndex:
             for r in records:
                 self._color[r.id] = r.color_name
                 self._num_views[r.id] = r.num_views
-                label = ObjectLabel.stored(r.label, r.label_source)
+                label = ObjectLabel.stored(r.label, r.label_source, r.label_confidence)
                 if label is not None and label.source in (GIVEN, SEGMENTS):
                     self._restored_label[r.id] = label
                 if embeddings_valid:
@@ -546,10 +567,22 @@ class ObjectIndex:
         return self._floor
 
 
+def label_match(records: tuple[ObjectRecord, ...], text: str) -> np.ndarray:
+    """(M,) float32 per record: its label's confidence where the label (given or a segmenter's, never the
+    model's guess) has the text's head noun as its own, else 0."""
+    head = head_noun(text)
+    return np.array(
+        [r.label_confidence if r.label and r.label_source != GUESS and head_noun(r.label) == head else 0.0
+         for r in records],
+        np.float32,
+    )  # fmt: skip
+
+
 def _same_record(a: ObjectRecord, b: ObjectRecord) -> bool:
     return (
         a.label == b.label
         and a.label_source == b.label_source
+        and a.label_confidence == b.label_confidence
         and a.description == b.description
         and a.num_gaussians == b.num_gaussians
         and a.num_observations == b.num_observations

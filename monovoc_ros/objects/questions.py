@@ -21,6 +21,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+from monovoc_ros.objects.labels import head_noun
 from monovoc_ros.objects.records import ObjectRecord, QueryError
 from monovoc_ros.objects.spatial import (
     STRUCTURE,
@@ -29,7 +30,6 @@ from monovoc_ros.objects.spatial import (
     Viewpoint,
     box_distance,
     default_view,
-    head_noun,
     parse,
     relation_grade,
     strip_articles,

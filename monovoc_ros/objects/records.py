@@ -37,6 +37,7 @@ class ObjectRecord:
     # object's lowest point above the floor, metres: what the description quotes.
     upright_extent: np.ndarray = field(default_factory=lambda: np.zeros(3))
     height_above_floor: float = 0.0
+    label_confidence: float = 1.0  # core.segments.object_labels.ObjectLabel.confidence
 
     @property
     def rgb(self) -> tuple[int, int, int]:
@@ -58,6 +59,7 @@ class ObjectRecord:
             "hex": self.hex,
             "label": self.label,
             "label_source": self.label_source,
+            "label_confidence": round(float(self.label_confidence), 4),
             "description": self.description,
             "color_name": self.color_name,
             "centroid": [float(v) for v in self.centroid],

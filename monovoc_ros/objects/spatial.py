@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from monovoc_ros.objects.labels import head_noun
 from monovoc_ros.objects.records import ObjectRecord, QueryResult
 from monovoc_ros.objects.upright import upright_rotation
 
@@ -160,22 +161,6 @@ def strip_articles(words: Sequence[str]) -> str:
     while words and words[0] in _ARTICLES:
         words = words[1:]
     return " ".join(words)
-
-
-def _singular(word: str) -> str:
-    if word.endswith("ies") and len(word) > 4:
-        return word[:-3] + "y"
-    if word.endswith(("ches", "shes", "sses", "xes")):
-        return word[:-2]
-    if word.endswith("s") and not word.endswith(("ss", "us", "is")) and len(word) > 2:
-        return word[:-1]
-    return word
-
-
-def head_noun(phrase: str) -> str:
-    """The last word of a noun phrase, singular: "the dark blue chairs" -> "chair"."""
-    words = re.sub(r"[-_]+", " ", phrase.lower()).split()
-    return _singular(words[-1]) if words else ""
 
 
 # ---------------------------------------------------------------------------------------------- geometry

@@ -138,6 +138,15 @@ class KeyframeLog:
         for k, entry in enumerate(self.entries):
             self.entries[k] = replace(entry, cam_to_world=move(entry.cam_to_world))
 
+    def follow_poses(self, other: KeyframeLog) -> None:
+        """Each entry takes the pose of `other`'s entry of the same stamp (a rebuild's log, when a map update
+        moved the poses of the live log it re-integrates)."""
+        poses = {e.stamp_ns: e.cam_to_world for e in other.entries}
+        for k, entry in enumerate(self.entries):
+            T = poses.get(entry.stamp_ns)
+            if T is not None and T is not entry.cam_to_world:
+                self.entries[k] = replace(entry, cam_to_world=T)
+
     def continues(self, earlier: KeyframeLog) -> None:
         """This log holds `earlier`'s entries integrated again (a re-integration swapped in): it is as complete
         as that one, and its poses are in the same frame."""

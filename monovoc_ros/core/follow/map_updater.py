@@ -14,7 +14,11 @@ SLAM front-end do to the mapper a MappingSession (core.session) holds.
 * Re-integration: whether a map update or corrected poses re-integrate the keyframe log
   (`MapUpdater.reintegration_reason`), and the re-integration in progress (`Reintegration`), stepped by the
   session and swapped in by it once it has caught up with the log; with per-frame mask ids its objects
-  take the ids of the objects they replace first (`keep_object_ids`).
+  take the ids of the objects they replace first (`keep_object_ids`). A map update during a rebuild carries
+  the rebuild's evidence to the new map as it carries the live evidence (the same sources: both mappers hold
+  the same map), so that a SLAM sending maps faster than a rebuild takes cannot keep it from finishing; an
+  update that needed a rebuild of its own starts the next one when this one is swapped in. Corrected poses
+  restart it (its keyframes were integrated with the old poses).
 """
 
 from __future__ import annotations
@@ -82,6 +86,7 @@ class MapUpdateReport:
     by_position: int  # new Gaussians that took it by the moved position
     motion: MapMotion  # how the map moved (core.follow.map_motion)
     seconds: float = 0.0
+    sources: np.ndarray | None = None  # (N_new,) int64 old row whose evidence each new Gaussian took, -1: none
 
     @property
     def carried_share(self) -> float:
@@ -173,6 +178,7 @@ def update_map(mapper: Mapper, gaussians: GaussianMap) -> MapUpdateReport:
         by_position=follow.by_position,
         motion=follow.motion,
         seconds=time.perf_counter() - start,
+        sources=follow.sources,
     )
 
 
@@ -224,6 +230,8 @@ class Reintegration:
         self.refused = 0
         self.skipped = 0  # entries the log dropped before this job reached them
         self.seconds = 0.0
+        self.map_updates = 0  # map updates carried over to this job's mapper
+        self.again = ""  # why a map update carried over needs a rebuild of its own after this one ("": none)
 
     @property
     def caught_up(self) -> bool:
@@ -284,17 +292,24 @@ class MapUpdater:
 
     def update(self, mapper: Mapper, gaussians: GaussianMap, name: str = "") -> MapUpdateReport:
         """A map update (`update_map`, raising MapMotionError), counted, then the re-integration it needs: a
-        rebuild in progress (of the old map) starts over on the new one."""
+        rebuild in progress is carried over to the new map with the live evidence (module docstring)."""
+        old = mapper.gaussians
         report = update_map(mapper, gaussians)
         self.stats.add(map_updates=1)
         self.stats.update(map_update_carried_share=report.carried_share, ms_map_update_last=1e3 * report.seconds)
         self.log.info(f"map update {name}: {report.describe()}")
-        if self.job is not None:  # its rebuild is of the old map: start over on the new one
-            self.start(mapper, self.job.reason)
-        elif mapper.n_keyframes:
-            reason = self.reintegration_reason(report)
-            if reason:
-                self.start(mapper, reason)
+        reason = self.reintegration_reason(report) if mapper.n_keyframes else ""
+        job = self.job
+        if job is not None and job.mapper.gaussians is old and job.log.complete:
+            # The rebuild follows the map as the live evidence did and goes on where it was.
+            job.mapper.take_map(gaussians, report.sources)
+            job.mapper.keyframe_log.follow_poses(job.log)
+            job.map_updates += 1
+            job.again = job.again or reason
+        elif job is not None:  # a rebuild that cannot finish on this map: `start` drops it or starts over
+            self.start(mapper, job.reason)
+        elif reason:
+            self.start(mapper, reason)
         return report
 
     def reintegration_reason(self, report: MapUpdateReport) -> str:
@@ -373,8 +388,11 @@ class MapUpdater:
         self.log.info(
             f"re-integration ({job.reason}) done: {job.mapper.n_keyframes} keyframes in {job.seconds:.1f} s"
             + (f", {job.refused} refused" if job.refused else "")
+            + (f", {job.map_updates} map updates followed" if job.map_updates else "")
             + (f"; {kept} of its {objects} objects kept their ids" if job.mapper.associator is not None else "")
         )
+        if job.again:  # a map update carried over during this rebuild needs one of its own
+            self.start(job.mapper, f"{job.again} (during the previous re-integration)")
         return job.mapper
 
     def cancel(self) -> None:

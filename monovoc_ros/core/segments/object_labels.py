@@ -33,12 +33,17 @@ GUESS_MARK = "?"
 class ObjectLabel:
     name: str
     source: str  # one of SOURCES
+    # How sure the source is of the name: for ``segments`` the share of the object's class evidence that names
+    # it (a segmenter that called it a chair in half its detections: 0.5); 1 for ``given``; unused for guesses.
+    confidence: float = 1.0
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
             raise ValueError(f"label source must be one of {SOURCES}, got {self.source!r}")
         if not self.name:
             raise ValueError("an object label needs a name (no label: None)")
+        if not 0.0 <= self.confidence <= 1.0:
+            raise ValueError(f"label confidence must be in [0, 1], got {self.confidence!r}")
 
     @property
     def is_guess(self) -> bool:
@@ -49,11 +54,11 @@ class ObjectLabel:
         return f"{self.name}{GUESS_MARK}" if self.is_guess else self.name
 
     @classmethod
-    def stored(cls, name: str, source: str) -> ObjectLabel | None:
+    def stored(cls, name: str, source: str, confidence: float = 1.0) -> ObjectLabel | None:
         """A label read back from storage (objects.db, a message): legacy sources mapped, "" -> None."""
         if not name:
             return None
-        return cls(name, stored_source(source))
+        return cls(name, stored_source(source), float(min(1.0, max(0.0, confidence))))
 
 
 def stored_source(source: str) -> str:
@@ -76,14 +81,16 @@ def resolve(
     given: Mapping[int, str],
     segments: Mapping[int, str],
     known: Mapping[int, ObjectLabel] | None = None,
+    segment_confidence: Mapping[int, float] | None = None,
 ) -> ObjectLabel | None:
-    """The label of one object: ``given`` (labels_file) > ``segments`` > ``known`` (names restored from
-    objects.db, then the model's guesses; the object index passes what it has) > None. Empty names
-    (an unnamed labels.json color) name nothing."""
+    """The label of one object: ``given`` (labels_file) > ``segments`` (with ``segment_confidence``, the share
+    of the object's class evidence naming it; 1 when not given) > ``known`` (names restored from objects.db,
+    then the model's guesses; the object index passes what it has) > None. Empty names (an unnamed
+    labels.json color) name nothing."""
     name = given.get(object_id)
     if name:
         return ObjectLabel(name, GIVEN)
     name = segments.get(object_id)
     if name:
-        return ObjectLabel(name, SEGMENTS)
+        return ObjectLabel(name, SEGMENTS, float((segment_confidence or {}).get(object_id, 1.0)))
     return (known or {}).get(object_id)

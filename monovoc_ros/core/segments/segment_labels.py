@@ -127,6 +127,11 @@ class LabelHistogram:
         """Object id -> its leading class."""
         return {oid: leading_name(t) for oid, t in self.scores.items() if t}
 
+    def leading_share(self) -> dict[int, float]:
+        """Object id -> the share of its summed scores that names its leading class (how unanimous its
+        segments were: a table called "chair" in some frames and "dining table" in others is unsure)."""
+        return {oid: max(t.values()) / sum(t.values()) for oid, t in self.scores.items() if t and sum(t.values()) > 0}
+
     def to_json(self) -> str:
         return json.dumps({str(k): v for k, v in sorted(self.scores.items())})
 
