@@ -27,13 +27,13 @@ updates, re-integration, labels, object geometry, publication, snapshots, calls)
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
 import random
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -58,6 +58,7 @@ from monovoc_ros.ros_harness import (  # noqa: E402
     NodeProcess,
     loopback_environment,
     ros_args,
+    wait_until,
 )
 from monovoc_ros.synthetic import churn  # noqa: E402
 
@@ -133,44 +134,42 @@ def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float
         "map_directory": str(work / f"map_{kind}"),
         "map_update_max_shrink": 1.0,
     }
-    with (
-        NodeProcess.python(["-m", SEMANTIC_MAPPER, *ros_args(params)], name="semantic_mapper",
-                           output_path=work / f"mapper_{kind}.log") as node,
-        ClientNode() as client,
-    ):  # fmt: skip
-        from monovoc_ros.nodes.query_load import open_loop_queries, query_client
-
+    start_file, queries_file = work / f"queries_{kind}.start", work / f"queries_{kind}.json"
+    duration = (stamps[-1] - stamps[0]) / 1e9
+    with contextlib.ExitStack() as stack:
+        mapper_args = ["-m", SEMANTIC_MAPPER, *ros_args(params)]
+        node = stack.enter_context(
+            NodeProcess.python(mapper_args, name="semantic_mapper", output_path=work / f"mapper_{kind}.log")
+        )
+        client = stack.enter_context(ClientNode())
+        querying = None
+        if kind == "robot":  # open-loop queries from a process of their own, as a user's client
+            load_args = ["-m", "monovoc_ros.nodes.query_load", "--rate", str(query_rate_hz),
+                         "--count", str(max(1, int(duration * query_rate_hz))), "--start-file", str(start_file),
+                         "--out", str(queries_file)]  # fmt: skip
+            querying = stack.enter_context(
+                NodeProcess.python(load_args, name="query_load", output_path=work / f"query_load_{kind}.log")
+            )
         diagnostics = DiagnosticsMonitor(client.node, "semantic mapping")
         clouds = CloudMonitor(client.node)
         diagnostics.wait_for(lambda d: float(d.get("warm_up_ms", 0)) > 0, 300.0, what="warm-up", process=node)
         started: list[float] = []
-        queries: dict = {}
-        querying = None
-        if kind == "robot":
-            client_ = query_client(client.node)
-            if not client_.wait_for_service(timeout_sec=30.0):
-                raise RuntimeError("no query service")
-            duration = (stamps[-1] - stamps[0]) / 1e9
 
-            def load() -> None:
-                while not started:
-                    time.sleep(0.01)
-                queries.update(open_loop_queries(client_, query_rate_hz, max(1, int(duration * query_rate_hz))))
+        def on_started() -> None:
+            started.append(time.monotonic())
+            start_file.touch()
 
-            querying = threading.Thread(target=load, daemon=True)
-            querying.start()
-        replay(
-            bag, rate=rate, wait_subscribers=1, wait_timeout=120.0, ack_timeout=300.0,
-            on_started=lambda: started.append(time.monotonic()),
-        )  # fmt: skip
+        replay(bag, rate=rate, wait_subscribers=1, wait_timeout=120.0, ack_timeout=300.0, on_started=on_started)
         done = diagnostics.wait_for(
             lambda d: int(d["keyframes_processed"]) + int(d["keyframes_dropped"]) >= keyframes
             and d["queue_length"] == "0",
             900.0, what="all keyframes", process=node,
         )  # fmt: skip
         finished = time.monotonic()
+        queries: dict = {}
         if querying is not None:
-            querying.join(120.0)
+            wait_until(lambda: not querying.running(), 120.0, "the query load to end", process=None)
+            queries = json.loads(queries_file.read_text()) if queries_file.exists() else {}
         time.sleep(1.0)  # the last cloud
         values = diagnostics.values()
         wall = finished - started[0]

@@ -50,6 +50,29 @@ def test_vote_kernels_match_reference(impl, seed, kind, power):
     assert ref[0].sum() > 5 * ref[1].sum() > 0  # mostly named votes, some pooled in crowded tiles
 
 
+@pytest.mark.parametrize("impl", ["numba", "torch", "reference"])
+def test_gaussians_beyond_max_depth_take_no_votes_and_hide_nothing(impl):
+    """max_depth: the Gaussians deeper than it are culled as if they were not in the map (every implementation)."""
+    gmap, k, pose, _ = random_scene(0)
+    labels = block_labels(k, 0)
+    w2c = np.linalg.inv(pose)
+    depth = gmap.means.astype(np.float64) @ w2c[:3, :3].T[:, 2] + w2c[2, 3]
+    far = float(np.median(depth))
+    near = np.flatnonzero(depth <= far)
+    clipped = dense_from(
+        accumulate_votes(gmap, labels, k, pose, weight_power=4, max_depth=far, impl=impl), len(gmap), 11
+    )
+    alone = dense_from(accumulate_votes(gmap.subset(near), labels, k, pose, weight_power=4, impl=impl), len(near), 11)
+    whole = dense_from(accumulate_votes(gmap, labels, k, pose, weight_power=4, impl=impl), len(gmap), 11)
+    beyond = depth > far
+    assert not clipped[0][beyond].any() and not clipped[1][beyond].any() and whole[0][beyond].any()
+    scale = max(alone[0].max(), 1e-12)
+    assert np.abs(clipped[0][near] - alone[0]).max() / scale <= TOL
+    assert np.abs(clipped[1][near] - alone[1]).max() / scale <= TOL
+    with pytest.raises(ValueError, match="max_depth"):
+        accumulate_votes(gmap, labels, k, pose, max_depth=0.1, impl=impl)
+
+
 def test_reference_votes_are_the_weights_summed_per_label():
     """Without crowded tiles, V[i, o] = sum_p w_ip^k [label_p == o] exactly (METHOD.md section 8)."""
     gmap, k, pose, _ = random_scene(0)

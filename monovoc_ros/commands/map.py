@@ -51,6 +51,13 @@ def add_mapper_options(parser: argparse.ArgumentParser) -> None:
         f"(default {defaults.min_support})",
     )
     parser.add_argument(
+        "--max-depth",
+        type=float,
+        default=defaults.max_depth_m,
+        help="metres of camera depth beyond which Gaussians take no evidence from a keyframe; 0 = no limit "
+        f"(default {defaults.max_depth_m:g})",
+    )
+    parser.add_argument(
         "--min-object-score",
         type=float,
         default=defaults.min_object_score,
@@ -132,6 +139,7 @@ def mapper_config(args: argparse.Namespace, labels: list[dict] | None = None) ->
         association_scale=args.association_scale,
         min_support=args.min_support,
         min_object_score=args.min_object_score,
+        max_depth_m=args.max_depth,
     )
 
 

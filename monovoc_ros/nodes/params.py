@@ -57,6 +57,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("min_snap_margin", _MAPPER.min_snap_margin, "vote mode: non-palette mask colors snap to the nearest palette color when (d2 - d1) / (d2 + d1) >= this, else no evidence", low=0, high=1),
     Param("association_scale", _MAPPER.association_scale, "per_frame: the map is rendered at 1/this of the mask resolution to associate segments (1 = full: slower, more exact under noisy segments)", low=1, high=4),
     Param("min_support", _MAPPER.min_support, "vote mode: a Gaussian keeps its object only where the object's share of its votes (void pixels counted against it) is at least this times the median share of the object's Gaussians; 0 = off (a segmenter's masks: 0.5)", low=0, high=1),
+    Param("max_depth_m", _MAPPER.max_depth_m, "metres of camera depth beyond which Gaussians take no evidence from a keyframe (a depth integrator's range; in a building most of a view lies behind walls); 0 = no limit", low=0),
     Param("min_object_score", _MAPPER.min_object_score, "vote mode: objects whose segment names add up to less than this summed score are no objects (their Gaussians unlabelled): the fragments of a segmenter's unsure masks; objects never named are kept; 0 = off (a segmenter's masks: 0.5)", low=0),
     Param("mask_ids", _MAPPER.mask_ids, "mask ids: 'global' (a color names the same object in every mask) or 'per_frame' (segmenter ids per image, associated with the map's objects; vote mode)", choices=MASK_ID_MODES),
     Param("reassociation_tolerance", _MAPPER.reassociation_tolerance, "map updates: a new Gaussian takes the evidence of the nearest old one (moved with the map) within this (m) plus its own largest scale", low=0),
@@ -148,6 +149,7 @@ class NodeParams:
                 association_scale=v["association_scale"],
                 min_support=v["min_support"],
                 min_object_score=v["min_object_score"],
+                max_depth_m=v["max_depth_m"],
             )
         except ValueError as exc:  # the settings that only fail together (e.g. per_frame ids in scd mode)
             raise ParameterError(str(exc).replace(" must be", ": must be", 1)) from None

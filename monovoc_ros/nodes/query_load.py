@@ -74,3 +74,37 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
         "p99_ms": pct(0.99),
         "max_ms": round(1e3 * samples[-1], 1) if samples else float("nan"),
     }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The load from a process of its own (a user's client is not in the process that replays a robot's maps:
+    serializing a 50 MB map message holds that process's interpreter, which would count as the node's
+    latency). Waits for the service, then for `--start-file` to exist, sends the queries and writes the
+    `open_loop_queries` report as JSON to `--out`."""
+    import argparse
+    import json
+    from pathlib import Path
+
+    from monovoc_ros.ros_harness import ClientNode
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--rate", type=float, required=True, help="queries per second")
+    parser.add_argument("--count", type=int, required=True, help="queries sent")
+    parser.add_argument("--start-file", required=True, help="the load starts once this file exists")
+    parser.add_argument("--out", required=True, help="JSON report")
+    parser.add_argument("--service", default=f"{DEFAULT_NAMESPACE}/query")
+    args = parser.parse_args(argv)
+    with ClientNode(name="monovoc_query_load") as client:
+        service = query_client(client.node, args.service)
+        if not service.wait_for_service(timeout_sec=120.0):
+            raise SystemExit(f"no {args.service} service within 120 s")
+        start = Path(args.start_file)
+        while not start.exists():
+            time.sleep(0.01)
+        report = open_loop_queries(service, args.rate, args.count)
+    Path(args.out).write_text(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

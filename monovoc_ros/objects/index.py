@@ -571,11 +571,7 @@ def label_match(records: tuple[ObjectRecord, ...], text: str) -> np.ndarray:
     """(M,) float32 per record: its label's confidence where the label (given or a segmenter's, never the
     model's guess) has the text's head noun as its own, else 0."""
     head = head_noun(text)
-    return np.array(
-        [r.label_confidence if r.label and r.label_source != GUESS and head_noun(r.label) == head else 0.0
-         for r in records],
-        np.float32,
-    )  # fmt: skip
+    return np.array([r.label_confidence if r.labelled(head) else 0.0 for r in records], np.float32)
 
 
 def _same_record(a: ObjectRecord, b: ObjectRecord) -> bool:

@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from monovoc_ros.core.evidence.palette import format_object_id, unpack_rgb
+from monovoc_ros.core.segments.object_labels import GUESS
+from monovoc_ros.objects.labels import head_noun
 
 
 class QueryError(ValueError):
@@ -51,6 +53,10 @@ class ObjectRecord:
     @property
     def extent(self) -> np.ndarray:
         return self.bbox_max - self.bbox_min
+
+    def labelled(self, noun: str) -> bool:
+        """Whether its label (given or a segmenter's, never the model's guess) has `noun` as its head noun."""
+        return bool(self.label) and self.label_source != GUESS and head_noun(self.label) == noun
 
     def to_dict(self) -> dict:
         """Plain JSON-able values (no embeddings)."""

@@ -399,7 +399,7 @@ class Scene:
 
     def _labelled(self, noun: str) -> set[int]:
         """Ids of the objects whose label (given or a segmenter's, never a guess) has `noun` as head noun."""
-        return {r.id for r in self.records if r.label and r.label_source != "guess" and head_noun(r.label) == noun}
+        return {r.id for r in self.records if r.labelled(noun)}
 
     def grades(self, query: SpatialQuery, heads: Sequence[ObjectRecord]) -> tuple[dict[int, float], str]:
         """Each head's relation grade (its best over the anchors' objects), and what the anchors resolved to."""

@@ -9,6 +9,7 @@ imported on first use, so importing this package does not pull in numba or torch
 from __future__ import annotations
 
 import importlib
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -95,6 +96,7 @@ def accumulate(
     valid: np.ndarray | None = None,
     background: Sequence[float] | None = None,
     weight_power: int = 1,
+    max_depth: float = math.inf,
     impl: str = "numba",
     device: str | None = None,
 ) -> Evidence:
@@ -102,12 +104,13 @@ def accumulate(
     and k = `weight_power` (1 is the paper's SCD; see WEIGHT_POWERS).
 
     `mask` is (H, W, 3) uint8 (color = value / 255) or float in [0, 1]; pixels where `valid` is False add
-    nothing (they still occlude as usual). Returns float64 NumPy arrays whatever the implementation.
+    nothing (they still occlude as usual). Gaussians deeper than `max_depth` metres in the camera take nothing
+    and hide nothing. Returns float64 NumPy arrays whatever the implementation.
     """
     if isinstance(weight_power, bool) or weight_power not in WEIGHT_POWERS:
         raise ValueError(f"weight_power must be one of {WEIGHT_POWERS}, got {weight_power!r}")
     module = _module(impl, device)
-    view = check_view(gmap, intrinsics, cam_to_world)
+    view = check_view(gmap, intrinsics, cam_to_world, max_depth)
     mask = check_mask(mask, intrinsics)
     valid = check_valid(valid, intrinsics)
     bg = check_background(background)
@@ -125,17 +128,19 @@ def accumulate_votes(
     *,
     weight_power: int = 1,
     slots: int = EVIDENCE_SLOTS,
+    max_depth: float = math.inf,
     impl: str = "numba",
     device: str | None = None,
 ) -> VoteEvidence:
     """Vote evidence of one keyframe in one rasterization pass: per Gaussian i and label o,
-    sum_p w_ip^k [label_p == o] (METHOD.md section 8). `labels` is (H, W) integer, -1 = no evidence."""
+    sum_p w_ip^k [label_p == o] (METHOD.md section 8). `labels` is (H, W) integer, -1 = no evidence.
+    Gaussians deeper than `max_depth` metres in the camera take no votes and hide nothing."""
     if isinstance(weight_power, bool) or weight_power not in WEIGHT_POWERS:
         raise ValueError(f"weight_power must be one of {WEIGHT_POWERS}, got {weight_power!r}")
     if int(slots) < 1:
         raise ValueError(f"slots must be >= 1, got {slots}")
     module = _module(impl, device)
-    view = check_view(gmap, intrinsics, cam_to_world)
+    view = check_view(gmap, intrinsics, cam_to_world, max_depth)
     labels = check_labels(labels, intrinsics)
     rows, top_labels, top_weights, other, n_visible = module.accumulate_votes(
         gmap, labels, view, int(weight_power), int(slots), **_device_kwargs(impl, device)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -9,14 +10,17 @@ import numpy as np
 
 from monovoc_ros.core.map.camera import Intrinsics, invert_pose, validate_pose
 from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.raster.constants import NEAR_PLANE
 
 
 @dataclass(frozen=True)
 class View:
-    """One camera: intrinsics and the world-to-camera transform (float64 4x4)."""
+    """One camera: intrinsics, the world-to-camera transform (float64 4x4) and the far plane (metres of
+    camera-space depth; Gaussians beyond it are culled like those before the near plane)."""
 
     intrinsics: Intrinsics
     world_to_cam: np.ndarray
+    far: float = math.inf
 
     @property
     def width(self) -> int:
@@ -27,13 +31,18 @@ class View:
         return self.intrinsics.height
 
 
-def check_view(gmap: GaussianMap, intrinsics: Intrinsics, cam_to_world: np.ndarray) -> View:
+def check_view(
+    gmap: GaussianMap, intrinsics: Intrinsics, cam_to_world: np.ndarray, max_depth: float = math.inf
+) -> View:
     if not isinstance(gmap, GaussianMap):
         raise ValueError(f"gmap: expected a GaussianMap, got {type(gmap).__name__}")
     if not isinstance(intrinsics, Intrinsics):
         raise ValueError(f"intrinsics: expected an Intrinsics, got {type(intrinsics).__name__}")
     pose = validate_pose(cam_to_world, what="cam_to_world")
-    return View(intrinsics, invert_pose(pose))
+    far = float(max_depth)
+    if not far > NEAR_PLANE:  # NaN too
+        raise ValueError(f"max_depth must be beyond the near plane ({NEAR_PLANE} m) or inf, got {max_depth!r}")
+    return View(intrinsics, invert_pose(pose), far)
 
 
 def check_mask(mask: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:

@@ -97,7 +97,7 @@ def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: 
     lims = np.array(jacobian_limits(view), dtype=np.float64)
     nk.project(
         gmap.means, gmap.covariances, view.world_to_cam, float(k.fx), float(k.fy), float(k.cx), float(k.cy),
-        lims, k.width, k.height, u, v, conic, depth, rect, workers,
+        lims, float(view.far), k.width, k.height, u, v, conic, depth, rect, workers,
     )  # fmt: skip
     order = nk.visible_by_depth(depth, rect)
     rows = ws.get("rows", (len(order), nk.ROW_WIDTH), np.float32)

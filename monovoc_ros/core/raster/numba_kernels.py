@@ -124,7 +124,7 @@ def exp_nonpositive(x):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, gx, gy, u, v, conic, depth, rect):
+def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, far, gx, gy, u, v, conic, depth, rect):
     mx, my, mz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
     x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + R[0, 3]
     y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + R[1, 3]
@@ -134,7 +134,7 @@ def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, gx, gy, u, v, conic, d
     rect[i, 2] = 0
     rect[i, 3] = 0
     depth[i] = np.float32(z)
-    if not (z >= NEAR_PLANE) or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+    if not (z >= NEAR_PLANE and z <= far) or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
         return
     xz = min(max(x / z, -lims[0]), lims[1])
     yz = min(max(y / z, -lims[2]), lims[3])
@@ -186,8 +186,9 @@ def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, gx, gy, u, v, conic, d
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def project(means, cov6, world_to_cam, fx, fy, cx, cy, lims, width, height, u, v, conic, depth, rect, n_workers):
-    """EWA projection in float64 (see projection.py); rect = (0, 0, 0, 0) marks a culled Gaussian and
+def project(means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, width, height, u, v, conic, depth, rect, n_workers):
+    """EWA projection in float64 (see projection.py); rect = (0, 0, 0, 0) marks a culled Gaussian (before the
+    near plane, beyond `far`, or touching no tile) and
     conic holds the factored form (A, R, S) of the inverse 2D covariance (see _project_one)."""
     n = means.shape[0]
     gx = (width + TILE - 1) // TILE
@@ -198,7 +199,7 @@ def project(means, cov6, world_to_cam, fx, fy, cx, cy, lims, width, height, u, v
         c = _fetch_add(counter, 0)
         while c < n_chunks:
             for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
-                _project_one(i, means, cov6, world_to_cam, fx, fy, cx, cy, lims, gx, gy, u, v, conic, depth, rect)
+                _project_one(i, means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, gx, gy, u, v, conic, depth, rect)
             c = _fetch_add(counter, 0)
 
 

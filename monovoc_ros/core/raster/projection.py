@@ -58,7 +58,7 @@ def project(means: np.ndarray, covariances: np.ndarray, view: View) -> Projectio
     cam = means @ R.T + t
     x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        front = np.isfinite(cam).all(axis=1) & (z >= NEAR_PLANE)
+        front = np.isfinite(cam).all(axis=1) & (z >= NEAR_PLANE) & (z <= view.far)
         zs = np.where(front, z, 1.0)
         lim_xn, lim_xp, lim_yn, lim_yp = jacobian_limits(view)
         xz = np.clip(x / zs, -lim_xn, lim_xp)

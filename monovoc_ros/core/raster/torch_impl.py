@@ -72,7 +72,7 @@ def _project(means: torch.Tensor, cov6: torch.Tensor, view: View) -> dict[str, t
     R, t = w2c[:3, :3], w2c[:3, 3]
     cam = means @ R.T + t
     x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
-    front = torch.isfinite(cam).all(dim=1) & (z >= NEAR_PLANE)
+    front = torch.isfinite(cam).all(dim=1) & (z >= NEAR_PLANE) & (z <= view.far)
     zs = torch.where(front, z, torch.ones_like(z))
     lim_xn, lim_xp, lim_yn, lim_yp = jacobian_limits(view)
     xz = (x / zs).clamp(-lim_xn, lim_xp)
