@@ -10,7 +10,9 @@ def test_offline_query_prints_the_ranking(capsys):
     assert cli_main(["query", "--map", str(room_directory()), "a sofa", "--top-k", "3"]) == 0
     out = capsys.readouterr().out
     lines = out.splitlines()
-    assert lines[0] == "3 of 28 objects" and lines[1].split()[:3] == ["rank", "id", "label"]
+    # The room's labels name one sofa: it ranks by its label, and the message says so.
+    assert lines[0] == "3 of 28 objects; 1 labelled 'sofa' ranked by label confidence"
+    assert lines[1].split()[:3] == ["rank", "id", "label"]
     assert lines[2].split()[:3] == ["1", f"#{room_id('sofa'):06x}", "sofa"]
 
 

@@ -11,6 +11,7 @@ import pytest
 from monovoc_ros import offline
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, decode_mask, encode_mask
+from monovoc_ros.core.follow.map_updater import MAX_REBUILD_RESTARTS
 from monovoc_ros.core.map_store import load_snapshot, save_snapshot
 from monovoc_ros.core.segments.segment_labels import SegmentLabel
 from monovoc_ros.core.session import MappingSession
@@ -272,9 +273,9 @@ def test_a_rebuild_that_lost_keyframes_to_the_bound_or_to_a_new_map_is_never_swa
 
 
 def test_map_updates_faster_than_a_rebuild_cannot_keep_it_from_finishing():
-    """A SLAM sending maps while a rebuild runs (every two keyframes of it here): each update carries the
-    rebuild's evidence over with the live one's, the rebuild goes on where it was and is swapped in; an update
-    that needed a rebuild of its own starts the next one then."""
+    """A SLAM sending maps while a rebuild runs (every two keyframes of it here): the first updates restart it
+    (MAX_REBUILD_RESTARTS), the next ones carry the rebuild's evidence over with the live one's, and the rebuild
+    goes on where it was and is swapped in; an update that needed a rebuild of its own starts the next one then."""
     scene, kfs = small_scene(), _keyframes(8)
     corrected = [_shifted(kf) for kf in kfs]
     session = _session(scene.gaussians, kfs)
@@ -290,13 +291,17 @@ def test_map_updates_faster_than_a_rebuild_cannot_keep_it_from_finishing():
             moves.append(churned.move_pose)
             assert session.add_map(current) and session.reintegrating
             updates += 1
-    assert updates == 3 and session.mapper is not old and session.mapper.gaussians is current
+    # Restarted twice (steps 2 and 4), then 8 steps of which 3 carried an update over.
+    assert updates == MAX_REBUILD_RESTARTS + 3 and session.mapper is not old and session.mapper.gaussians is current
     assert session.stats.reintegrations == 1 and session.stats.keyframes_reintegrated == 8
     # The rebuilt log's poses moved with the maps as the live log's did (the corrected poses were in the frame
     # of the first new map already: only the later ones moved them).
     for entry, live, kf in zip(session.mapper.keyframe_log.entries, old.keyframe_log.entries, corrected, strict=True):
         np.testing.assert_array_equal(entry.cam_to_world, live.cam_to_world)
-        np.testing.assert_allclose(entry.cam_to_world, moves[2](moves[1](kf.cam_to_world)), atol=2e-3)
+        T = kf.cam_to_world
+        for move in moves[1:]:
+            T = move(T)
+        np.testing.assert_allclose(entry.cam_to_world, T, atol=2e-3)
     # Its labels are those of a fresh mapping of the corrected keyframes on the final map, but for the few
     # Gaussians whose evidence came over the updates.
     entries = session.mapper.keyframe_log.entries
@@ -315,8 +320,12 @@ def test_map_updates_faster_than_a_rebuild_cannot_keep_it_from_finishing():
         session.add_keyframe(kf)
         session.integrate_next()
     session.add_keyframe_poses(KeyframePoses(tuple((kf.stamp_ns, kf.cam_to_world) for kf in corrected)))
-    session.reintegration_step()
-    assert session.add_map(churn.densify(scene.gaussians, prune=0.1, split=0.0).gaussians)
+    current = scene.gaussians
+    for seed in range(MAX_REBUILD_RESTARTS + 1):  # the last one is carried over
+        session.reintegration_step()
+        current = churn.densify(current, prune=0.1 if seed == MAX_REBUILD_RESTARTS else 0.0, split=0.0, seed=seed)
+        assert session.add_map(current.gaussians)
+        current = current.gaussians
     while session.reintegration_step():
         pass
     assert session.stats.reintegrations == 2 and not session.reintegrating

@@ -14,11 +14,13 @@ SLAM front-end do to the mapper a MappingSession (core.session) holds.
 * Re-integration: whether a map update or corrected poses re-integrate the keyframe log
   (`MapUpdater.reintegration_reason`), and the re-integration in progress (`Reintegration`), stepped by the
   session and swapped in by it once it has caught up with the log; with per-frame mask ids its objects
-  take the ids of the objects they replace first (`keep_object_ids`). A map update during a rebuild carries
-  the rebuild's evidence to the new map as it carries the live evidence (the same sources: both mappers hold
-  the same map), so that a SLAM sending maps faster than a rebuild takes cannot keep it from finishing; an
-  update that needed a rebuild of its own starts the next one when this one is swapped in. Corrected poses
-  restart it (its keyframes were integrated with the old poses).
+  take the ids of the objects they replace first (`keep_object_ids`). A map update during a rebuild restarts
+  it on the new map (so the live node ends as offline mapping does, which rebuilds at once), unless map updates
+  have restarted it MAX_REBUILD_RESTARTS times in a row: then the update carries the rebuild's evidence to the
+  new map as it carries the live evidence (the same sources: both mappers hold the same map) and the rebuild
+  goes on, so that a SLAM sending maps faster than a rebuild takes cannot keep it from ever finishing; an
+  update that needed a rebuild of its own then starts the next one when this one is swapped in. Corrected
+  poses restart it (its keyframes were integrated with the old poses).
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ from monovoc_ros.core.segments.object_match import match_objects
 
 # Metres: a map update bending the map this much re-integrates (its evidence was rendered on the unbent map).
 REINTEGRATE_BEND_M = 0.02
+# Map updates that restart a rebuild in a row before the next ones carry it over instead (module docstring).
+MAX_REBUILD_RESTARTS = 2
 # Metres around a logged camera whose Gaussians define how the map moved there (its pose follows them).
 _POSE_SUPPORT_M = 4.0
 # Logged poses follow a map whose motion moves some part of it at least this far (metres); below it the
@@ -231,6 +235,7 @@ class Reintegration:
         self.skipped = 0  # entries the log dropped before this job reached them
         self.seconds = 0.0
         self.map_updates = 0  # map updates carried over to this job's mapper
+        self.restarts = 0  # map updates that restarted this rebuild in a row before this job
         self.again = ""  # why a map update carried over needs a rebuild of its own after this one ("": none)
 
     @property
@@ -292,7 +297,8 @@ class MapUpdater:
 
     def update(self, mapper: Mapper, gaussians: GaussianMap, name: str = "") -> MapUpdateReport:
         """A map update (`update_map`, raising MapMotionError), counted, then the re-integration it needs: a
-        rebuild in progress is carried over to the new map with the live evidence (module docstring)."""
+        rebuild in progress starts over on the new map, or is carried over to it when map updates keep
+        restarting it (module docstring)."""
         old = mapper.gaussians
         report = update_map(mapper, gaussians)
         self.stats.add(map_updates=1)
@@ -300,14 +306,21 @@ class MapUpdater:
         self.log.info(f"map update {name}: {report.describe()}")
         reason = self.reintegration_reason(report) if mapper.n_keyframes else ""
         job = self.job
-        if job is not None and job.mapper.gaussians is old and job.log.complete:
-            # The rebuild follows the map as the live evidence did and goes on where it was.
+        if (
+            job is not None
+            and job.restarts >= MAX_REBUILD_RESTARTS
+            and job.mapper.gaussians is old
+            and job.log.complete
+        ):
+            # Maps come faster than rebuilds finish: this one follows the map as the live evidence did.
             job.mapper.take_map(gaussians, report.sources)
             job.mapper.keyframe_log.follow_poses(job.log)
             job.map_updates += 1
             job.again = job.again or reason
-        elif job is not None:  # a rebuild that cannot finish on this map: `start` drops it or starts over
+        elif job is not None:  # of the old map: starts over on the new one (`start` drops it if it cannot finish)
             self.start(mapper, job.reason)
+            if self.job is not None:
+                self.job.restarts = job.restarts + 1
         elif reason:
             self.start(mapper, reason)
         return report
