@@ -17,6 +17,7 @@ import numba
 import numpy as np
 
 from monovoc_ros.core.map.gaussians import gather_rows
+from monovoc_ros.core.raster.numba_kernels import radix_argsort
 
 # Grid keys pack three 21-bit cell coordinates (2M cells per axis: 40 km at 2 cm).
 _BITS = 21
@@ -104,43 +105,10 @@ def _find(keys, values, bits, key):
         h = (h + 1) & mask
 
 
-_DIGIT_BITS = 16
-
-
-@numba.njit(cache=True, nogil=True)
-def argsort_keys(keys):  # pragma: no cover - numba
-    """(N,) int64 stable argsort of non-negative int64 keys: LSD radix sort on 16-bit digits, skipping digits
-    every key shares (a map's cells share their high bits). 1M cell keys: ~25 ms; numpy's quicksort 160 ms."""
-    n = keys.shape[0]
-    idx = np.arange(n).astype(np.int64)
-    if n < 2:
-        return idx
-    k = keys.copy()
-    k2 = np.empty(n, np.int64)
-    idx2 = np.empty(n, np.int64)
-    radix = 1 << _DIGIT_BITS
-    digit_mask = radix - 1
-    counts = np.empty(radix, np.int64)
-    for shift in range(0, 64, _DIGIT_BITS):
-        counts[:] = 0
-        for i in range(n):
-            counts[(k[i] >> shift) & digit_mask] += 1
-        if counts[(k[0] >> shift) & digit_mask] == n:
-            continue
-        total = 0
-        for b in range(radix):
-            c = counts[b]
-            counts[b] = total
-            total += c
-        for i in range(n):
-            b = (k[i] >> shift) & digit_mask
-            p = counts[b]
-            counts[b] = p + 1
-            k2[p] = k[i]
-            idx2[p] = idx[i]
-        k, k2 = k2, k
-        idx, idx2 = idx2, idx
-    return idx
+def argsort_keys(keys: np.ndarray) -> np.ndarray:
+    """(N,) int64 stable argsort of non-negative int64 keys (a map's grid cells: 63 bits, the high ones mostly
+    shared): core.raster's radix sort on 16-bit digits. 1M cell keys: ~15 ms; numpy's quicksort 160 ms."""
+    return radix_argsort(np.array(keys, np.int64), np.arange(len(keys), dtype=np.int64), 16, 64)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -224,20 +224,35 @@ def visible_by_depth(depth, rect):
             idx[m] = i
             keys[m] = bits[i]
             m += 1
-    idx2 = np.empty(count, np.int32)
-    keys2 = np.empty(count, np.uint32)
-    hist = np.empty(2048, np.int64)
-    for shift in (0, 11, 22):
+    return radix_argsort(keys, idx, 11, 32)
+
+
+@njit(cache=True, nogil=True)
+def radix_argsort(keys, idx, digit_bits, key_bits):
+    """`idx` ordered by the non-negative integer `keys` (the same length), stable: LSD radix sort on
+    `digit_bits`-bit digits of the low `key_bits` bits, skipping a digit every key shares. Both arrays are
+    used as scratch; returns the sorted `idx`."""
+    n = keys.shape[0]
+    if n < 2:
+        return idx
+    keys2 = np.empty_like(keys)
+    idx2 = np.empty_like(idx)
+    radix = 1 << digit_bits
+    digit_mask = radix - 1
+    hist = np.empty(radix, np.int64)
+    for shift in range(0, key_bits, digit_bits):
         hist[:] = 0
-        for m in range(count):
-            hist[(keys[m] >> shift) & 2047] += 1
+        for m in range(n):
+            hist[(keys[m] >> shift) & digit_mask] += 1
+        if hist[(keys[0] >> shift) & digit_mask] == n:
+            continue
         total = 0
-        for b in range(2048):
+        for b in range(radix):
             c = hist[b]
             hist[b] = total
             total += c
-        for m in range(count):
-            b = (keys[m] >> shift) & 2047
+        for m in range(n):
+            b = (keys[m] >> shift) & digit_mask
             p = hist[b]
             hist[b] = p + 1
             keys2[p] = keys[m]
