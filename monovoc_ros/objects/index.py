@@ -72,7 +72,7 @@ class IndexConfig:
     # naming it). ConSE's cosines for one text spread over ~0.3, so 0.5 puts unanimously named objects first
     # and lets a contested name (a table called "chair" in some frames, "dining table" in others) fall behind
     # them; the embedding orders objects of equal confidence (attributes: "the gray sofa"). 0 = embedding only.
-    # office_0 with YOLOv5s-seg's labels (bench_camera_to_map): 0 -> top-1 0.67, 0.5 -> see docs/results.md.
+    # office_0 with YOLOv5s-seg's labels (bench_camera_to_map): top-1 0.67 at 0, 0.89 at 0.5 (docs/results.md).
     label_weight: float = 0.5
     labels: dict[int, str] | None = None  # object id -> class name (e.g. from labels.json)
     min_gaussians: int = 10  # objects with fewer Gaussians are not listed (specks, mislabeled floaters)
