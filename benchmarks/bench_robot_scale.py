@@ -134,7 +134,10 @@ def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float
         "map_directory": str(work / f"map_{kind}"),
         "map_update_max_shrink": 1.0,
     }
-    start_file, queries_file = work / f"queries_{kind}.start", work / f"queries_{kind}.json"
+    # Named after the bag (size and run): the sizes share the work folder.
+    start_file, queries_file = work / f"{bag.stem}_queries.start", work / f"{bag.stem}_queries.json"
+    for stale in (start_file, queries_file):
+        stale.unlink(missing_ok=True)
     duration = (stamps[-1] - stamps[0]) / 1e9
     with contextlib.ExitStack() as stack:
         mapper_args = ["-m", SEMANTIC_MAPPER, *ros_args(params)]
@@ -169,7 +172,9 @@ def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float
         queries: dict = {}
         if querying is not None:
             wait_until(lambda: not querying.running(), 120.0, "the query load to end", process=None)
-            queries = json.loads(queries_file.read_text()) if queries_file.exists() else {}
+            if querying.returncode != 0 or not queries_file.exists():
+                raise RuntimeError(f"the query load failed\n{querying.describe()}")
+            queries = json.loads(queries_file.read_text())
         time.sleep(1.0)  # the last cloud
         values = diagnostics.values()
         wall = finished - started[0]

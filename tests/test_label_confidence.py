@@ -29,7 +29,10 @@ from tests.object_room import backend, room, room_map
         ("the left chair", "chair"),
         ("dining table", "table"),
         ("indoor-plant", "plant"),
+        ("a chair?", "chair"),
+        ("the built-in shelf", "shelf"),
         ("", ""),
+        ("-", ""),
     ],
 )
 def test_head_noun_is_the_last_word_before_any_post_modifier(phrase, head):

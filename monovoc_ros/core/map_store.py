@@ -229,8 +229,8 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
     if not isinstance(meta.get("config"), dict):
         raise MapStoreError(f"{snap}: meta.json has no 'config' object")
     gaussians = _read(snap / "gaussians.npz", _load_map)
-    # Snapshots from before semantic_mode used SCD, and before weight_power the paper's k = 1.
-    saved = {"weight_power": 1, "semantic_mode": "scd", **meta["config"]}
+    # Snapshots from before semantic_mode used SCD, before weight_power the paper's k = 1, before max_depth_m no limit.
+    saved = {"weight_power": 1, "semantic_mode": "scd", "max_depth_m": 0.0, **meta["config"]}
     try:
         saved_config = MapperConfig(**saved)  # checked even when `config` overrides it
     except (TypeError, ValueError) as exc:

@@ -42,9 +42,9 @@ VOID_POLICIES = ("skip", "include")
 SEMANTIC_MODES = ("vote", "scd")
 # Per semantic mode, the MapperConfig fields that change what a keyframe adds to the evidence.
 _EVIDENCE_SETTINGS = {
-    "scd": ("semantic_mode", "weight_power", "void_policy", "max_depth_m"),
+    "scd": ("semantic_mode", "weight_power", "void_policy"),
     "vote": ("semantic_mode", "weight_power", "void_policy", "vote_slots", "metric", "min_snap_margin",
-             "object_colors", "mask_ids", "min_support", "max_depth_m"),
+             "object_colors", "mask_ids", "min_support"),
 }  # fmt: skip
 
 
@@ -102,7 +102,9 @@ class MapperConfig:
     # Metres of camera depth beyond which Gaussians take no evidence from a keyframe (0 = no limit), as a depth
     # integrator's maximum range (nvblox's projective integrator: 7 m). In a building most of a view's frustum
     # lies behind walls: office_0 tiled to 1M Gaussians, 51% of the Gaussians in view are beyond 10 m and get
-    # none of the weight, yet every one is projected, sorted, binned and reduced (core.raster).
+    # none of the weight, yet every one is projected, sorted, binned and reduced (core.raster). Not an evidence
+    # setting: maps built with another range (snapshots of before it: none) resume and merge, as the range
+    # only leaves far Gaussians without a keyframe's evidence.
     max_depth_m: float = 10.0
 
     def __post_init__(self) -> None:

@@ -96,8 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     with ClientNode(name="monovoc_query_load") as client:
         service = query_client(client.node, args.service)
-        if not service.wait_for_service(timeout_sec=120.0):
-            raise SystemExit(f"no {args.service} service within 120 s")
+        if not service.wait_for_service(timeout_sec=600.0):  # a cold node compiles its kernels first
+            raise SystemExit(f"no {args.service} service within 600 s")
         start = Path(args.start_file)
         while not start.exists():
             time.sleep(0.01)

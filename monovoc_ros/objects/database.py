@@ -183,6 +183,26 @@ class ObjectDatabase:
                 raise
             db.execute("COMMIT")
 
+    def _migrate(self, db: sqlite3.Connection, version: int) -> int:
+        """Brings an older schema up to date under the write lock (another process may have just done it) and
+        returns the version now; a file this process may not write stays as it is (it is read as it is)."""
+        try:
+            db.execute("BEGIN IMMEDIATE")
+        except sqlite3.OperationalError:  # read-only file or directory
+            return version
+        try:
+            row = db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+            version = json.loads(row[0]) if row else version
+            while version in _MIGRATIONS:
+                db.execute(_MIGRATIONS[version])
+                version += 1
+            db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (json.dumps(version),))
+            db.execute("COMMIT")
+        except sqlite3.OperationalError:  # read-only: the migration is left to a writer
+            db.execute("ROLLBACK")
+            return json.loads(db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0])
+        return version
+
     def _check_or_init(self, db: sqlite3.Connection, create: bool) -> None:
         tables = {row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
         if "meta" in tables:
@@ -192,12 +212,8 @@ class ObjectDatabase:
                 raise ObjectDatabaseError(f"{self.path}: an SQLite file, but not a MonoVoc object database")
             version = json.loads(meta.get("schema_version", "null"))
             if version in _MIGRATIONS:
-                db.execute("BEGIN IMMEDIATE")
-                db.execute(_MIGRATIONS[version])
-                db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (json.dumps(SCHEMA_VERSION),))
-                db.execute("COMMIT")
-                version = SCHEMA_VERSION
-            if version != SCHEMA_VERSION:
+                version = self._migrate(db, version)
+            if version != SCHEMA_VERSION and version not in _MIGRATIONS:
                 raise ObjectDatabaseError(
                     f"{self.path}: schema version {version}, this version reads {SCHEMA_VERSION}; rebuild the objects"
                 )
@@ -388,7 +404,7 @@ def _record(row: sqlite3.Row) -> ObjectRecord:
         embedding=_vector(row["embedding"]),
         image_embedding=_vector(row["image_embedding"]),
         updated_unix=float(row["updated_unix"]),
-        label_confidence=float(row["label_confidence"]),
+        label_confidence=float(row["label_confidence"]) if "label_confidence" in row.keys() else 1.0,  # schema 1
         num_views=int(row["num_views"]),
         upright_extent=np.array([row["upright_w"], row["upright_d"], row["upright_h"]], np.float64),
         height_above_floor=float(row["height_above_floor"]),

@@ -38,6 +38,7 @@ from monovoc_ros.embed.retrieval import chance_topk
 from monovoc_ros.objects.database import ObjectDatabase
 from monovoc_ros.objects.index import CROP_MODES, IndexConfig, ObjectIndex
 from monovoc_ros.objects.labels import noun
+from monovoc_ros.objects.spatial import answer
 
 KS = (1, 3)
 
@@ -113,11 +114,12 @@ def score_rankings(ranked_ids: Sequence[Sequence[int]], expected: Sequence[set[i
 
 
 def evaluate_index(index: ObjectIndex, queries: Sequence[RetrievalQuery], labels: Mapping[int, str]) -> dict:
-    """Scores one index on the queries, overall and per kind, ranked as its `query` ranks them."""
+    """Scores one index on the queries, overall and per kind, ranked as `/monovoc/query` and `monovoc query` rank
+    them (objects.spatial.answer: the index's ranking, spatial language read; no robot viewpoint)."""
     ids, _ = index.embedding_matrix()
     if not ids:
         raise ValueError("the index has no embedded objects to rank")
-    ranked = [[r.id for r, _ in index.query(q.text, len(ids))] for q in queries]
+    ranked = [[r.id for r, _ in answer(index, q.text, len(ids))] for q in queries]
     expected = [resolve_expected(q, labels) for q in queries]
     listed = set(ids)
     result = {"all": score_rankings(ranked, expected)}

@@ -33,10 +33,12 @@ def _singular(word: str) -> str:
 def head_noun(phrase: str) -> str:
     """The head noun of a noun phrase, singular: its last word before any post-modifier ("the dark blue chairs"
     -> "chair", "a box of tissues" -> "box", "the board on wheels" -> "board"; "" for none)."""
-    words = re.sub(r"[-_]+", " ", phrase.lower()).replace(",", " ").split()
+    words = re.sub(r"[?.!,;:]", " ", phrase.lower()).split()
     for n, word in enumerate(words):
         follows = words[n + 1] if n + 1 < len(words) else ""
         if n > 0 and (word in _POST_MODIFIERS or (word in _BEFORE_OF and follows in ("of", "to"))):
             words = words[:n]
             break
-    return _singular(words[-1]) if words else ""
+    # A hyphenated class name ("indoor-plant", "tv-screen") ends in its head; "built-in" stays one word above.
+    last = re.sub(r"[-_]+", " ", words[-1]).split() if words else []
+    return _singular(last[-1]) if last else ""

@@ -17,7 +17,7 @@ inputs, so they name an object alike. A guess is never shown as a name: ``displa
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 GIVEN = "given"
 SEGMENTS = "segments"
@@ -35,7 +35,8 @@ class ObjectLabel:
     source: str  # one of SOURCES
     # How sure the source is of the name: for ``segments`` the share of the object's class evidence that names
     # it (a segmenter that called it a chair in half its detections: 0.5); 1 for ``given``; unused for guesses.
-    confidence: float = 1.0
+    # Not part of equality: a label is the same name from the same source (outputs republish on a change).
+    confidence: float = field(default=1.0, compare=False)
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
