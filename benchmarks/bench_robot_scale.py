@@ -21,7 +21,7 @@ snapshots into a map directory) running as its own process. Runs per size:
 
 Both report the worker thread's share of the wall time by activity (diagnostics `worker_s_*`: keyframes, map
 updates, re-integration, labels, object geometry, publication, snapshots, calls), the map messages' decoding
-(beside the worker), map updates applied, and the node's peak RSS.
+and the map updates' plans (both beside the worker), map updates applied and prepared, and the node's peak RSS.
 """
 
 from __future__ import annotations
@@ -119,6 +119,7 @@ def worker_shares(values: dict[str, str], wall_s: float) -> dict:
     shares = {a: round(float(values[f"worker_s_{a}"]) / wall_s, 3) for a in ACTIVITIES}
     shares["total"] = round(sum(shares.values()), 3)
     shares["map_decoding_beside_the_worker"] = round(float(values["map_decode_s"]) / wall_s, 3)
+    shares["map_update_plans_beside_the_worker"] = round(float(values["map_prepare_s"]) / wall_s, 3)
     return shares
 
 
@@ -186,6 +187,7 @@ def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float
             "maps_sent": maps,
             "maps_received": int(values["maps_decoded"]),
             "map_updates_applied": int(values["map_updates"]),
+            "map_updates_prepared": int(values["map_updates_prepared"]),
             "reintegrations": int(values["reintegrations"]),
             "maps_coalesced": int(values["maps_coalesced"]),
             "gaussians_at_end": int(values["gaussians"]),

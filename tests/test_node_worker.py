@@ -9,11 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from monovoc_ros.core.follow.map_follow import FollowConfig
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import current_snapshot, load_deferred, load_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.session import MappingSession
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped
 from tests.evidence import assert_same_evidence
@@ -181,6 +183,61 @@ def test_map_update_by_ids_and_unchanged_maps_are_skipped():
     assert worker.stats.maps_unchanged == 1 and worker.stats.map_updates == 1
     np.testing.assert_array_equal(after, before[::-1])  # evidence followed the ids
     assert any(f"{len(old)} new by id, 0 by position; motion by ids" in msg for _, msg in log.lines)
+
+
+def _without_ids_moved(gmap: GaussianMap, shift: float, seed: int) -> GaussianMap:
+    """`gmap` re-ordered, jittered 1 mm and shifted along x, without ids (as most SLAM front-ends send it)."""
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(gmap))
+    means = gmap.means[order] + rng.normal(0, 0.001, (len(gmap), 3)) + [shift, 0, 0]
+    return GaussianMap(means, gmap.scales[order], gmap.quats[order], gmap.opacities[order])
+
+
+def test_map_updates_are_prepared_beside_the_worker_with_the_offline_result():
+    first = plane_map(400, ids=False)
+    second = _without_ids_moved(first, 0.01, seed=1)
+    third = _without_ids_moved(second, 0.01, seed=2)
+    shrunk = first.subset(np.arange(40))  # refused (map_shrink): the next plan's base is not the map in use
+    steps = [first, keyframe(1), second, keyframe(2), shrunk, keyframe(3), third, keyframe(4)]
+    worker, _, log = make_worker()
+    for step in steps:  # all queued before the worker starts: each map's plan is of the map queued before it
+        (worker.submit_map if isinstance(step, GaussianMap) else worker.submit_keyframe)(step)
+    worker.start()
+    try:
+        drain(worker)
+        live = worker.submit(lambda m: (m.state, m.gaussians)).result(5)
+    finally:
+        worker.stop()
+    offline = MappingSession(MapperConfig())
+    for step in steps:
+        if isinstance(step, GaussianMap):
+            offline.add_map(step)
+        else:
+            offline.add_keyframe(step)
+            offline.integrate_next()
+    assert live[1] is third and offline.mapper.gaussians is third
+    assert_same_evidence(live[0], offline.mapper.state)
+    assert worker.stats.map_updates == 2 and worker.stats.rejected["map_shrink"] == 1
+    # second was prepared against first; third against shrunk, which was refused: computed by the worker
+    assert worker.stats.map_updates_prepared == 1 and worker.stats.map_prepare_s > 0
+    assert worker.stats.map_update_carried_share > 0.9
+
+
+def test_a_plan_is_used_only_for_the_maps_it_was_made_of():
+    first = plane_map(400, ids=False)
+    second = _without_ids_moved(first, 0.01, seed=1)
+    session = MappingSession(MapperConfig())
+    assert session.plan_map(None, first) is None  # no map in use: nothing to prepare
+    session.add_map(first)
+    assert session.plan_map(None, first) is None  # the same map again
+    plan = session.plan_map(None, second)
+    assert plan is not None and plan.applies_to(first, second, MapperConfig().follow())
+    assert not plan.applies_to(second, second, MapperConfig().follow())
+    assert not plan.applies_to(first, second, FollowConfig(radius=0.05))
+    session.add_map(second, plan=session.plan_map(second, first))  # of other maps: computed again
+    assert session.stats.map_updates_prepared == 0
+    session.add_map(first, plan=session.plan_map(None, first))
+    assert session.stats.map_updates == 2 and session.stats.map_updates_prepared == 1
 
 
 def test_same_geometry():

@@ -31,7 +31,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
-from monovoc_ros.core.follow.map_updater import MapMotionError, MapUpdater, checked_poses
+from monovoc_ros.core.follow.map_updater import (
+    MapMotionError,
+    MapUpdatePlan,
+    MapUpdater,
+    checked_poses,
+    plan_map_update,
+)
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map.ply import load_ply
@@ -77,6 +83,7 @@ class SessionStats:
     has_map: bool = False
     map_version: int = 0
     map_updates: int = 0  # map updates applied (core.follow.map_updater)
+    map_updates_prepared: int = 0  # of them, applied with a plan prepared beforehand (`plan_map`)
     maps_unchanged: int = 0  # maps identical to the current one (skipped)
     map_update_carried_share: float = 1.0  # last map update: share of labelled Gaussians whose evidence was carried
     ms_map_update_last: float = 0.0  # the last map update's time (registration, transfer)
@@ -251,8 +258,20 @@ class MappingSession:
 
     # ------------------------------------------------------------------ maps
 
-    def add_map(self, gaussians: GaussianMap, name: str = "") -> bool:
-        """The first map or a map update; returns whether the map changed (False: refused or unchanged)."""
+    def plan_map(self, base: GaussianMap | None, gaussians: GaussianMap) -> MapUpdatePlan | None:
+        """The update of `base` (None: the map in use) to `gaussians` prepared for `add_map` (the registration
+        and the evidence's sources: core.follow.map_updater.MapUpdatePlan), None when there is nothing to
+        prepare (no map yet, or the same map again). Reads no state but the map in use, so a live node runs
+        it on a thread of its own while the mapper goes on with keyframes."""
+        mapper = self._mapper
+        base = base if base is not None else (mapper.gaussians if mapper is not None else None)
+        if base is None or len(gaussians) == 0 or same_geometry(base, gaussians):
+            return None
+        return plan_map_update(base, gaussians, self.config.follow())
+
+    def add_map(self, gaussians: GaussianMap, name: str = "", plan: MapUpdatePlan | None = None) -> bool:
+        """The first map or a map update; returns whether the map changed (False: refused or unchanged).
+        `plan`: the update prepared by `plan_map`, used when it is of the map in use and this one."""
         refusal = self._updates.refusal(self._mapper, gaussians)
         if refusal is not None:
             reason, detail = refusal
@@ -270,7 +289,7 @@ class MappingSession:
             return False
         else:
             try:
-                self._updates.update(self._mapper, gaussians, name)
+                self._updates.update(self._mapper, gaussians, name, plan)
             except MapMotionError as exc:
                 self.stats.reject("map_motion")
                 self.log.warning(f"Gaussian map {name} refused: {exc} (the map in use is kept)")

@@ -53,6 +53,7 @@ class MapperStats(SessionStats):
     worker_s_calls: float = 0.0  # services and other calls run on the worker (save, load, queries of it)
     map_decode_s: float = 0.0
     maps_decoded: int = 0
+    map_prepare_s: float = 0.0  # preparing map updates (MappingSession.plan_map) on a thread beside the worker
 
 
 def diagnostic_status(stats: dict[str, Any], *, name: str, hardware_id: str, extra: dict[str, Any] | None = None):

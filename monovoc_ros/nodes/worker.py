@@ -7,7 +7,11 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
   The session keeps keyframes that come before any Gaussian map (the newest `queue_size` of them) until
   one arrives; tasks behind them still run.
 * Gaussian maps from the SLAM front-end: never dropped; a map that directly follows another pending map
-  replaces it (only the newest of consecutive updates matters: no keyframe lies between them). The session
+  replaces it (only the newest of consecutive updates matters: no keyframe lies between them). Its update's
+  registration and evidence sources (~90% of an update without ids) are prepared at once on a planning
+  thread against the map queued before it (`MappingSession.plan_map`), while the worker integrates the
+  keyframes ahead of it; when its turn comes the worker applies the plan if that map is the one in use
+  (else the session computes the update itself: the same function, the same result). The session
   skips unchanged maps and refuses (and counts) a map without Gaussians or one removing more than
   `map_update_max_shrink` of them: one empty cloud must not wipe the map.
 * calls (services, plugins): never dropped; run in arrival order with the rest, results via a Future.
@@ -32,12 +36,13 @@ import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
+from monovoc_ros.core.follow.map_updater import MapUpdatePlan
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map_store import SnapshotInfo
@@ -53,6 +58,8 @@ from monovoc_ros.core.session import (
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
+# (base, gaussians) -> the Future of a map update's plan, or None (TaskQueue.put_map).
+MapPreparer = Callable[[GaussianMap | None, GaussianMap], Future | None]
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
 STOP_GRACE_S = 1.0
 
@@ -88,8 +95,10 @@ class WorkerSettings:
 class _Task:
     kind: str  # "keyframe" | "map" | "call"
     payload: Any
-    future: Future | None = None
+    future: Future | None = None  # a call's result
     name: str = ""
+    base: GaussianMap | None = None  # a map's: the map queued before it (None: none since the start)
+    plan: Future | None = None  # a map's: its update prepared beside the worker (MappingSession.plan_map)
 
 
 class TaskQueue:
@@ -103,6 +112,7 @@ class TaskQueue:
         self._keyframes = 0
         self._cond = threading.Condition()
         self._closed = False
+        self._newest_map: GaussianMap | None = None  # the map in use once every queued map is applied
 
     @property
     def keyframes(self) -> int:
@@ -128,14 +138,21 @@ class TaskQueue:
             self._cond.notify()
         return dropped
 
-    def put_map(self, gaussians: GaussianMap, name: str = "") -> bool:
-        """Queues a map; returns True when it replaced a pending map queued right before it."""
+    def put_map(self, gaussians: GaussianMap, name: str = "", prepare: MapPreparer | None = None) -> bool:
+        """Queues a map; returns True when it replaced a pending map queued right before it. `prepare(base,
+        gaussians)` starts preparing the update from `base`, the map that will be in use when this one's turn
+        comes if every map queued before it is taken (None: no map was queued since the start)."""
         with self._cond:
             coalesced = bool(self._tasks) and self._tasks[-1].kind == "map"
+            base = self._newest_map
             if coalesced:
-                self._tasks[-1] = _Task("map", gaussians, name=name)
-            else:
-                self._tasks.append(_Task("map", gaussians, name=name))
+                replaced = self._tasks.pop()
+                base = replaced.base
+                if replaced.plan is not None:
+                    replaced.plan.cancel()
+            plan = prepare(base, gaussians) if prepare is not None else None
+            self._tasks.append(_Task("map", gaussians, name=name, base=base, plan=plan))
+            self._newest_map = gaussians
             self._cond.notify()
         return coalesced
 
@@ -212,6 +229,8 @@ class MapWorker:
         )
         self._result_listeners: list[ResultListener] = []
         self._thread: threading.Thread | None = None
+        # Map updates are prepared here, beside the worker (numba kernels and numpy release the interpreter).
+        self._planner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-map-plan")
         self._output_dirty = True  # publish once at start (the map, or an empty one)
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
@@ -258,8 +277,32 @@ class MapWorker:
         return dropped
 
     def submit_map(self, gaussians: GaussianMap, name: str = "") -> None:
-        if self.queue.put_map(gaussians, name):
+        """Queues a map; its update (registration, the evidence's sources) is prepared at once on the planning
+        thread, so that the worker only applies it when its turn comes."""
+        if self.queue.put_map(gaussians, name, self._prepare_map):
             self.stats.add(maps_coalesced=1)
+
+    def _prepare_map(self, base: GaussianMap | None, gaussians: GaussianMap) -> Future:
+        def plan() -> MapUpdatePlan | None:
+            start = time.perf_counter()
+            out = self.session.plan_map(base, gaussians)
+            self.stats.add(map_prepare_s=time.perf_counter() - start)
+            return out
+
+        return self._planner.submit(plan)
+
+    def _plan_of(self, task: _Task) -> MapUpdatePlan | None:
+        """The plan prepared for a map task (waiting for it: the planning thread is ahead of the worker), or
+        None (not prepared, cancelled, or failed: the session computes the update itself)."""
+        if task.plan is None:
+            return None
+        try:
+            return task.plan.result()
+        except CancelledError:
+            return None
+        except Exception as exc:  # the session's own computation raises it again where it is handled
+            self.log.warning(f"map {task.name}: preparing its update failed ({type(exc).__name__}: {exc})")
+            return None
 
     def submit_keyframe_poses(self, poses: KeyframePoses, name: str = "") -> Future:
         """Corrected keyframe poses, applied in order with keyframes and maps (core.session)."""
@@ -297,6 +340,7 @@ class MapWorker:
                 )
                 return None
         drained, deferred = self._drain(deadline)
+        self._planner.shutdown(wait=False, cancel_futures=True)
         if drained or deferred:
             self.log.info(f"shutdown: integrated {drained} queued keyframes, deferred {len(deferred)}")
         if not (final_snapshot and self.settings.map_directory and self.session.mapper is not None):
@@ -415,7 +459,7 @@ class MapWorker:
         if task.kind == "keyframe":
             self.session.add_keyframe(task.payload)
         elif task.kind == "map":
-            if self.session.add_map(task.payload, task.name):
+            if self.session.add_map(task.payload, task.name, self._plan_of(task)):
                 self._changed()
         else:
             assert task.future is not None
