@@ -285,6 +285,24 @@ def test_publish_rate_limits_and_final_state_is_published():
     assert len(sink.published) <= 4  # start + at most ~1 per 0.3 s over ~0.2 s of keyframes + the last
 
 
+def test_publishing_when_idle_still_publishes_a_worker_that_never_is():
+    worker, sink, _ = make_worker(publish_period_s=0.0, queue_size=16)
+    worker.submit_map(plane_map())
+    for stamp in range(1, 11):  # queued before the start: the queue is never empty until the last one
+        worker.submit_keyframe(keyframe(stamp))
+        worker.call(lambda: time.sleep(0.25))
+    start = time.monotonic()
+    worker.start()
+    try:
+        drain(worker)
+    finally:
+        worker.stop()
+    assert time.monotonic() - start >= 10 * 0.25 and sink.published[-1][0] == 10
+    during = [n for n, _ in sink.published if n is not None and 0 < n < 10]  # before the queue ran empty
+    assert during, sink.published  # every BUSY_PUBLISH_PERIOD_S (1 s) of the 2.5 s
+    assert len(during) <= 4
+
+
 def test_periodic_and_final_snapshots(tmp_path):
     worker, _, _ = make_worker(map_directory=str(tmp_path), save_period_s=0.2)
     worker.submit_map(plane_map())

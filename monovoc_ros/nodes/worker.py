@@ -19,7 +19,8 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
   swaps anything in, so a failed load changes nothing.
 
 Between tasks the worker publishes the semantic result (at most every `publish_period_s` while something
-changed; period 0 = as soon as nothing runnable is queued) and saves periodic snapshots of new evidence.
+changed; period 0 = as soon as nothing runnable is queued, and every BUSY_PUBLISH_PERIOD_S while something
+is) and saves periodic snapshots of new evidence.
 The rasterizer's numba kernels release the GIL, so ROS callbacks keep running while a keyframe is
 integrated. Nothing here imports ROS: the node wires it to topics (monovoc_ros.nodes.mapping_node).
 
@@ -60,6 +61,10 @@ from monovoc_ros.nodes.diagnostics import MapperStats
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
 # (base, gaussians) -> the Future of a map update's plan, or None (TaskQueue.put_map).
 MapPreparer = Callable[[GaussianMap | None, GaussianMap], Future | None]
+# With publish_period_s 0 (publish as soon as nothing runnable is queued), a worker that never runs out of work
+# still publishes this often (s): a robot outrunning the mapper sees its map grow, late, rather than never
+# (the robot-scale bench's 2M run published no cloud at all).
+BUSY_PUBLISH_PERIOD_S = 1.0
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
 STOP_GRACE_S = 1.0
 
@@ -491,7 +496,8 @@ class MapWorker:
             return
         period = self.settings.publish_period_s
         if period == 0:
-            if self.session.keyframes_ready or len(self.queue):
+            busy = self.session.keyframes_ready or len(self.queue)
+            if busy and time.monotonic() < self._last_publish + BUSY_PUBLISH_PERIOD_S:
                 return
         elif time.monotonic() < self._last_publish + period:
             return
