@@ -322,6 +322,46 @@ def test_periodic_and_final_snapshots(tmp_path):
     assert worker.stats.snapshots_saved >= 2
 
 
+def test_periodic_snapshots_are_written_beside_the_worker_as_captured(tmp_path):
+    worker, _, log = make_worker(map_directory=str(tmp_path), save_period_s=0.01, queue_size=64)
+    worker.submit_map(plane_map())
+    frames = [keyframe(stamp, shift=stamp % 7 - 3) for stamp in range(1, 41)]
+    worker.start()
+    try:
+        for kf in frames:  # keyframes go on while snapshots are written
+            worker.submit_keyframe(kf)
+            time.sleep(0.005)
+        drain(worker)
+    finally:
+        worker.stop(final_snapshot=False)
+    saved = load_snapshot(tmp_path)
+    assert worker.stats.snapshots_saved >= 2 and worker.stats.snapshot_errors == 0
+    assert any("written in" in msg for _, msg in log.lines)
+    offline = SemanticMapper(plane_map())  # the state of exactly the keyframes it holds
+    for kf in frames[: saved.n_keyframes]:
+        offline.integrate(kf)
+    assert_same_evidence(saved.state, offline.state)
+
+
+def test_a_failing_periodic_snapshot_is_counted_and_the_worker_goes_on(tmp_path):
+    target = tmp_path / "not_a_directory"
+    target.write_text("")
+    worker, _, log = make_worker(map_directory=str(target), save_period_s=0.01)
+    worker.submit_map(plane_map())
+    worker.start()
+    try:
+        for stamp in range(1, 4):
+            worker.submit_keyframe(keyframe(stamp))
+            drain(worker)
+            time.sleep(0.05)
+        assert worker.submit(lambda m: m.n_keyframes).result(5) == 3
+    finally:
+        worker.stop(final_snapshot=False)
+    assert worker.stats.snapshot_errors >= 1 and worker.stats.snapshots_saved == 0
+    assert worker.stats.worker_errors == 0
+    assert any(kind == "error" and "periodic snapshot" in msg for kind, msg in log.lines)
+
+
 def test_calls_run_in_order_and_fail_after_stop(tmp_path):
     worker, _, _ = make_worker()
     worker.submit_map(plane_map())

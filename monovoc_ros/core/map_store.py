@@ -22,7 +22,7 @@ import os
 import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,13 +30,13 @@ import numpy as np
 from monovoc_ros.core.deferred_keyframes import FILE_NAME as DEFERRED_FILE
 from monovoc_ros.core.deferred_keyframes import load_keyframes, save_keyframes
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, PaletteBuilder
-from monovoc_ros.core.evidence.state import SemanticState
+from monovoc_ros.core.evidence.state import GaussianEvidence, SemanticState
 from monovoc_ros.core.evidence.votes import VoteState
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map.ply import PlyError, read_ply_vertices, write_ply_vertices
-from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, evidence_mismatch
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult, evidence_mismatch
 from monovoc_ros.core.segments.association import Associator
 from monovoc_ros.core.segments.segment_labels import LabelHistogram
 
@@ -100,6 +100,42 @@ def current_snapshot(map_dir: str | os.PathLike) -> Path | None:
     return snap
 
 
+@dataclass(frozen=True, eq=False)
+class SnapshotContent:
+    """What a snapshot holds, captured from a mapper at one moment (`capture_snapshot`): nothing in it changes
+    afterwards, so a live node writes it on another thread while the mapper takes more keyframes."""
+
+    gaussians: GaussianMap  # immutable
+    map_version: int
+    keyframes: int
+    config: MapperConfig
+    state: GaussianEvidence  # a copy
+    palette: dict[str, np.ndarray]  # PaletteBuilder.to_arrays (new arrays)
+    association: str | None  # Associator.to_json, per-frame mask ids only
+    segment_labels: str | None  # LabelHistogram.to_json, when there are segment labels
+    keyframe_log: KeyframeLog  # a copy
+    result: SemanticResult  # immutable: the labels of semantic.ply
+    deferred: tuple[Keyframe, ...]
+
+
+def capture_snapshot(mapper: SemanticMapper, deferred: Sequence[Keyframe] = ()) -> SnapshotContent:
+    """The mapper's full state as `write_snapshot` writes it; `deferred`: keyframes received but not integrated
+    (a stopping node's queue), integrated first on resume (`load_deferred`)."""
+    return SnapshotContent(
+        gaussians=mapper.gaussians,
+        map_version=mapper.map_version,
+        keyframes=mapper.n_keyframes,
+        config=mapper.config,
+        state=mapper.state.copy(),
+        palette=mapper.palette_builder.to_arrays(),
+        association=mapper.associator.to_json() if mapper.associator is not None else None,
+        segment_labels=mapper.segment_labels.to_json() if mapper.segment_labels.scores else None,
+        keyframe_log=mapper.keyframe_log.copy(),
+        result=mapper.result(),
+        deferred=tuple(deferred),
+    )
+
+
 def save_snapshot(
     mapper: SemanticMapper,
     map_dir: str | os.PathLike,
@@ -107,8 +143,16 @@ def save_snapshot(
     export_cloud: bool = True,
     deferred: Sequence[Keyframe] = (),
 ) -> SnapshotInfo:
-    """Writes the mapper's full state as a new snapshot and publishes it atomically; `deferred`: keyframes
-    received but not integrated (a stopping node's queue), integrated first on resume (`load_deferred`)."""
+    """Writes the mapper's full state as a new snapshot and publishes it atomically (`capture_snapshot`, then
+    `write_snapshot`)."""
+    start = time.perf_counter()
+    info = write_snapshot(capture_snapshot(mapper, deferred), map_dir, export_cloud=export_cloud)
+    return replace(info, seconds=time.perf_counter() - start)
+
+
+def write_snapshot(content: SnapshotContent, map_dir: str | os.PathLike, *, export_cloud: bool = True) -> SnapshotInfo:
+    """Writes a captured state as a new snapshot of `map_dir` and publishes it atomically (one writer per
+    directory at a time: the caller's to ensure)."""
     start = time.perf_counter()
     map_dir = Path(map_dir)
     map_dir.mkdir(parents=True, exist_ok=True)
@@ -124,31 +168,31 @@ def save_snapshot(
     prev_meta = json.loads((previous / "meta.json").read_text()) if previous else None
     if (
         prev_meta
-        and prev_meta.get("map_version") == mapper.map_version
-        and prev_meta.get("gaussians") == len(mapper.gaussians)
+        and prev_meta.get("map_version") == content.map_version
+        and prev_meta.get("gaussians") == len(content.gaussians)
     ):
         os.link(previous / "gaussians.npz", partial / "gaussians.npz")
     else:
-        _save_map(partial / "gaussians.npz", mapper.gaussians)
-    mapper.state.save(partial / "state.npz")
+        _save_map(partial / "gaussians.npz", content.gaussians)
+    content.state.save(partial / "state.npz")
     palette_path = partial / "palette.npz"
     with open(palette_path, "wb") as fh:
-        np.savez(fh, **mapper.palette_builder.to_arrays())
-    if mapper.associator is not None:  # per-frame mask ids: issued object ids and pair statistics
-        (partial / "association.json").write_text(mapper.associator.to_json())
-    if mapper.segment_labels.scores:
-        (partial / "segment_labels.json").write_text(mapper.segment_labels.to_json())
-    mapper.keyframe_log.save(partial / "keyframe_log.npz")
-    if deferred:
-        save_keyframes(partial / DEFERRED_FILE, deferred)
+        np.savez(fh, **content.palette)
+    if content.association is not None:  # per-frame mask ids: issued object ids and pair statistics
+        (partial / "association.json").write_text(content.association)
+    if content.segment_labels is not None:
+        (partial / "segment_labels.json").write_text(content.segment_labels)
+    content.keyframe_log.save(partial / "keyframe_log.npz")
+    if content.deferred:
+        save_keyframes(partial / DEFERRED_FILE, content.deferred)
     meta = {
         "format_version": FORMAT_VERSION,
         "created_unix": time.time(),
-        "keyframes": mapper.n_keyframes,
-        "gaussians": len(mapper.gaussians),
-        "map_version": mapper.map_version,
-        "deferred_keyframes": len(deferred),
-        "config": asdict(mapper.config),
+        "keyframes": content.keyframes,
+        "gaussians": len(content.gaussians),
+        "map_version": content.map_version,
+        "deferred_keyframes": len(content.deferred),
+        "config": asdict(content.config),
     }
     (partial / "meta.json").write_text(json.dumps(meta, indent=1))
     for f in partial.iterdir():
@@ -166,8 +210,10 @@ def save_snapshot(
     for old in _snapshots(map_dir)[:-_KEEP]:
         shutil.rmtree(old, ignore_errors=True)
     if export_cloud:
-        export_semantic_ply(mapper, map_dir / "semantic.ply")
-    return SnapshotInfo(final, mapper.n_keyframes, len(mapper.gaussians), time.perf_counter() - start)
+        result = content.result
+        points = content.gaussians.means
+        save_semantic_ply(map_dir / "semantic.ply", points, result.object_rgb(), result.object_ids, result.confidence)
+    return SnapshotInfo(final, content.keyframes, len(content.gaussians), time.perf_counter() - start)
 
 
 def load_deferred(map_dir: str | os.PathLike) -> list[Keyframe]:
@@ -273,12 +319,6 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
         association.config.render_scale = mapper.config.association_scale  # a rendering setting only
     mapper.map_version = int(meta.get("map_version", 0))
     return mapper
-
-
-def export_semantic_ply(mapper: SemanticMapper, path: str | os.PathLike) -> None:
-    """The quantized map as a colored point cloud (Gaussian centres) for any PLY viewer."""
-    result = mapper.result()
-    save_semantic_ply(path, mapper.gaussians.means, result.object_rgb(), result.object_ids, result.confidence)
 
 
 SEMANTIC_UNOBSERVED = -1  # object_id of a Gaussian with no evidence in semantic.ply (palette.UNOBSERVED_ID)

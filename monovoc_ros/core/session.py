@@ -41,7 +41,13 @@ from monovoc_ros.core.follow.map_updater import (
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map.ply import load_ply
-from monovoc_ros.core.map_store import SnapshotInfo, load_snapshot, save_snapshot
+from monovoc_ros.core.map_store import (
+    SnapshotContent,
+    SnapshotInfo,
+    capture_snapshot,
+    load_snapshot,
+    save_snapshot,
+)
 from monovoc_ros.core.mapping import DuplicateKeyframeError, IntegrationReport, MapperConfig, SemanticMapper
 
 # A map update removing a larger share of the Gaussians is refused; 1.0 allows every update.
@@ -353,10 +359,21 @@ class MappingSession:
         if self._mapper is None:
             raise ValueError("no map to save yet")
         info = save_snapshot(self._mapper, directory, deferred=deferred)
+        self.saved(directory, info)
+        return info
+
+    def capture(self, deferred: Sequence[Keyframe] = ()) -> SnapshotContent:
+        """The map's state as a snapshot holds it, now (map_store.capture_snapshot), for a snapshot written
+        elsewhere (a live node's writer thread: map_store.write_snapshot, then `saved`)."""
+        if self._mapper is None:
+            raise ValueError("no map to save yet")
+        return capture_snapshot(self._mapper, deferred)
+
+    def saved(self, directory: str, info: SnapshotInfo) -> None:
+        """A snapshot was written into `directory`: counted, and the save listeners told."""
         self.stats.add(snapshots_saved=1)
         for fn in self._save_listeners:
             fn(directory, info, self._mapper)
-        return info
 
     def load(self, path: str) -> SemanticMapper:
         """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state).

@@ -46,7 +46,7 @@ from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.follow.map_updater import MapUpdatePlan
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
-from monovoc_ros.core.map_store import SnapshotInfo
+from monovoc_ros.core.map_store import SnapshotInfo, write_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
 from monovoc_ros.core.session import (
     DEFAULT_MAX_SHRINK,
@@ -65,6 +65,8 @@ MapPreparer = Callable[[GaussianMap | None, GaussianMap], Future | None]
 # still publishes this often (s): a robot outrunning the mapper sees its map grow, late, rather than never
 # (the robot-scale bench's 2M run published no cloud at all).
 BUSY_PUBLISH_PERIOD_S = 1.0
+# How often an idle worker looks whether the snapshot being written is done (s).
+_SNAPSHOT_POLL_S = 0.1
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
 STOP_GRACE_S = 1.0
 
@@ -236,6 +238,9 @@ class MapWorker:
         self._thread: threading.Thread | None = None
         # Map updates are prepared here, beside the worker (numba kernels and numpy release the interpreter).
         self._planner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-map-plan")
+        # Periodic snapshots are written here, one at a time (`_maybe_save`).
+        self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-snapshot")
+        self._writing: Future | None = None
         self._output_dirty = True  # publish once at start (the map, or an empty one)
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
@@ -346,6 +351,8 @@ class MapWorker:
                 return None
         drained, deferred = self._drain(deadline)
         self._planner.shutdown(wait=False, cancel_futures=True)
+        self._collect_snapshot(wait=True)
+        self._writer.shutdown(wait=False)
         if drained or deferred:
             self.log.info(f"shutdown: integrated {drained} queued keyframes, deferred {len(deferred)}")
         if not (final_snapshot and self.settings.map_directory and self.session.mapper is not None):
@@ -403,6 +410,7 @@ class MapWorker:
     # ------------------------------------------------------------------ operations (worker thread)
 
     def save(self, directory: str, deferred: Sequence[Keyframe] = ()) -> SnapshotInfo:
+        self._collect_snapshot(wait=True)  # one writer at a time: snapshot numbers and CURRENT stay in order
         info = self.session.save(directory, deferred)
         if Path(directory).resolve() == _resolved(self.settings.map_directory):
             self._unsaved = False
@@ -411,6 +419,7 @@ class MapWorker:
 
     def load(self, path: str) -> SemanticMapper:
         """MappingSession.load; a failed load changes nothing."""
+        self._collect_snapshot(wait=True)  # the directory may be the one being written
         mapper = self.session.load(path)
         self._changed(unsaved=Path(path).resolve() != _resolved(self.settings.map_directory))
         return mapper
@@ -489,6 +498,8 @@ class MapWorker:
             waits.append(0.0 if period == 0 else self._last_publish + period - now)
         if self._save_enabled() and self._unsaved:
             waits.append(self._last_save + self.settings.save_period_s - now)
+        if self._writing is not None:
+            waits.append(_SNAPSHOT_POLL_S)  # to finish it soon after it is written
         return max(min(waits), 0.0) if waits else None
 
     def _maybe_publish(self) -> None:
@@ -536,19 +547,49 @@ class MapWorker:
         return bool(self.settings.map_directory) and self.settings.save_period_s > 0
 
     def _maybe_save(self) -> None:
+        """A periodic snapshot: captured here, written on the snapshot thread (its files, fsyncs and semantic.ply
+        take most of it: ~0.5 s at 1M Gaussians), finished here when written (`_collect_snapshot`)."""
+        self._collect_snapshot()
+        if self._writing is not None:
+            return
         if not (self._save_enabled() and self._unsaved and self.session.mapper is not None):
             return
         if time.monotonic() < self._last_save + self.settings.save_period_s:
             return
+        directory = self.settings.map_directory
+        start = time.perf_counter()
         try:
-            start = time.perf_counter()
-            info = self.save(self.settings.map_directory)
-            self.stats.add(worker_s_snapshots=time.perf_counter() - start)
-            self.log.info(f"snapshot {info.path.name}: {info.keyframes} keyframes in {info.seconds:.2f} s")
+            content = self.session.capture()
         except Exception as exc:
-            self._last_save = time.monotonic()  # retry one period later, not on every task
-            self.stats.add(snapshot_errors=1)
-            self.log.error(f"periodic snapshot to {self.settings.map_directory} failed: {exc}")
+            self._snapshot_failed(directory, exc)
+            return
+        self._writing = self._writer.submit(write_snapshot, content, directory)
+        self._unsaved, self._last_save = False, time.monotonic()
+        self.stats.add(worker_s_snapshots=time.perf_counter() - start)
+
+    def _collect_snapshot(self, wait: bool = False) -> None:
+        """Finishes the periodic snapshot being written once it is (wait: waits for it): counted and the save
+        listeners told, on this thread; a failed one is logged and its evidence saved again a period later."""
+        future = self._writing
+        if future is None or not (wait or future.done()):
+            return
+        self._writing = None
+        directory = self.settings.map_directory
+        start = time.perf_counter()
+        try:
+            info = future.result()
+        except Exception as exc:
+            self._unsaved = True  # what it captured is in no snapshot
+            self._snapshot_failed(directory, exc)
+            return
+        self.session.saved(directory, info)
+        self.stats.add(worker_s_snapshots=time.perf_counter() - start)
+        self.log.info(f"snapshot {info.path.name}: {info.keyframes} keyframes, written in {info.seconds:.2f} s")
+
+    def _snapshot_failed(self, directory: str, exc: Exception) -> None:
+        self._last_save = time.monotonic()  # retry one period later, not on every task
+        self.stats.add(snapshot_errors=1)
+        self.log.error(f"periodic snapshot to {directory} failed: {exc}")
 
     def _listener_failed(self, fn: Callable[..., Any], exc: Exception) -> None:
         self.stats.add(worker_errors=1)

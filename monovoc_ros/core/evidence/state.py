@@ -98,6 +98,16 @@ class GaussianEvidence:
                 raise ValueError("cannot merge: the states have different Gaussian ids (reindex one first)")
         return take
 
+    def copy(self) -> GaussianEvidence:
+        """A store holding this one's evidence as it is now, sharing no array with it (a snapshot written on
+        another thread while this one takes more keyframes: core.map_store.capture_snapshot)."""
+        out = copy.copy(self)
+        for name in self.ARRAYS:
+            setattr(out, name, getattr(self, name).copy())
+        out.stamps_ns = self.stamps_ns.copy()
+        out.ids = None if self.ids is None else self.ids.copy()
+        return out
+
     @property
     def total_weight(self) -> np.ndarray:
         """(N,) float64 sum of every evidence weight a Gaussian received."""

@@ -98,6 +98,13 @@ class KeyframeLog:
     def __len__(self) -> int:
         return len(self.entries)
 
+    def copy(self) -> KeyframeLog:
+        """The log as it is now (its entries are immutable: a new list of the same entries)."""
+        out = KeyframeLog(self.max_bytes)
+        out.entries = list(self.entries)
+        out.nbytes, out.dropped, out.poses_given = self.nbytes, self.dropped, self.poses_given
+        return out
+
     @property
     def complete(self) -> bool:
         return self.dropped == 0
