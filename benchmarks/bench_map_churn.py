@@ -6,7 +6,8 @@ the corrected keyframe poses as a `KeyframePoses` event), then the second half w
 Scores (splats protocol, every 3rd keyframe, poses as corrected): the first half right before the update,
 right after it (the transfer alone), after the re-integration that follows (when the corrected poses, a
 poor transfer or a bent map start one), and the final map, against the same events without churn. Then the
-cost of a map update against one keyframe's integration at 200k / 1M / 2M Gaussians (office_0 tiled).
+cost of a map update against one keyframe's integration at 200k / 1M / 2M Gaussians (office_0 tiled), with
+the live worker's share of updates and snapshots and the object geometry after one keyframe.
 
     python benchmarks/bench_map_churn.py                       # everything (README tables)
     python benchmarks/bench_map_churn.py --sources synthetic --churns loop --no-scale
@@ -17,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -124,7 +126,10 @@ def tiled(gmap, n: int):
 
 def update_cost(gmap, keyframes, n: int, repeats: int = 3) -> dict:
     """Seconds of a map update (session.add_map: checks, registration, transfer) and of the object geometry,
-    as ratios to one keyframe's integration, at n Gaussians."""
+    as ratios to one keyframe's integration, at n Gaussians; a live worker's share of them (the update prepared
+    beside it by session.plan_map, then applied; a snapshot captured, then written beside it) and the object
+    geometry of a publication after one keyframe."""
+    from monovoc_ros.core.map_store import capture_snapshot, write_snapshot
     from monovoc_ros.core.session import MappingSession
 
     big, _ = tiled(gmap, n)
@@ -138,20 +143,46 @@ def update_cost(gmap, keyframes, n: int, repeats: int = 3) -> dict:
             session.add_keyframe(kf)
             kf_s.append(session.integrate_next().seconds)
         keyframe_s = float(np.median(kf_s[3:]))
-        update_s = []
+        update_s, plan_s, apply_s = [], [], []
         for r in range(repeats):
             new = churn.densify(session.mapper.gaussians, split=0.02, prune=0.01, seed=r, keep_ids=ids).gaussians
             start = time.perf_counter()
             assert session.add_map(new)
             update_s.append(time.perf_counter() - start)
+            new = churn.densify(new, split=0.02, prune=0.01, seed=10 + r, keep_ids=ids).gaussians
+            start = time.perf_counter()
+            plan = session.plan_map(None, new)
+            planned = time.perf_counter()
+            assert session.add_map(new, plan=plan)
+            plan_s.append(planned - start)
+            apply_s.append(time.perf_counter() - planned)
         key = "with_ids" if ids else "without_ids"
         row[f"keyframe_ms_{key}"] = round(1e3 * keyframe_s, 1)
         row[f"update_ms_{key}"] = round(1e3 * float(np.median(update_s)), 1)
         row[f"ratio_{key}"] = round(float(np.median(update_s)) / keyframe_s, 1)
+        row[f"prepared_ms_{key}"] = round(1e3 * float(np.median(plan_s)), 1)
+        row[f"worker_update_ms_{key}"] = round(1e3 * float(np.median(apply_s)), 1)
+        row[f"worker_ratio_{key}"] = round(float(np.median(apply_s)) / keyframe_s, 1)
         result = session.mapper.result()
         start = time.perf_counter()
         result.objects(session.mapper.gaussians)
         row[f"object_geometry_ms_{key}"] = round(1e3 * (time.perf_counter() - start), 1)
+        session.add_keyframe(keyframes[8])
+        session.integrate_next()
+        start = time.perf_counter()
+        session.mapper.result().objects(session.mapper.gaussians)
+        row[f"object_geometry_after_keyframe_ms_{key}"] = round(1e3 * (time.perf_counter() - start), 1)
+    capture_s, write_s = [], []
+    with tempfile.TemporaryDirectory() as directory:
+        for _ in range(repeats):
+            start = time.perf_counter()
+            content = capture_snapshot(session.mapper)
+            captured = time.perf_counter()
+            write_snapshot(content, directory)
+            capture_s.append(captured - start)
+            write_s.append(time.perf_counter() - captured)
+    row["snapshot_worker_ms"] = round(1e3 * float(np.median(capture_s)), 1)
+    row["snapshot_written_beside_ms"] = round(1e3 * float(np.median(write_s)), 1)
     return row
 
 

@@ -85,7 +85,8 @@ def test_map_update_carries_evidence_by_id(tmp_path):
             publisher.publish_messages(msgs)
         diagnostics.wait_for(lambda v: v["keyframes_processed"] == "8", 20.0, process=node)
         publisher.gaussians.publish(update_msg)
-        diagnostics.wait_for(lambda v: v["map_updates"] == "1", 20.0, process=node)
+        updated_values = diagnostics.wait_for(lambda v: v["map_updates"] == "1", 20.0, process=node)
+        assert updated_values["map_updates_prepared"] == "1"  # its plan was made beside the worker
         assert call_service(save, SaveMap.Request(directory=str(tmp_path / "mid")), process=node).success
         for msgs in messages[8:]:
             publisher.publish_messages(msgs)

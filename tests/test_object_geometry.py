@@ -180,3 +180,24 @@ def test_a_result_starts_from_the_geometry_of_the_one_it_follows():
             _assert_same(result.objects(gaussians), object_geometry_reference(gaussians, labels, conf))
             assert result._before is None  # the previous result is let go
         previous = result
+
+
+def test_the_box_kernel_takes_numpys_percentiles_bit_for_bit():
+    from monovoc_ros.core.object_geometry_kernels import percentile_boxes as kernel
+
+    rng = np.random.default_rng(7)
+    sizes = [1, 2, 3, 7, 99, 100, 101, 257, 1000]
+    means = rng.normal(0, 3, (sum(sizes), 3)).astype(np.float32)
+    means[:50] = np.round(means[:50])  # ties
+    opacities = rng.uniform(0, 1, len(means)).astype(np.float32)
+    opacities[:3] = 0  # the first objects' weights sum to zero: plain means
+    bounds = np.concatenate([[0], np.cumsum(sizes)])
+    low, high, centroid = (np.empty((len(sizes), 3)) for _ in range(3))
+    kernel(means, opacities, np.arange(len(means)), bounds, 0.01, 0.99, low, high, centroid)
+    for k in range(len(sizes)):
+        pts = means[bounds[k] : bounds[k + 1]].astype(np.float64)
+        lo, hi = np.percentile(pts, [1.0, 99.0], axis=0)
+        np.testing.assert_array_equal(low[k], lo)
+        np.testing.assert_array_equal(high[k], hi)
+    np.testing.assert_array_equal(centroid[0], means[0])  # zero weight: the plain mean, in row order
+    np.testing.assert_array_equal(centroid[1], (means[1].astype(np.float64) + means[2]) / 2)

@@ -50,6 +50,7 @@ from scipy.sparse.csgraph import connected_components
 
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, unpack_rgb
 from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.object_geometry_kernels import percentile_boxes as percentile_boxes_kernel
 
 MIN_CONFIDENCE = 0.3
 CLUSTER_VOXEL = 0.25  # metres; 0 keeps every Gaussian of the object (no cluster filter)
@@ -248,27 +249,21 @@ def _slots(ids: np.ndarray, candidates: np.ndarray | None = None) -> tuple[np.nd
 
 def _boxes(gaussians: GaussianMap, distinct: np.ndarray, rows: np.ndarray, slot: np.ndarray) -> list[ObjectSummary]:
     """Percentile box and centroid of each object of ``distinct`` (K,) with rows among ``rows`` (M,) ascending,
-    where ``slot`` (M,) is each row's index in ``distinct``."""
+    where ``slot`` (M,) is each row's index in ``distinct`` (core.object_geometry_kernels, one parallel call)."""
     order = np.argsort(slot, kind="stable")  # rows stay ascending within an object: the same sums
-    rows = rows[order]
-    bounds = np.concatenate([[0], np.cumsum(np.bincount(slot, minlength=distinct.size))]).tolist()
+    counts = np.bincount(slot, minlength=distinct.size)
+    present = np.flatnonzero(counts)
+    bounds = np.concatenate([[0], np.cumsum(counts[present])])
+    low, high, centroid = (np.empty((present.size, 3)) for _ in range(3))
+    percentile_boxes_kernel(
+        gaussians.means, gaussians.opacities, rows[order], bounds, _LOW / 100, _HIGH / 100, low, high, centroid
+    )
+    ids = distinct[present]
+    rgb = unpack_rgb(ids).tolist()
     return [
-        _summary(gaussians, oid, rows[bounds[k] : bounds[k + 1]])
-        for k, oid in enumerate(distinct.tolist())
-        if bounds[k + 1] > bounds[k]
+        ObjectSummary(oid, tuple(rgb[j]), n, centroid[j], low[j], high[j])
+        for j, (oid, n) in enumerate(zip(ids.tolist(), counts[present].tolist(), strict=True))
     ]
-
-
-def _summary(gaussians: GaussianMap, oid: int, members: np.ndarray) -> ObjectSummary:
-    pts = gaussians.means[members].astype(np.float64)
-    lo, hi = np.percentile(pts, [_LOW, _HIGH], axis=0)
-    within = (pts >= lo) & (pts <= hi)
-    inside = within[:, 0] & within[:, 1] & within[:, 2]  # np.all(axis=1) costs 3x as much
-    w = gaussians.opacities[members][inside].astype(np.float64)
-    total = w.sum()
-    centroid = (pts[inside] * w[:, None]).sum(0) / total if total > 0 else pts.mean(0)
-    rgb = tuple(int(c) for c in unpack_rgb(np.uint32(oid)))
-    return ObjectSummary(oid, rgb, int(members.size), centroid, lo, hi)
 
 
 def _cells(means: np.ndarray, voxel: float) -> np.ndarray:
@@ -407,10 +402,17 @@ def percentile_boxes_reference(gaussians: GaussianMap, object_ids: np.ndarray) -
         lo, hi = np.percentile(pts, [_LOW, _HIGH], axis=0)
         inside = np.all((pts >= lo) & (pts <= hi), axis=1)
         w = gaussians.opacities[members][inside].astype(np.float64)
-        centroid = (pts[inside] * w[:, None]).sum(0) / w.sum() if w.sum() > 0 else pts.mean(0)
+        total = _in_row_order(w) if w.size else 0.0
+        centroid = _in_row_order(pts[inside] * w[:, None]) / total if total > 0 else _in_row_order(pts) / len(pts)
         rgb = tuple(int(c) for c in unpack_rgb(np.uint32(oid)))
         out.append(ObjectSummary(int(oid), rgb, int(members.size), centroid, lo, hi))
     return out
+
+
+def _in_row_order(a: np.ndarray) -> np.ndarray:
+    """The sum over the first axis of ``a`` (M, ...), M > 0, added in row order, as the numba twin adds (numpy's
+    sum adds pairwise: the same value up to rounding, not bit for bit)."""
+    return np.cumsum(a, axis=0)[-1]
 
 
 def main_cluster_ids_reference(

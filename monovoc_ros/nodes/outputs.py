@@ -75,16 +75,12 @@ class SemanticOutputs:
             self.cloud.publish(ma.semantic_cloud_from_arrays(*empty, **header))
             self._last = ([], np.zeros(0, np.int64), header, {})
             return self._publish_objects(*self._last)
-        known = result.object_ids != UNOBSERVED_ID
+        known = np.flatnonzero(result.object_ids != UNOBSERVED_ID)
         header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)
+        ids = result.object_ids[known]
+        # An object's id is its packed palette color: the cloud's packed rgb (result.object_rgb, unpacked).
         self.cloud.publish(
-            ma.semantic_cloud_from_arrays(
-                mapper.gaussians.means[known],
-                result.object_rgb()[known],
-                result.object_ids[known],
-                result.confidence[known],
-                **header,
-            )
+            ma.semantic_cloud_from_arrays(mapper.gaussians.means[known], ids, ids, result.confidence[known], **header)
         )
         geometry = result.objects(mapper.gaussians)
         index = result.palette.index_of(geometry.ids)
