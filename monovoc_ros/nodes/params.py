@@ -67,7 +67,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("queue_size", _WORKER.queue_size, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)", low=1),
     # Outputs
     Param("frame_id", MAP_FRAME, "frame of the semantic cloud, markers and objects (the SLAM map frame)"),
-    Param("publish_rate_hz", 1.0 / _WORKER.publish_period_s, "max rate of semantic cloud / objects updates; 0 = whenever the queue is empty, and at least once a second while it never is", low=0),
+    Param("publish_rate_hz", 1.0 / _WORKER.publish_period_s, "max rate of semantic cloud / objects updates; 0 = whenever the queue is empty, and about once a second while it never is", low=0),
     Param("labels_file", "", "JSON list [{color: [r, g, b], class_name: ...}] naming objects (empty: no labels)"),
     Param("labels_define_palette", False, "vote mode: labels_file's colors are the objects; every mask pixel is one of them or snaps to one (lossy masks)"),
     Param("marker_up", [0.0, 0.0, 1.0], "up direction of the map frame, for marker labels ([0, -1, 0] for a y-down SLAM world)"),

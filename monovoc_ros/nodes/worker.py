@@ -20,7 +20,8 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
 
 Between tasks the worker publishes the semantic result (at most every `publish_period_s` while something
 changed; period 0 = as soon as nothing runnable is queued, and every BUSY_PUBLISH_PERIOD_S while something
-is) and saves periodic snapshots of new evidence.
+is, or less often when publishing would take more than BUSY_PUBLISH_SHARE of the worker) and saves periodic
+snapshots of new evidence.
 The rasterizer's numba kernels release the GIL, so ROS callbacks keep running while a keyframe is
 integrated. Nothing here imports ROS: the node wires it to topics (monovoc_ros.nodes.mapping_node).
 
@@ -63,8 +64,10 @@ ResultListener = Callable[[SemanticMapper, SemanticResult], None]
 MapPreparer = Callable[[GaussianMap | None, GaussianMap], Future | None]
 # With publish_period_s 0 (publish as soon as nothing runnable is queued), a worker that never runs out of work
 # still publishes this often (s): a robot outrunning the mapper sees its map grow, late, rather than never
-# (the robot-scale bench's 2M run published no cloud at all).
+# (the robot-scale bench's 2M run published no cloud at all). Less often when a publication takes more than
+# BUSY_PUBLISH_SHARE of that time (at 1M Gaussians one took ~0.35 s: the work it is behind with comes first).
 BUSY_PUBLISH_PERIOD_S = 1.0
+BUSY_PUBLISH_SHARE = 0.2
 # How often an idle worker looks whether the snapshot being written is done (s).
 _SNAPSHOT_POLL_S = 0.1
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
@@ -244,6 +247,7 @@ class MapWorker:
         self._output_dirty = True  # publish once at start (the map, or an empty one)
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
+        self._publish_s = 0.0  # the last publication's time
         self._last_save = time.monotonic()
 
     # ------------------------------------------------------------------ public API (any thread)
@@ -508,7 +512,8 @@ class MapWorker:
         period = self.settings.publish_period_s
         if period == 0:
             busy = self.session.keyframes_ready or len(self.queue)
-            if busy and time.monotonic() < self._last_publish + BUSY_PUBLISH_PERIOD_S:
+            wait = max(BUSY_PUBLISH_PERIOD_S, self._publish_s / BUSY_PUBLISH_SHARE)
+            if busy and time.monotonic() < self._last_publish + wait:
                 return
         elif time.monotonic() < self._last_publish + period:
             return
@@ -534,6 +539,7 @@ class MapWorker:
                     self._listener_failed(fn, exc)
         observed = int(result.observed.sum()) if result is not None else 0
         end = time.perf_counter()
+        self._publish_s = end - start
         self.stats.update(objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
         self.stats.add(
             publishes=1,
