@@ -161,3 +161,17 @@ def test_deferred_keyframes_round_trip_whole_and_refuse_corrupt_files(tmp_path):
     path.write_bytes(path.read_bytes()[:200])
     with pytest.raises(ValueError, match="unreadable deferred keyframes"):
         load_keyframes(path)
+
+
+def test_the_map_file_is_linked_from_the_previous_snapshot_only_when_it_is_the_same_map(small_scene, tmp_path):
+    mapper = mapped(small_scene)
+    first = save_snapshot(mapper, tmp_path).path
+    second = save_snapshot(mapper, tmp_path).path
+    assert os.stat(first / "gaussians.npz").st_ino == os.stat(second / "gaussians.npz").st_ino
+    # A reset map of as many Gaussians (map_version 0 again): written, not linked.
+    g = small_scene.gaussians
+    other = SemanticMapper(type(g)(g.means + np.float32(0.5), g.scales, g.quats, g.opacities), MapperConfig())
+    assert other.map_version == mapper.map_version and len(other.gaussians) == len(g)
+    third = save_snapshot(other, tmp_path).path
+    assert os.stat(third / "gaussians.npz").st_ino != os.stat(second / "gaussians.npz").st_ino
+    np.testing.assert_array_equal(load_snapshot(tmp_path).gaussians.means, other.gaussians.means)

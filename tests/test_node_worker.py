@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from pathlib import Path
@@ -18,6 +19,7 @@ from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped
+from monovoc_ros.ros_harness import wait_until
 from tests.evidence import assert_same_evidence
 from tests.node_scene import RecordingLog
 
@@ -323,12 +325,13 @@ def test_periodic_and_final_snapshots(tmp_path):
 
 
 def test_periodic_snapshots_are_written_beside_the_worker_as_captured(tmp_path):
+    gmap = plane_map(60_000)  # writes long enough for keyframes to go on meanwhile
     worker, _, log = make_worker(map_directory=str(tmp_path), save_period_s=0.01, queue_size=64)
-    worker.submit_map(plane_map())
+    worker.submit_map(gmap)
     frames = [keyframe(stamp, shift=stamp % 7 - 3) for stamp in range(1, 41)]
     worker.start()
     try:
-        for kf in frames:  # keyframes go on while snapshots are written
+        for kf in frames:
             worker.submit_keyframe(kf)
             time.sleep(0.005)
         drain(worker)
@@ -337,29 +340,91 @@ def test_periodic_snapshots_are_written_beside_the_worker_as_captured(tmp_path):
     saved = load_snapshot(tmp_path)
     assert worker.stats.snapshots_saved >= 2 and worker.stats.snapshot_errors == 0
     assert any("written in" in msg for _, msg in log.lines)
-    offline = SemanticMapper(plane_map())  # the state of exactly the keyframes it holds
+    offline = SemanticMapper(gmap)  # the state of exactly the keyframes it holds
     for kf in frames[: saved.n_keyframes]:
         offline.integrate(kf)
     assert_same_evidence(saved.state, offline.state)
 
 
-def test_a_failing_periodic_snapshot_is_counted_and_the_worker_goes_on(tmp_path):
-    target = tmp_path / "not_a_directory"
-    target.write_text("")
-    worker, _, log = make_worker(map_directory=str(target), save_period_s=0.01)
+def test_save_listeners_of_a_periodic_snapshot_see_the_map_it_was_captured_from(tmp_path):
+    first = plane_map(60_000, ids=False)
+    seen = []
+
+    def listener(directory, info, mapper):
+        meta = json.loads((info.path / "meta.json").read_text())
+        snapshot = (meta["map_version"], meta["gaussians"])
+        seen.append(mapper is not None and snapshot == (mapper.map_version, len(mapper.gaussians)))
+
+    worker, _, _ = make_worker(map_directory=str(tmp_path), save_period_s=0.01, queue_size=64)
+    worker.add_save_listener(listener)
+    worker.submit_map(first)
+    worker.start()
+    try:
+        for stamp in range(1, 31):
+            worker.submit_keyframe(keyframe(stamp, shift=stamp % 5 - 2))
+            if stamp == 10:  # a map update and a reset while snapshots are written
+                worker.submit_map(_without_ids_moved(first, 0.01, seed=3).subset(np.arange(50_000)))
+            if stamp == 20:
+                worker.call(lambda: worker.reset(True))
+            time.sleep(0.005)
+        drain(worker)
+    finally:
+        worker.stop(final_snapshot=False)
+    assert worker.stats.map_updates == 1 and len(seen) >= 2 and all(seen), seen
+
+
+def test_a_failing_periodic_snapshot_is_counted_and_its_evidence_saved_a_period_later(tmp_path):
+    target = tmp_path / "maps"
+    target.write_text("")  # a file where the directory should be: the first writes fail
+    worker, _, log = make_worker(map_directory=str(target), save_period_s=0.05)
+    worker.submit_map(plane_map())
+    for stamp in range(1, 4):
+        worker.submit_keyframe(keyframe(stamp))
+    worker.start()
+    try:
+        drain(worker)
+        wait_until(lambda: worker.stats.snapshot_errors >= 1, 5.0, "a failed snapshot")
+        target.unlink()  # no keyframe comes after: only the failed snapshot's evidence is unsaved
+        wait_until(lambda: worker.stats.snapshots_saved >= 1, 5.0, "a snapshot after the failure")
+    finally:
+        worker.stop(final_snapshot=False)
+    assert load_snapshot(target).n_keyframes == 3 and worker.stats.worker_errors == 0
+    assert any(kind == "error" and "periodic snapshot" in msg for kind, msg in log.lines)
+
+
+def test_a_failing_save_listener_is_counted_and_the_worker_goes_on(tmp_path):
+    worker, _, log = make_worker(map_directory=str(tmp_path), save_period_s=0.01)
+    worker.add_save_listener(lambda directory, info, mapper: 1 / 0)
     worker.submit_map(plane_map())
     worker.start()
     try:
         for stamp in range(1, 4):
             worker.submit_keyframe(keyframe(stamp))
             drain(worker)
-            time.sleep(0.05)
+            time.sleep(0.03)
         assert worker.submit(lambda m: m.n_keyframes).result(5) == 3
     finally:
+        worker.stop()  # no exception from the listener here either
+    assert worker.stats.worker_errors >= 1 and worker.stats.snapshots_saved >= 1
+    assert load_snapshot(tmp_path).n_keyframes == 3
+    assert any("ZeroDivisionError" in msg for kind, msg in log.lines if kind == "error")
+
+
+def test_a_map_after_stop_is_refused_quietly_and_a_republished_map_keeps_plans_in_use():
+    first = plane_map(400, ids=False)
+    again = GaussianMap(first.means.copy(), first.scales, first.quats, first.opacities)  # the same map re-sent
+    second = _without_ids_moved(first, 0.01, seed=1)
+    worker, _, _ = make_worker()
+    for step in (first, keyframe(1), again, keyframe(2), second, keyframe(3)):
+        (worker.submit_map if isinstance(step, GaussianMap) else worker.submit_keyframe)(step)
+    worker.start()
+    try:
+        drain(worker)
+    finally:
         worker.stop(final_snapshot=False)
-    assert worker.stats.snapshot_errors >= 1 and worker.stats.snapshots_saved == 0
-    assert worker.stats.worker_errors == 0
-    assert any(kind == "error" and "periodic snapshot" in msg for kind, msg in log.lines)
+    assert worker.stats.maps_unchanged == 1 and worker.stats.map_updates == 1
+    assert worker.stats.map_updates_prepared == 1  # planned against the map in use, not the re-sent copy
+    worker.submit_map(second)  # a callback still decoding at shutdown: no exception
 
 
 def test_calls_run_in_order_and_fail_after_stop(tmp_path):

@@ -92,7 +92,7 @@ class SessionStats:
     map_updates_prepared: int = 0  # of them, applied with a plan prepared beforehand (`plan_map`)
     maps_unchanged: int = 0  # maps identical to the current one (skipped)
     map_update_carried_share: float = 1.0  # last map update: share of labelled Gaussians whose evidence was carried
-    ms_map_update_last: float = 0.0  # the last map update's time (registration, transfer)
+    ms_map_update_last: float = 0.0  # the last map update's time (registration, transfer; when prepared: the rest)
     reintegrations: int = 0  # re-integrations swapped in
     keyframes_reintegrated: int = 0
     ms_reintegration_total: float = 0.0  # summed over the re-integrations swapped in
@@ -330,6 +330,11 @@ class MappingSession:
     def reintegrating(self) -> bool:
         return self._updates.reintegrating
 
+    @property
+    def reintegration_swaps_next(self) -> bool:
+        """Whether the next `reintegration_step` swaps the rebuilt mapper in."""
+        return self._updates.swap_next
+
     def reintegration_step(self) -> bool:
         """Advances the re-integration in progress by one keyframe, swapping its mapper in once it has caught
         up with the log; returns whether one is still in progress."""
@@ -373,7 +378,7 @@ class MappingSession:
         """A snapshot was written into `directory`: counted, and the save listeners told."""
         self.stats.add(snapshots_saved=1)
         for fn in self._save_listeners:
-            fn(directory, info, self._mapper)
+            self._notify(fn, directory, info, self._mapper)
 
     def load(self, path: str) -> SemanticMapper:
         """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state).

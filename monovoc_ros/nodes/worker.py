@@ -46,7 +46,7 @@ from typing import Any, Protocol
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.follow.map_updater import MapUpdatePlan
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import SnapshotInfo, write_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
 from monovoc_ros.core.session import (
@@ -162,7 +162,8 @@ class TaskQueue:
                     replaced.plan.cancel()
             plan = prepare(base, gaussians) if prepare is not None else None
             self._tasks.append(_Task("map", gaussians, name=name, base=base, plan=plan))
-            self._newest_map = gaussians
+            # The same map again is skipped by the session: the one before it stays in use.
+            self._newest_map = base if base is not None and same_geometry(base, gaussians) else gaussians
             self._cond.notify()
         return coalesced
 
@@ -274,7 +275,9 @@ class MapWorker:
         self.session.add_reset_listener(fn)
 
     def add_save_listener(self, fn: SaveListener) -> None:
-        """fn(directory, info, mapper) runs on the worker thread after every snapshot (service, periodic, final)."""
+        """fn(directory, info, mapper) runs on the worker thread after every snapshot (service, periodic, final):
+        a periodic one is written beside the worker, and `mapper` may hold keyframes integrated meanwhile, but
+        never another map (map updates, re-integration swaps, resets and loads wait for the write)."""
         self.session.add_save_listener(fn)
 
     def add_load_check(self, fn: LoadCheck) -> None:
@@ -296,19 +299,26 @@ class MapWorker:
         if self.queue.put_map(gaussians, name, self._prepare_map):
             self.stats.add(maps_coalesced=1)
 
-    def _prepare_map(self, base: GaussianMap | None, gaussians: GaussianMap) -> Future:
+    def _prepare_map(self, base: GaussianMap | None, gaussians: GaussianMap) -> Future | None:
         def plan() -> MapUpdatePlan | None:
             start = time.perf_counter()
             out = self.session.plan_map(base, gaussians)
             self.stats.add(map_prepare_s=time.perf_counter() - start)
             return out
 
-        return self._planner.submit(plan)
+        try:
+            return self._planner.submit(plan)
+        except RuntimeError:  # stopping (a map decoded as the node shut down): the session computes it, if ever
+            return None
 
     def _plan_of(self, task: _Task) -> MapUpdatePlan | None:
         """The plan prepared for a map task (waiting for it: the planning thread is ahead of the worker), or
         None (not prepared, cancelled, or failed: the session computes the update itself)."""
         if task.plan is None:
+            return None
+        mapper = self.session.mapper
+        if task.base is not None and (mapper is None or task.base is not mapper.gaussians):
+            task.plan.cancel()  # of a map not in use (refused, reset, loaded): no use waiting for it
             return None
         try:
             return task.plan.result()
@@ -341,7 +351,8 @@ class MapWorker:
 
         Keyframes, maps and pose corrections queued are applied in order until the bound; keyframes left over
         are deferred: saved with the final snapshot (with a map directory) and integrated first on resume.
-        Queued calls fail with WorkerStopped. Runs on the caller's thread once the worker has left its loop.
+        Queued calls fail with WorkerStopped. Runs on the caller's thread once the worker has left its loop; a
+        periodic snapshot still being written is finished first (0.5-0.9 s at 1-2M Gaussians).
         """
         deadline = time.monotonic() + max(drain_s, 0.0)
         self.queue.close()
@@ -429,6 +440,7 @@ class MapWorker:
         return mapper
 
     def reset(self, keep_gaussians: bool) -> None:
+        self._collect_snapshot(wait=True)
         self.session.reset(keep_gaussians)
         self._changed(unsaved=self.session.mapper is not None)
 
@@ -462,6 +474,8 @@ class MapWorker:
                     self._execute(task)
                     self.stats.add(**{_ACTIVITY[task.kind]: time.perf_counter() - start})
                 if self.session.reintegrating:
+                    if self.session.reintegration_swaps_next:
+                        self._collect_snapshot(wait=True)
                     start = time.perf_counter()
                     if not self.session.reintegration_step():
                         self._changed()  # the re-integrated state was swapped in
@@ -477,6 +491,7 @@ class MapWorker:
         if task.kind == "keyframe":
             self.session.add_keyframe(task.payload)
         elif task.kind == "map":
+            self._collect_snapshot(wait=True)  # its save listeners see the map it was captured from
             if self.session.add_map(task.payload, task.name, self._plan_of(task)):
                 self._changed()
         else:

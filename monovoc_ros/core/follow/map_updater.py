@@ -89,10 +89,9 @@ class MapUpdateReport:
     by_id: int  # new Gaussians that took their evidence by id
     by_position: int  # new Gaussians that took it by the moved position
     motion: MapMotion  # how the map moved (core.follow.map_motion)
-    seconds: float = 0.0  # in update_map (on the worker thread, live)
+    seconds: float = 0.0  # in update_map (live: the worker's part, when the update was prepared beside it)
     sources: np.ndarray | None = None  # (N_new,) int64 old row whose evidence each new Gaussian took, -1: none
     prepared: bool = False  # its MapUpdatePlan was prepared beforehand (live: beside the worker)
-    prepared_seconds: float = 0.0  # that plan's time
 
     @property
     def carried_share(self) -> float:
@@ -174,7 +173,6 @@ class MapUpdatePlan:
     config: FollowConfig
     follow: FollowResult
     refusal: str  # motion_refusal ("" when the motion is believable; step 2 of the follow only then)
-    seconds: float
 
     def applies_to(self, old: GaussianMap, new: GaussianMap, config: FollowConfig) -> bool:
         return self.old is old and self.new is new and self.config == config
@@ -183,12 +181,11 @@ class MapUpdatePlan:
 def plan_map_update(old: GaussianMap, new: GaussianMap, config: FollowConfig) -> MapUpdatePlan:
     """The map update of `old` to `new` up to the evidence transfer (see MapUpdatePlan); reads nothing else,
     so any thread may compute it."""
-    start = time.perf_counter()
     follow = follow_ids(old, new, config)
     refusal = motion_refusal(follow, config)
     if not refusal:
         follow_positions(follow, new, config)
-    return MapUpdatePlan(old, new, config, follow, refusal, time.perf_counter() - start)
+    return MapUpdatePlan(old, new, config, follow, refusal)
 
 
 def update_map(mapper: Mapper, gaussians: GaussianMap, plan: MapUpdatePlan | None = None) -> MapUpdateReport:
@@ -217,7 +214,6 @@ def update_map(mapper: Mapper, gaussians: GaussianMap, plan: MapUpdatePlan | Non
         seconds=time.perf_counter() - start,
         sources=follow.sources,
         prepared=prepared,
-        prepared_seconds=plan.seconds if prepared else 0.0,
     )
 
 
@@ -387,6 +383,12 @@ class MapUpdater:
     @property
     def reintegrating(self) -> bool:
         return self.job is not None
+
+    @property
+    def swap_next(self) -> bool:
+        """Whether the next `step` ends the re-integration in progress (its last logged keyframe is next)."""
+        job = self.job
+        return job is not None and job._position >= len(job.log) - 1
 
     def start(self, mapper: Mapper, reason: str) -> None:
         """Starts re-integrating `mapper`'s log (dropping a rebuild in progress: it is of an older map or
