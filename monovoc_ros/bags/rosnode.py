@@ -90,18 +90,24 @@ def spinning(node: Any) -> Iterator[Any]:
 
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
+    stop = threading.Event()
 
     def spin() -> None:
+        # spin_once in a loop, not spin(): shutting an executor down while another thread waits in it lets
+        # rclpy destroy the wait set under that thread (AttributeError: 'NoneType' object has no attribute
+        # 'handle'); the loop ends first and the executor is shut down after the join.
         with contextlib.suppress(ExternalShutdownException):
-            executor.spin()
+            while not stop.is_set() and node.context.ok():
+                executor.spin_once(timeout_sec=0.05)
 
     thread = threading.Thread(target=spin, name=f"{node.get_name()}-spin", daemon=True)
     thread.start()
     try:
         yield executor
     finally:
-        executor.shutdown(timeout_sec=5.0)
+        stop.set()
         thread.join(5.0)
+        executor.shutdown(timeout_sec=5.0)
 
 
 def install_stop_signals(stop: threading.Event) -> None:
