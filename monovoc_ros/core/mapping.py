@@ -147,6 +147,11 @@ class MapperConfig:
         if self.mask_ids == "per_frame" and self.object_colors:
             raise ValueError("mask_ids 'per_frame' cannot take object_colors: per-frame mask colors name no object")
 
+    @property
+    def max_depth(self) -> float:
+        """`max_depth_m` as the raster kernels take it: inf for no limit."""
+        return float(self.max_depth_m) or math.inf
+
     def follow(self) -> FollowConfig:
         """How map updates carry evidence over (core.follow.map_follow)."""
         return FollowConfig(radius=self.reassociation_tolerance)
@@ -329,7 +334,7 @@ class SemanticMapper:
             keyframe.cam_to_world,
             valid=valid,
             weight_power=self.config.weight_power,
-            max_depth=self.config.max_depth_m or math.inf,
+            max_depth=self.config.max_depth,
             impl=self.config.impl,
             device=self.config.device,
         )
@@ -357,7 +362,7 @@ class SemanticMapper:
             keyframe.intrinsics,
             keyframe.cam_to_world,
             weight_power=self.config.weight_power,
-            max_depth=self.config.max_depth_m or math.inf,
+            max_depth=self.config.max_depth,
             impl=self.config.impl,
             device=self.config.device,
         )

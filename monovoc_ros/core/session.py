@@ -361,18 +361,19 @@ class MappingSession:
 
     def save(self, directory: str, deferred: Sequence[Keyframe] = ()) -> SnapshotInfo:
         """A snapshot of the map; `deferred`: keyframes received but not integrated, saved with it (map_store)."""
-        if self._mapper is None:
-            raise ValueError("no map to save yet")
-        info = save_snapshot(self._mapper, directory, deferred=deferred)
+        info = save_snapshot(self._mapper_to_save(), directory, deferred=deferred)
         self.saved(directory, info)
         return info
 
     def capture(self, deferred: Sequence[Keyframe] = ()) -> SnapshotContent:
         """The map's state as a snapshot holds it, now (map_store.capture_snapshot), for a snapshot written
         elsewhere (a live node's writer thread: map_store.write_snapshot, then `saved`)."""
+        return capture_snapshot(self._mapper_to_save(), deferred)
+
+    def _mapper_to_save(self) -> SemanticMapper:
         if self._mapper is None:
             raise ValueError("no map to save yet")
-        return capture_snapshot(self._mapper, deferred)
+        return self._mapper
 
     def saved(self, directory: str, info: SnapshotInfo) -> None:
         """A snapshot was written into `directory`: counted, and the save listeners told."""

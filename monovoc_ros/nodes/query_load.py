@@ -8,8 +8,11 @@ open-loop requests never reached the callback with the default service QoS (keep
 
 from __future__ import annotations
 
+import argparse
+import json
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from monovoc_ros.contract import DEFAULT_NAMESPACE
@@ -81,10 +84,6 @@ def main(argv: list[str] | None = None) -> int:
     serializing a 50 MB map message holds that process's interpreter, which would count as the node's
     latency). Waits for the service, then for `--start-file` to exist, sends the queries and writes the
     `open_loop_queries` report as JSON to `--out`."""
-    import argparse
-    import json
-    from pathlib import Path
-
     from monovoc_ros.ros_harness import ClientNode
 
     parser = argparse.ArgumentParser(description=main.__doc__)
