@@ -201,3 +201,34 @@ def test_the_box_kernel_takes_numpys_percentiles_bit_for_bit():
         np.testing.assert_array_equal(high[k], hi)
     np.testing.assert_array_equal(centroid[0], means[0])  # zero weight: the plain mean, in row order
     np.testing.assert_array_equal(centroid[1], (means[1].astype(np.float64) + means[2]) / 2)
+
+
+def test_the_box_kernel_selects_numpys_quantiles_on_ties_and_constant_axes():
+    """The kernel finds the two order statistics a percentile reads by selection, not a sort: any quantile,
+    objects of one value per axis, many ties, and a NaN axis (sorted then, as numpy orders NaN last)."""
+    from monovoc_ros.core.object_geometry_kernels import percentile_boxes as kernel
+
+    rng = np.random.default_rng(3)
+    for trial in range(120):
+        sizes = rng.integers(1, 400, rng.integers(1, 12)).tolist()
+        means = rng.normal(0, 3, (sum(sizes), 3)).astype(np.float32)
+        if trial % 2:
+            means = np.round(means)  # ties
+        if trial % 5 == 0:
+            means[:, 1] = 1.0  # one value
+        q = sorted(rng.uniform(0, 1, 2)) if trial % 3 == 0 else [0.01, 0.99]
+        bounds = np.concatenate([[0], np.cumsum(sizes)])
+        low, high, centroid = (np.empty((len(sizes), 3)) for _ in range(3))
+        opacities = np.ones(len(means), np.float32)
+        kernel(means, opacities, np.arange(len(means)), bounds, q[0], q[1], low, high, centroid)
+        for k in range(len(sizes)):
+            lo, hi = np.quantile(means[bounds[k] : bounds[k + 1]].astype(np.float64), q, axis=0)
+            np.testing.assert_array_equal(low[k], lo, err_msg=f"trial {trial}, object {k}")
+            np.testing.assert_array_equal(high[k], hi, err_msg=f"trial {trial}, object {k}")
+    means = rng.normal(0, 1, (50, 3)).astype(np.float32)
+    means[7, 2] = np.nan
+    low, high, centroid = (np.empty((1, 3)) for _ in range(3))
+    kernel(means, np.ones(50, np.float32), np.arange(50), np.array([0, 50]), 0.01, 0.99, low, high, centroid)
+    ordered = np.sort(means[:, 2].astype(np.float64))  # NaN last: the 1st percentile reads finite values
+    np.testing.assert_array_equal(low[0, 2], ordered[0] + (ordered[1] - ordered[0]) * 0.49)
+    np.testing.assert_array_equal(low[0, :2], np.quantile(means[:, :2].astype(np.float64), 0.01, axis=0))
