@@ -52,6 +52,7 @@ from scipy.sparse.csgraph import connected_components
 
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, unpack_rgb
 from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.object_geometry_kernels import main_voxel_clusters
 from monovoc_ros.core.object_geometry_kernels import percentile_boxes as percentile_boxes_kernel
 
 MIN_CONFIDENCE = 0.3
@@ -321,33 +322,8 @@ def _main_clusters(
         cells -= _bounds(cells)[0] - 1  # >= 1 so that neighbours at -1 stay non-negative
         keys = _pack(slot[index], cells)
         order = np.argsort(keys)
-        ordered = keys[order]
-        first = np.empty(ordered.size, bool)
-        first[0] = True
-        np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
-        voxels = ordered[first]
-        sizes = np.diff(np.append(np.flatnonzero(first), ordered.size))
-        voxel_of = np.empty(ordered.size, np.int64)
-        voxel_of[order] = np.cumsum(first) - 1
-        pairs = []
-        for step in _NEIGHBOUR_STEPS:  # half of the 26 neighbours: the graph is symmetric
-            neighbour = voxels + step
-            pos = np.searchsorted(voxels, neighbour).clip(0, voxels.size - 1)
-            hit = voxels[pos] == neighbour
-            pairs.append((np.flatnonzero(hit), pos[hit]))
-        r = np.concatenate([p[0] for p in pairs])
-        c = np.concatenate([p[1] for p in pairs])
-        graph = coo_matrix((np.ones(r.size, np.int8), (r, c)), shape=(voxels.size, voxels.size))
-        n_components, component = connected_components(graph, directed=False)
-        # The keys hold the object, so a component lies in one object: per object, its largest component
-        # and every component with at least min_share of its Gaussians.
-        size = np.bincount(component, weights=sizes, minlength=n_components).astype(np.int64)
-        component_slot = np.empty(n_components, np.int64)
-        component_slot[component] = voxels >> (3 * _COORD_BITS)
-        largest = np.zeros(n_slots, np.int64)
-        np.maximum.at(largest, component_slot, size)
-        kept = size >= np.maximum(1, min_share * largest[component_slot])
-        out[index[kept[component[voxel_of]]]] = True
+        kept = main_voxel_clusters(keys[order], _NEIGHBOUR_STEPS, 3 * _COORD_BITS, n_slots, float(min_share))
+        out[index[order[kept]]] = True
     # An object left with nothing keeps all its Gaussians rather than vanishing.
     out |= (np.bincount(slot[out], minlength=n_slots) == 0)[slot]
     return out
