@@ -14,6 +14,7 @@ from msg_adapters.errors import AdapterError
 from msg_adapters.gaussian_cloud import cloud_to_gaussian_map, gaussian_map_to_cloud
 from msg_adapters.image import image_to_numpy, numpy_to_image
 from msg_adapters.markers import object_markers
+from msg_adapters.message_cache import MessageCache
 from msg_adapters.pose import (
     R_BODY_OPTICAL,
     keyframe_poses_to_path,
@@ -31,6 +32,7 @@ from msg_adapters.semantic_objects import semantic_object, semantic_object_to_di
 from msg_adapters.stamps import header_stamp_ns, make_header, ns_to_time, time_to_ns
 
 __all__ = [
+    "MessageCache",
     "keyframe_poses_to_path",
     "path_to_keyframe_poses",
     "R_BODY_OPTICAL",

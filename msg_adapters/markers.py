@@ -23,6 +23,7 @@ from monovoc_ros.contract import MAP_FRAME
 from monovoc_ros.core.evidence.palette import format_object_id, unpack_rgb
 from msg_adapters.colors import rgb_to_packed
 from msg_adapters.errors import AdapterError
+from msg_adapters.message_cache import MessageCache
 from msg_adapters.stamps import make_header
 
 _INT32_MAX = 2**31 - 1
@@ -42,11 +43,13 @@ def object_markers(
     text_height: float = 0.12,
     min_extent: float = 0.01,
     up: Sequence[float] = (0.0, 0.0, 1.0),
+    cache: MessageCache | None = None,
 ):
     """A ``visualization_msgs.msg.MarkerArray``: DELETEALL, then a CUBE and a TEXT per object.
 
     ``rgb``: (N, 3) uint8, (N, 3) float in [0, 1], or (N,) packed. An empty label shows the id as hex.
-    Extents are clamped to ``min_extent`` (RViz does not draw zero-size cubes).
+    Extents are clamped to ``min_extent`` (RViz does not draw zero-size cubes). ``cache``: the markers of an
+    object whose values did not change since the last call with it are reused (their header set anew).
     """
     from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
     from std_msgs.msg import ColorRGBA
@@ -90,15 +93,27 @@ def object_markers(
     rgbf = (colors.astype(np.float64) / 255.0).tolist()
     # Python floats: rclpy messages store whatever they are given.
     rows = zip(ids.tolist(), labels, centroids.tolist(), sizes.tolist(), label_pos.tolist(), rgbf, strict=True)
-    for oid, label, (cx, cy, cz), (sx, sy, sz), (lx, ly, lz), (r, g, b) in rows:
-        box = Marker(header=header, ns=f"{namespace}/boxes", id=oid, type=Marker.CUBE, action=Marker.ADD)
-        box.pose = Pose(position=Point(x=cx, y=cy, z=cz), orientation=identity)
-        box.scale = Vector3(x=sx, y=sy, z=sz)
-        box.color = ColorRGBA(r=r, g=g, b=b, a=float(alpha))
-        text = Marker(header=header, ns=f"{namespace}/labels", id=oid, type=Marker.TEXT_VIEW_FACING, action=Marker.ADD)
-        text.pose = Pose(position=Point(x=lx, y=ly, z=lz), orientation=identity)
-        text.scale = Vector3(x=0.0, y=0.0, z=float(text_height))
-        text.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
-        text.text = str(label) or format_object_id(oid)
+    cache = cache if cache is not None else MessageCache()
+    cache.start()
+    for oid, label, centre, size, label_at, color in rows:
+
+        def build(oid=oid, label=label, centre=centre, size=size, label_at=label_at, color=color) -> tuple:
+            (cx, cy, cz), (sx, sy, sz), (lx, ly, lz), (r, g, b) = centre, size, label_at, color
+            box = Marker(header=header, ns=f"{namespace}/boxes", id=oid, type=Marker.CUBE, action=Marker.ADD)
+            box.pose = Pose(position=Point(x=cx, y=cy, z=cz), orientation=identity)
+            box.scale = Vector3(x=sx, y=sy, z=sz)
+            box.color = ColorRGBA(r=r, g=g, b=b, a=float(alpha))
+            text = Marker(header=header, ns=f"{namespace}/labels", id=oid, type=Marker.TEXT_VIEW_FACING)
+            text.action = Marker.ADD
+            text.pose = Pose(position=Point(x=lx, y=ly, z=lz), orientation=identity)
+            text.scale = Vector3(x=0.0, y=0.0, z=float(text_height))
+            text.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
+            text.text = str(label) or format_object_id(oid)
+            return box, text
+
+        values = (namespace, float(alpha), float(text_height), str(label), *centre, *size, *label_at, *color)
+        box, text = cache.get(oid, values, build)
+        box.header = text.header = header
         out.markers += [box, text]
+    cache.finish()
     return out

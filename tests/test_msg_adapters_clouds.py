@@ -316,6 +316,33 @@ def test_object_markers() -> None:
     assert len(object_markers([], [], [], [], []).markers) == 1
 
 
+def test_object_markers_reuse_the_markers_of_unchanged_objects() -> None:
+    """With a cache, an object whose values are the same as last time keeps its markers (restamped); a changed
+    one gets new markers; an object gone is forgotten; what is sent equals markers built afresh."""
+    from msg_adapters import MessageCache
+
+    ids = np.array([0xFF0000, 0x00FF80, 0x123456])
+    centroids = np.array([[1.0, 2.0, 0.5], [0.0, -1.0, 1.0], [3.0, 3.0, 3.0]])
+    extents = np.array([[0.4, 0.6, 1.0], [2.0, 0.5, 0.1], [0.1, 0.1, 0.1]])
+    labels = ["chair", "", "lamp"]
+    cache = MessageCache()
+    first = object_markers(ids, labels, centroids, extents, ids, stamp=5, cache=cache)
+    assert cache.built == 3
+    moved = centroids.copy()
+    moved[1, 0] += 0.25
+    relabelled = ["chair", "", "desk lamp"]
+    second = object_markers(ids, relabelled, moved, extents, ids, stamp=9, cache=cache)
+    assert cache.built == 5  # the second and third objects changed
+    assert second.markers[1] is first.markers[1] and second.markers[2] is first.markers[2]
+    assert second.markers[3] is not first.markers[3] and second.markers[5] is not first.markers[5]
+    assert all(time_to_ns(m.header.stamp) == 9 for m in second.markers)
+    fresh = object_markers(ids, relabelled, moved, extents, ids, stamp=9)
+    assert _wire(second) == _wire(fresh)
+    object_markers(ids[:1], labels[:1], centroids[:1], extents[:1], ids[:1], stamp=10, cache=cache)
+    object_markers(ids, relabelled, moved, extents, ids, stamp=11, cache=cache)
+    assert cache.built == 7  # the objects gone for one publication are built again
+
+
 def test_object_markers_reject_bad_input() -> None:
     one = ([7], ["x"], [[0, 0, 0]], [[1, 1, 1]], [[1, 2, 3]])
     with pytest.raises(AdapterError, match="labels has 2 entries for 1 ids"):

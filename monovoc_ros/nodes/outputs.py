@@ -49,6 +49,9 @@ class SemanticOutputs:
         self._label_provider: LabelProvider | None = None
         # (summaries, observations, header, segment labels) of the last publication, for republish_objects.
         self._last: tuple[list[ObjectSummary], np.ndarray, dict, Mapping[int, str]] | None = None
+        # The messages of objects unchanged since the last publication are sent again, not rebuilt.
+        self.marker_cache: ma.MessageCache = ma.MessageCache()
+        self.object_cache: ma.MessageCache = ma.MessageCache()
 
     def set_label_provider(self, fn: LabelProvider | None) -> None:
         """Labels of a component (see the module docstring); set before the worker starts."""
@@ -111,6 +114,7 @@ class SemanticOutputs:
                 np.array([s.extent for s in summaries]).reshape(-1, 3),
                 np.array([s.rgb for s in summaries], np.uint8).reshape(-1, 3),
                 up=self.up,
+                cache=self.marker_cache,
                 **header,
             )
         )
@@ -122,10 +126,14 @@ class SemanticOutputs:
         from monovoc_interfaces.msg import SemanticObjectArray
 
         out = SemanticObjectArray(header=ma.make_header(header["frame_id"], header["stamp"]))
+        self.object_cache.start()
         for s, seen, label in zip(summaries, observations.tolist(), labels, strict=True):
             name, source = label_fields(label)
-            out.objects.append(
-                ma.semantic_object(
+            values = (name, source, s.num_gaussians, int(seen), *s.centroid.tolist(), *s.bbox_min.tolist(),
+                      *s.bbox_max.tolist())  # fmt: skip
+
+            def build(s=s, name=name, source=source, seen=seen) -> Any:
+                return ma.semantic_object(
                     s.id,
                     centroid=s.centroid,
                     bbox_min=s.bbox_min,
@@ -135,7 +143,9 @@ class SemanticOutputs:
                     num_gaussians=s.num_gaussians,
                     num_observations=int(seen),
                 )
-            )
+
+            out.objects.append(self.object_cache.get(s.id, values, build))
+        self.object_cache.finish()
         return out
 
 
