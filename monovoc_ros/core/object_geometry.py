@@ -37,8 +37,10 @@ from scratch 23 / 127 / 270 ms at 0.2 / 1 / 2M Gaussians (the former implementat
 only (the voxel keys hold the object), so given the geometry of an earlier labelling of the same map
 (``previous``) only the objects whose Gaussians or confident Gaussians changed are computed again, with the
 same result: 12 / 18 / 24 ms after one keyframe (9 objects changed, 70k of their Gaussians). The boxes and
-centroids of all objects come from one parallel numba call (core.object_geometry_kernels; on the 3.4x slower
-2026-12-05 machine: 1M from scratch 430 -> 251-279 ms, after one keyframe 57 -> 50-53 ms).
+centroids of all objects come from one parallel numba call and the main clusters from one union-find over the
+voxels (core.object_geometry_kernels; on a 2.3-3.4x slower machine, 2026-12-05: 1M from scratch 430 -> 251-279
+ms with the box kernel, then 171 ms with selection for the percentiles and the union-find (the reference: 402 ms
+in that run); after one keyframe 57 -> 50-53 -> 27 ms).
 """
 
 from __future__ import annotations
