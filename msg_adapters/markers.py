@@ -49,7 +49,8 @@ def object_markers(
 
     ``rgb``: (N, 3) uint8, (N, 3) float in [0, 1], or (N,) packed. An empty label shows the id as hex.
     Extents are clamped to ``min_extent`` (RViz does not draw zero-size cubes). ``cache``: the markers of an
-    object whose values did not change since the last call with it are reused (their header set anew).
+    object whose values did not change since the last call with it are reused, their header set anew: an array
+    returned before shares them (publish it before the next call, as the mapping node does).
     """
     from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
     from std_msgs.msg import ColorRGBA

@@ -18,7 +18,8 @@ class MessageCache(Generic[T]):
     """``get(object id, values, build)``: the message built from ``values`` for that object last time, or
     ``build()``. Between ``start()`` and ``finish()`` one publication's messages are collected; only those
     are kept for the next (objects gone are dropped). A publication that fails halfway leaves the last
-    finished one in place."""
+    finished one in place. Values compare with ``==`` (0.0 and -0.0 alike); a message returned is shared
+    with later publications."""
 
     def __init__(self) -> None:
         self._last: dict[int, tuple[Hashable, T]] = {}

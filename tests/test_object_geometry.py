@@ -205,7 +205,8 @@ def test_the_box_kernel_takes_numpys_percentiles_bit_for_bit():
 
 def test_the_box_kernel_selects_numpys_quantiles_on_ties_and_constant_axes():
     """The kernel finds the two order statistics a percentile reads by selection, not a sort: any quantile,
-    objects of one value per axis, many ties, and a NaN axis (sorted then, as numpy orders NaN last)."""
+    objects of one value per axis, many ties. An axis with NaN (which no map from the topic has) is sorted, NaN
+    last, and its percentiles read the values there (numpy's would be NaN: a box that could not be published)."""
     from monovoc_ros.core.object_geometry_kernels import percentile_boxes as kernel
 
     rng = np.random.default_rng(3)
@@ -229,6 +230,6 @@ def test_the_box_kernel_selects_numpys_quantiles_on_ties_and_constant_axes():
     means[7, 2] = np.nan
     low, high, centroid = (np.empty((1, 3)) for _ in range(3))
     kernel(means, np.ones(50, np.float32), np.arange(50), np.array([0, 50]), 0.01, 0.99, low, high, centroid)
-    ordered = np.sort(means[:, 2].astype(np.float64))  # NaN last: the 1st percentile reads finite values
+    ordered = np.sort(means[:, 2].astype(np.float64))  # NaN last: the 1st percentile reads two finite values
     np.testing.assert_array_equal(low[0, 2], ordered[0] + (ordered[1] - ordered[0]) * 0.49)
     np.testing.assert_array_equal(low[0, :2], np.quantile(means[:, :2].astype(np.float64), 0.01, axis=0))

@@ -3,10 +3,11 @@ and the main clusters of the objects' voxels (``main_voxel_clusters``).
 
 Per object numpy's percentile and sums cost ~1.7 ms at a few thousand Gaussians, mostly call overhead: 130 ms
 per publication after a keyframe at 1M Gaussians (25 objects changed), 300 ms from scratch (170 objects).
-The plain twin is ``core.object_geometry.percentile_boxes_reference``; the tests hold the two equal bit for bit:
-the percentiles are numpy's "linear" method step by step on the order statistics it reads (found by selection, not
-a sort: at 1M Gaussians a publication after two keyframes recomputes objects of 100k+ Gaussians), and the sums
-run in row order as the reference's do.
+The plain twin is ``core.object_geometry.percentile_boxes_reference``; the tests hold the two equal bit for bit on
+finite centres (up to the sign of a zero): the percentiles are numpy's "linear" method step by step on the order
+statistics it reads (found by selection, not a sort: at 1M Gaussians a publication after two keyframes recomputes
+objects of 100k+ Gaussians), and the sums run in row order as the reference's do. Where numpy would give NaN (an
+axis with NaN, infinite values at the top) the kernel reads the sorted values; maps from the topic have neither.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from numba import njit, prange
 @njit(cache=True, nogil=True)
 def _select(a, k):  # pragma: no cover - numba
     """Reorders ``a`` (n,) in place so that a[k] is its k-th smallest value, none after it smaller and none
-    before it larger (Wirth's selection, median-of-three pivot), and returns it: O(n) where a sort is
-    O(n log n). Its values are the sort's, whatever the order it leaves: the percentiles stay bit for bit."""
+    before it larger (Wirth's selection, median-of-three pivot), and returns it: O(n) expected where a sort is
+    O(n log n). The value is the sort's whatever order it leaves (of +0.0 and -0.0, either)."""
     lo = 0
     hi = a.shape[0] - 1
     while lo < hi:
