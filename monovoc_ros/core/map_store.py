@@ -17,13 +17,10 @@ bit-exactly), so a resumed mapper continues exactly where the saved one stopped.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
-import threading
 import time
-import weakref
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -37,7 +34,7 @@ from monovoc_ros.core.evidence.state import GaussianEvidence, SemanticState
 from monovoc_ros.core.evidence.votes import VoteState
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog
 from monovoc_ros.core.keyframe import Keyframe
-from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.gaussians import ARRAY_FIELDS, GaussianMap
 from monovoc_ros.core.map.ply import PlyError, read_ply_vertices, write_ply_vertices
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult, evidence_mismatch
 from monovoc_ros.core.segments.association import Associator
@@ -76,45 +73,15 @@ def _snapshots(map_dir: Path) -> list[Path]:
     return sorted(p for p in map_dir.glob("snap-*") if p.is_dir() and not p.name.endswith(".partial"))
 
 
-_MAP_FIELDS = ("means", "scales", "quats", "opacities", "colors", "ids", "semantics")
-
-
 def _save_map(path: Path, gmap: GaussianMap) -> None:
-    arrays = {name: getattr(gmap, name) for name in _MAP_FIELDS if getattr(gmap, name) is not None}
+    arrays = {name: getattr(gmap, name) for name in ARRAY_FIELDS if getattr(gmap, name) is not None}
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)
 
 
-# A map's arrays are read-only (GaussianMap freezes them), so its digest is computed once per map object: a
-# periodic snapshot, `save_map` and the shutdown snapshot of one map hash it once.
-_DIGESTS: weakref.WeakKeyDictionary[GaussianMap, str] = weakref.WeakKeyDictionary()
-_DIGESTS_LOCK = threading.Lock()
-
-
-def _map_digest(gmap: GaussianMap) -> str:
-    """A hash of the arrays `_save_map` writes (blake2b, ~0.1 s at 1M Gaussians), cached per map object."""
-    with _DIGESTS_LOCK:
-        digest = _DIGESTS.get(gmap)
-    if digest is None:
-        digest = _hash_map(gmap)
-        with _DIGESTS_LOCK:
-            _DIGESTS[gmap] = digest
-    return digest
-
-
-def _hash_map(gmap: GaussianMap) -> str:
-    h = hashlib.blake2b(digest_size=16)
-    for name in _MAP_FIELDS:
-        a = getattr(gmap, name)
-        if a is not None:
-            h.update(f"{name}{a.dtype.str}{a.shape}".encode())
-            h.update(np.ascontiguousarray(a).data)
-    return h.hexdigest()
-
-
 def _load_map(path: Path) -> GaussianMap:
     with np.load(path, allow_pickle=False) as arrays:
-        return GaussianMap(**{name: arrays[name] for name in _MAP_FIELDS if name in arrays})
+        return GaussianMap(**{name: arrays[name] for name in ARRAY_FIELDS if name in arrays})
 
 
 def current_snapshot(map_dir: str | os.PathLike) -> Path | None:
@@ -197,7 +164,7 @@ def write_snapshot(content: SnapshotContent, map_dir: str | os.PathLike, *, expo
     # The map is the bulk of a snapshot: hard-link it from the previous one when it is the same map (by its
     # bytes: map_version restarts at a reset or a load, and a new map may have as many Gaussians).
     prev_meta = json.loads((previous / "meta.json").read_text()) if previous else None
-    digest = _map_digest(content.gaussians)
+    digest = content.gaussians.digest
     if prev_meta and prev_meta.get("map_digest") == digest:
         os.link(previous / "gaussians.npz", partial / "gaussians.npz")
     else:

@@ -7,6 +7,7 @@ Arrays are read-only once the map is built, so derived values (3D covariances) c
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -14,6 +15,9 @@ import numba
 import numpy as np
 
 from monovoc_ros.core.map.camera import quat_wxyz_to_matrix
+
+# The per-Gaussian arrays a map is (besides `extra`): what a snapshot's map file holds and `digest` hashes.
+ARRAY_FIELDS = ("means", "scales", "quats", "opacities", "colors", "ids", "semantics")
 
 
 def _frozen(a: np.ndarray | None, dtype, shape_tail: tuple, name: str, n: int | None) -> np.ndarray | None:
@@ -96,9 +100,21 @@ class GaussianMap:
         out.setflags(write=False)
         return out
 
+    @cached_property
+    def digest(self) -> str:
+        """A hash of the arrays of ARRAY_FIELDS (blake2b, ~0.1 s at 1M Gaussians): maps of the same bytes have the
+        same one. Computed once per map, like the covariances (a snapshot links an unchanged map file by it)."""
+        h = hashlib.blake2b(digest_size=16)
+        for name in ARRAY_FIELDS:
+            a = getattr(self, name)
+            if a is not None:
+                h.update(f"{name}{a.dtype.str}{a.shape}".encode())
+                h.update(np.ascontiguousarray(a).data)
+        return h.hexdigest()
+
     @property
     def nbytes(self) -> int:
-        arrays = [self.means, self.scales, self.quats, self.opacities, self.colors, self.ids, self.semantics]
+        arrays = [getattr(self, name) for name in ARRAY_FIELDS]
         return sum(a.nbytes for a in arrays if a is not None) + sum(v.nbytes for v in self.extra.values())
 
 
