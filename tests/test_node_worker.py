@@ -496,7 +496,7 @@ def test_stop_drains_the_queue_within_its_bound(tmp_path):
     worker.submit_map(plane_map())
     for stamp in range(1, 21):
         worker.submit_keyframe(rgb_keyframe(stamp))
-    info = worker.stop(drain_s=60.0)  # never started: stop integrates all of them on this thread
+    info = worker.stop(within_s=60.0)  # never started: stop integrates all of them on this thread
     assert info is not None and info.keyframes == 20 and load_snapshot(tmp_path).n_keyframes == 20
     assert load_deferred(tmp_path) == []
     assert any("integrated 20 queued keyframes, deferred 0" in m for _, m in log.lines)
@@ -508,7 +508,7 @@ def test_keyframes_stop_has_no_time_for_are_deferred_to_the_snapshot_and_resumed
     sent = [rgb_keyframe(stamp) for stamp in range(1, 13)]
     for kf in sent:
         worker.submit_keyframe(kf)
-    info = worker.stop(drain_s=0.0)  # no time: the map goes in, every keyframe is deferred
+    info = worker.stop(within_s=0.0)  # no time: the map goes in, every keyframe is deferred
     assert info is not None and info.keyframes == 0
     deferred = load_deferred(tmp_path)
     assert [k.stamp_ns for k in deferred] == [k.stamp_ns for k in sent]
@@ -531,6 +531,28 @@ def test_keyframes_stop_has_no_time_for_are_deferred_to_the_snapshot_and_resumed
     assert_same_evidence(load_snapshot(tmp_path).state, reference.state)
 
 
+def test_stop_leaves_the_final_snapshot_the_time_the_last_one_took(tmp_path):
+    """Issue 24's flake: a fixed drain did not count the snapshot after it. A save listener (objects.db) that
+    takes 0.4 s is timed on the save_map queued first; stop then integrates only while a snapshot as long
+    still fits in its bound."""
+    worker, _, _ = make_worker(map_directory=str(tmp_path), queue_size=100)
+    worker.add_save_listener(lambda *_: time.sleep(0.4))
+    worker.add_keyframe_listener(lambda *_: time.sleep(0.05))
+    worker.submit_map(plane_map())
+    worker.submit_keyframe(rgb_keyframe(1))
+    saved = worker.call(lambda: worker.save(str(tmp_path)), "save_map")
+    for stamp in range(2, 41):
+        worker.submit_keyframe(rgb_keyframe(stamp))
+    start = time.monotonic()
+    info = worker.stop(within_s=1.5)  # never started: everything runs here, in order
+    elapsed = time.monotonic() - start
+    deferred = load_deferred(tmp_path)
+    assert saved.result(0).keyframes == 1 and 0.6 <= worker.save_estimate_s() < 1.5  # 1.5 x (0.4 s + files)
+    assert info is not None and info.keyframes + len(deferred) == 40
+    assert info.keyframes > 1 and deferred, (info.keyframes, len(deferred))
+    assert elapsed < 1.5 + 0.1, elapsed  # a fixed 1.5 s drain and then the 0.4 s snapshot took 1.9 s
+
+
 def test_stop_is_bounded_when_the_worker_is_busy(tmp_path):
     worker, _, log = make_worker(map_directory=str(tmp_path))
     worker.submit_map(plane_map())
@@ -539,7 +561,7 @@ def test_stop_is_bounded_when_the_worker_is_busy(tmp_path):
     worker.start()
     assert running.wait(10)
     start = time.monotonic()
-    assert worker.stop(drain_s=0.5) is None
+    assert worker.stop(within_s=0.5) is None
     assert time.monotonic() - start < 0.5 + 1.0 + 0.5  # the bound plus the grace for the task in progress
     assert any("still busy" in m for _, m in log.lines)
     release.set()
@@ -551,14 +573,14 @@ def test_stop_applies_queued_calls_in_order_before_its_bound_and_refuses_them_af
     worker.submit_keyframe(rgb_keyframe(1))
     saved = worker.call(lambda: worker.save(str(tmp_path / "between")), "save_map")
     worker.submit_keyframe(rgb_keyframe(2))
-    assert worker.stop(drain_s=60.0).keyframes == 2
+    assert worker.stop(within_s=60.0).keyframes == 2
     assert saved.result(0).keyframes == 1  # run in its place: after keyframe 1, before keyframe 2
 
     late, _, _ = make_worker(map_directory=str(tmp_path / "late"), queue_size=100)
     late.submit_map(plane_map())
     refused = late.call(lambda: late.save(str(tmp_path / "never")), "save_map")
     late.submit_keyframe(rgb_keyframe(1))
-    assert late.stop(drain_s=0.0).keyframes == 0 and [k.stamp_ns for k in load_deferred(tmp_path / "late")] == [1]
+    assert late.stop(within_s=0.0).keyframes == 0 and [k.stamp_ns for k in load_deferred(tmp_path / "late")] == [1]
     with pytest.raises(WorkerStopped):
         refused.result(0)
 

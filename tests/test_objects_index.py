@@ -12,7 +12,7 @@ import pytest
 
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.objects.evaluation import evaluate_index, load_queries
-from monovoc_ros.objects.index import IndexConfig, ObjectIndex, backend_identity, lazy_backend
+from monovoc_ros.objects.index import EMBED_CHUNK_VIEWS, IndexConfig, ObjectIndex, backend_identity, lazy_backend
 from monovoc_ros.objects.records import QueryError
 from tests.object_room import (
     SYNTHETIC_QUERIES,
@@ -66,6 +66,27 @@ def test_refresh_embeds_only_what_changed():
         if oid not in changed:
             assert np.array_equal(index.record(oid).image_embedding, image)
     assert all(np.isclose(np.linalg.norm(r.embedding), 1.0, atol=1e-5) for r in index.records())
+
+
+def test_refresh_stops_between_chunks_of_views_and_keeps_what_it_embedded():
+    """A stopping node's indexing thread (should_stop) ends after one chunk of views, not a whole batch."""
+    scene = room()
+    counting = CountingBackend(backend())
+    mapper = SemanticMapper(scene.gaussians)
+    index = ObjectIndex(counting, IndexConfig(labels=room_labels()))
+    for i in range(0, 8, 2):
+        keyframe = scene.keyframe(i)
+        mapper.integrate(keyframe)
+        index.keyframe_listener(keyframe, mapper)
+    asked = []
+    first = index.refresh(mapper, should_stop=lambda: asked.append(counting.images) or True)
+    most_views = max(len(index.views.views(oid)) for oid in index.views.versions())
+    assert asked == [counting.images] and EMBED_CHUNK_VIEWS <= counting.images < EMBED_CHUNK_VIEWS + most_views
+    assert 0 < first.embedded_objects < first.embedded_objects + first.pending == index.pending() + len(index)
+    rest = index.refresh()
+    assert rest.pending == 0 and rest.embedded_objects == first.pending
+    # Every view went through the encoder once: the first chunk's were kept.
+    assert counting.images == sum(len(index.views.views(r.id)) for r in index.records())
 
 
 def test_geometry_and_descriptions_of_the_room():

@@ -76,7 +76,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("map_directory", _WORKER.map_directory, "snapshot directory for save_map / load_map defaults, periodic and final saves"),
     Param("save_period_s", _WORKER.save_period_s, "periodic snapshot when there is new evidence (s); 0 = off", low=0),
     Param("resume", False, "start from map_directory's snapshot when it has one"),
-    Param("shutdown_drain_s", 3.0, "on SIGINT/SIGTERM, integrate queued keyframes for up to this long (s; fits ros2 launch's 5 s grace with the final snapshot); the rest are saved with the snapshot and integrated on resume", low=0),
+    Param("shutdown_timeout_s", 4.0, "on SIGINT/SIGTERM, the node exits about this long after the signal (s; ros2 launch sends SIGTERM at 5 s): queued keyframes are integrated while the final snapshot and the stop of the node's components still fit; the rest are saved with the snapshot and integrated on resume", low=0),
     Param("service_timeout_s", 60.0, "how long a service waits for its turn on the worker before answering failure", above=0),
 )  # fmt: skip
 
@@ -104,7 +104,7 @@ class NodeParams:
     map_directory: str
     save_period_s: float
     resume: bool
-    shutdown_drain_s: float
+    shutdown_timeout_s: float
     service_timeout_s: float
 
     @classmethod
@@ -180,7 +180,7 @@ class NodeParams:
             map_directory=map_directory,
             save_period_s=v["save_period_s"],
             resume=v["resume"],
-            shutdown_drain_s=v["shutdown_drain_s"],
+            shutdown_timeout_s=v["shutdown_timeout_s"],
             service_timeout_s=v["service_timeout_s"],
         )
 

@@ -72,6 +72,13 @@ BUSY_PUBLISH_SHARE = 0.2
 _SNAPSHOT_POLL_S = 0.1
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
 STOP_GRACE_S = 1.0
+# What `stop` expects the final snapshot (its files and its save listeners: objects.db) to take before one was
+# timed in this run: a base plus a share per million Gaussians (measured: 0.6 s for the bundled bag's 140k
+# Gaussians with objects.db on a loaded 2-core machine, 0.5-0.9 s for the files alone at 1-2M).
+SAVE_S_BASE = 0.5
+SAVE_S_PER_MILLION = 1.0
+# The estimate is multiplied by this: a snapshot written under load takes longer than the one timed before.
+SAVE_S_MARGIN = 1.5
 
 
 # The MapperStats field that a task's worker time is added to.
@@ -255,6 +262,8 @@ class MapWorker:
         self._last_publish = -float("inf")
         self._publish_s = 0.0  # the last publication's time
         self._last_save = time.monotonic()
+        self._save_s: float | None = None  # the last snapshot's time, save listeners included (stop's estimate)
+        self._capture_s = 0.0  # the periodic snapshot being written: its capture's time
 
     # ------------------------------------------------------------------ public API (any thread)
 
@@ -350,22 +359,32 @@ class MapWorker:
         self._thread = threading.Thread(target=self._run, name="monovoc-mapper-worker", daemon=True)
         self._thread.start()
 
-    def stop(self, *, final_snapshot: bool = True, drain_s: float = 0.0) -> SnapshotInfo | None:
-        """Stops the worker, integrating what is queued for up to `drain_s` seconds; bounded: never waits
-        for the worker thread longer than that (plus a second for the task in progress).
+    def stop(self, *, final_snapshot: bool = True, within_s: float = 0.0) -> SnapshotInfo | None:
+        """Stops the worker so that the final snapshot is written about `within_s` seconds from now: queued
+        keyframes are integrated while the snapshot's expected time (`save_estimate_s`) still fits, the rest
+        deferred. Bounded: never waits for the worker thread longer than that (plus STOP_GRACE_S for the task
+        in progress).
 
         Keyframes, maps and pose corrections queued are applied in order until the bound; keyframes left over
         are deferred: saved with the final snapshot (with a map directory) and integrated first on resume.
         Queued calls fail with WorkerStopped. Runs on the caller's thread once the worker has left its loop; a
-        periodic snapshot still being written is finished first (0.5-0.9 s at 1-2M Gaussians).
+        periodic snapshot still being written is finished first (0.5-0.9 s at 1-2M Gaussians), and counted.
         """
-        deadline = time.monotonic() + max(drain_s, 0.0)
+        start = time.monotonic()
+        saving = bool(final_snapshot and self.settings.map_directory)
+
+        def deadline() -> float:  # the estimate changes when a queued save_map runs in the drain
+            if not saving:
+                return start + within_s
+            writing = self._writing is not None and not self._writing.done()  # finished before the final one
+            return start + within_s - self.save_estimate_s() * (2 if writing else 1)
+
         self.queue.close()
         if self._thread is not None:
-            self._thread.join(max(drain_s, 0.0) + STOP_GRACE_S)
+            self._thread.join(max(deadline() - start, 0.0) + STOP_GRACE_S)
             if self._thread.is_alive():
                 self.log.error(
-                    f"shutdown: the worker is still busy after {drain_s + STOP_GRACE_S:.1f} s; no final snapshot "
+                    f"shutdown: the worker is still busy after {time.monotonic() - start:.1f} s; no final snapshot "
                     f"({self.keyframes_waiting} keyframes not integrated since the last one)"
                 )
                 return None
@@ -391,8 +410,17 @@ class MapWorker:
             self.log.error(f"final snapshot failed: {exc}")
         return None
 
-    def _drain(self, deadline: float) -> tuple[int, list[Keyframe]]:
-        """Applies the queued tasks in order until `deadline` (on the caller's thread: the worker has left);
+    def save_estimate_s(self) -> float:
+        """What `stop` expects the final snapshot to take (s): the last one timed, else a guess from the map's
+        size; times SAVE_S_MARGIN."""
+        if self._save_s is not None:
+            return SAVE_S_MARGIN * self._save_s
+        mapper = self.session.mapper
+        n = 0 if mapper is None else len(mapper.gaussians)
+        return SAVE_S_MARGIN * (SAVE_S_BASE + SAVE_S_PER_MILLION * n / 1e6)
+
+    def _drain(self, deadline: Callable[[], float]) -> tuple[int, list[Keyframe]]:
+        """Applies the queued tasks in order until `deadline()` (on the caller's thread: the worker has left);
         returns (keyframes integrated, keyframes left over, oldest first, with any pose correction the
         session holds for them). After the deadline keyframes are kept, calls fail (WorkerStopped) and map
         updates are dropped (the SLAM sends its map again); a first map is still applied, or nothing could
@@ -407,18 +435,22 @@ class MapWorker:
                 self.log.error(f"shutdown: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
                 return None
 
+        longest = 0.0  # the longest keyframe so far: one is only started when one as long still fits
+
         def integrate_ready() -> None:
-            nonlocal integrated
-            while self.session.keyframes_ready and time.monotonic() < deadline:
+            nonlocal integrated, longest
+            while self.session.keyframes_ready and time.monotonic() + longest < deadline():
+                start = time.monotonic()
                 if guarded(self.session.integrate_next) is not None:
                     integrated += 1
                     self._changed()
+                longest = max(longest, time.monotonic() - start)
 
         # Twice: an input callback still running when the queue closed may have put one more task.
         for _ in range(2):
             for task in self.queue.drain():
                 integrate_ready()  # the session's keyframes are older than any queued task, as in _run
-                if time.monotonic() < deadline or (task.kind == "map" and self.session.mapper is None):
+                if time.monotonic() < deadline() or (task.kind == "map" and self.session.mapper is None):
                     guarded(lambda task=task: self._execute(task))
                 elif task.kind == "keyframe":
                     late.append(task.payload)
@@ -431,7 +463,9 @@ class MapWorker:
 
     def save(self, directory: str, deferred: Sequence[Keyframe] = ()) -> SnapshotInfo:
         self._collect_snapshot(wait=True)  # one writer at a time: snapshot numbers and CURRENT stay in order
+        start = time.perf_counter()
         info = self.session.save(directory, deferred)
+        self._save_s = time.perf_counter() - start
         if Path(directory).resolve() == _resolved(self.settings.map_directory):
             self._unsaved = False
             self._last_save = time.monotonic()
@@ -591,7 +625,8 @@ class MapWorker:
             return
         self._writing = self._writer.submit(write_snapshot, content, directory)
         self._unsaved, self._last_save = False, time.monotonic()
-        self.stats.add(worker_s_snapshots=time.perf_counter() - start)
+        self._capture_s = time.perf_counter() - start
+        self.stats.add(worker_s_snapshots=self._capture_s)
 
     def _collect_snapshot(self, wait: bool = False) -> None:
         """Finishes the periodic snapshot being written once it is (wait: waits for it): counted and the save
@@ -609,7 +644,9 @@ class MapWorker:
             self._snapshot_failed(directory, exc)
             return
         self.session.saved(directory, info)
-        self.stats.add(worker_s_snapshots=time.perf_counter() - start)
+        told = time.perf_counter() - start
+        self._save_s = self._capture_s + info.seconds + told  # what the same snapshot would take in one go
+        self.stats.add(worker_s_snapshots=told)
         self.log.info(f"snapshot {info.path.name}: {info.keyframes} keyframes, written in {info.seconds:.2f} s")
 
     def _snapshot_failed(self, directory: str, exc: Exception) -> None:

@@ -45,10 +45,13 @@ from monovoc_ros.objects.views import ObjectView, ObjectViews, ViewConfig
 
 CROP_MODES = ("soft", "hard")
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z", "auto")
+TEXT_CACHE_SIZE = 256  # query texts whose embeddings are kept
 # Objects embedded per refresh call by default in a live node: ~3 views x 18 ms each on 2 cores, so
 # ~0.45 s of work per call, short enough that keyframes and map updates keep flowing.
-TEXT_CACHE_SIZE = 256  # query texts whose embeddings are kept
 LIVE_OBJECTS_PER_REFRESH = 8
+# New views embedded between two looks at refresh's should_stop (~70 ms on 2 cores, several times that on
+# the niced indexing thread of a busy node): a stopping node waits for one chunk, not for a whole call.
+EMBED_CHUNK_VIEWS = 4
 
 
 @dataclass
@@ -270,12 +273,15 @@ class ObjectIndex:
         segment_labels: Mapping[int, str] | None = None,
         label_confidence: Mapping[int, float] | None = None,
         max_objects: int | None = None,
+        should_stop: Callable[[], bool] = lambda: False,
     ) -> RefreshReport:
         """Updates geometry from ``mapper`` (or ``gaussians`` + ``result``), re-embeds dirty objects (at
         most ``max_objects`` of them, never-embedded ones and large ones first) and publishes the new
         records. Without geometry arguments only embeddings are brought up to date. ``segment_labels`` and
         ``label_confidence`` (the mapper's ``object_labels()`` and ``object_label_confidence()``, taken with
-        ``result``): the segmenter's class names and how sure they are, which ``refresh(mapper)`` reads itself."""
+        ``result``): the segmenter's class names and how sure they are, which ``refresh(mapper)`` reads itself.
+        ``should_stop`` is asked between chunks of views: a stopping node does not wait for a whole batch;
+        objects not reached stay pending, views already embedded keep their embeddings."""
         start = time.perf_counter()
         report = RefreshReport()
         with self._refresh_lock:
@@ -296,10 +302,10 @@ class ObjectIndex:
             dirty.sort(key=lambda oid: (oid in self._image_emb, -self._summaries[oid].num_gaussians, oid))
             batch = dirty if max_objects is None else dirty[: max(0, int(max_objects))]
             if batch:
-                backend = self.backend
-                report.embedded_views = self._embed_objects(batch, versions, backend)
-                report.embedded_objects = len(batch)
-            report.pending = len(dirty) - len(batch)
+                report.embedded_objects, report.embedded_views = self._embed_objects(
+                    batch, versions, self.backend, should_stop
+                )
+            report.pending = len(dirty) - report.embedded_objects
             ready = [oid for oid in listed if oid in self._image_emb]
             if ready:
                 report.embedded_descriptions = self._publish(ready, self.backend)
@@ -329,15 +335,32 @@ class ObjectIndex:
         self.gaussians = gaussians
         self._geometry_key = key
 
-    def _embed_objects(self, batch: list[int], versions: Mapping[int, int], backend) -> int:
+    def _embed_objects(
+        self, batch: list[int], versions: Mapping[int, int], backend, should_stop: Callable[[], bool]
+    ) -> tuple[int, int]:
+        """Embeds `batch`'s objects in order, in chunks of about EMBED_CHUNK_VIEWS new views, until
+        `should_stop`; returns (objects embedded, views newly embedded)."""
         key = self.view_key(backend_identity(backend))
+        objects = views_done = 0
+        chunk: dict[int, list[ObjectView]] = {}
+        new_views = 0
+        for n, oid in enumerate(batch):
+            chunk[oid] = views = self.views.views(oid)
+            new_views += sum(key not in v.embeddings for v in views)
+            if new_views < EMBED_CHUNK_VIEWS and n + 1 < len(batch):
+                continue
+            views_done += self._embed_chunk(chunk, key, versions, backend)
+            objects += len(chunk)
+            chunk, new_views = {}, 0
+            if should_stop():
+                break
+        return objects, views_done
+
+    def _embed_chunk(
+        self, per_object: dict[int, list[ObjectView]], key: tuple, versions: Mapping[int, int], backend
+    ) -> int:
         c = self.config
-        todo: list[ObjectView] = []
-        per_object: dict[int, list[ObjectView]] = {}
-        for oid in batch:
-            views = self.views.views(oid)
-            per_object[oid] = views
-            todo.extend(v for v in views if key not in v.embeddings)
+        todo = [v for views in per_object.values() for v in views if key not in v.embeddings]
         if todo:
             crops = [crop_object(v.rgb, v.mask, c.crop_mode, context=c.context, dim=c.dim) for v in todo]
             for view, emb in zip(todo, backend.embed_images(crops), strict=True):
