@@ -535,22 +535,24 @@ def test_stop_leaves_the_final_snapshot_the_time_the_last_one_took(tmp_path):
     """Issue 24's flake: a fixed drain did not count the snapshot after it. A save listener (objects.db) that
     takes 0.4 s is timed on the save_map queued first; stop then integrates only while a snapshot as long
     still fits in its bound."""
+    SemanticMapper(plane_map()).integrate(rgb_keyframe(1))  # the rasterizer's kernels loaded before timing
     worker, _, _ = make_worker(map_directory=str(tmp_path), queue_size=100)
     worker.add_save_listener(lambda *_: time.sleep(0.4))
     worker.add_keyframe_listener(lambda *_: time.sleep(0.05))
     worker.submit_map(plane_map())
     worker.submit_keyframe(rgb_keyframe(1))
     saved = worker.call(lambda: worker.save(str(tmp_path)), "save_map")
+    estimate = worker.call(worker.save_estimate_s)
     for stamp in range(2, 41):
         worker.submit_keyframe(rgb_keyframe(stamp))
     start = time.monotonic()
     info = worker.stop(within_s=1.5)  # never started: everything runs here, in order
     elapsed = time.monotonic() - start
     deferred = load_deferred(tmp_path)
-    assert saved.result(0).keyframes == 1 and 0.6 <= worker.save_estimate_s() < 1.5  # 1.5 x (0.4 s + files)
+    assert saved.result(0).keyframes == 1 and 0.6 <= estimate.result(0) < 1.5  # 1.5 x (0.4 s + the files)
     assert info is not None and info.keyframes + len(deferred) == 40
     assert info.keyframes > 1 and deferred, (info.keyframes, len(deferred))
-    assert elapsed < 1.5 + 0.1, elapsed  # a fixed 1.5 s drain and then the 0.4 s snapshot took 1.9 s
+    assert elapsed < 1.5 + 0.25, elapsed  # a fixed 1.5 s drain and then the 0.4 s snapshot took 1.9 s
 
 
 def test_stop_is_bounded_when_the_worker_is_busy(tmp_path):

@@ -282,9 +282,8 @@ class ObjectQueryComponent:
             }
         if not geometry and index.pending() == 0:
             return
-        report = index.refresh(
-            **geometry, max_objects=self.settings.max_objects_per_refresh, should_stop=self._stopping.is_set
-        )
+        bounded = {"max_objects": self.settings.max_objects_per_refresh, "should_stop": self._stopping.is_set}
+        report = index.refresh(**geometry, **bounded)
         self.backend_error = None
         self._last_refresh = time.monotonic()
         self._update_labels(index)
@@ -292,7 +291,7 @@ class ObjectQueryComponent:
         while report.pending and not self._stopping.is_set() and self._pending is None and index is self.index:
             if self._yield_to_mapping():
                 return
-            report = index.refresh(max_objects=self.settings.max_objects_per_refresh, should_stop=self._stopping.is_set)
+            report = index.refresh(**bounded)
             self._last_refresh = time.monotonic()
             self._update_labels(index)
 

@@ -72,11 +72,13 @@ BUSY_PUBLISH_SHARE = 0.2
 _SNAPSHOT_POLL_S = 0.1
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
 STOP_GRACE_S = 1.0
-# What `stop` expects the final snapshot (its files and its save listeners: objects.db) to take before one was
-# timed in this run: a base plus a share per million Gaussians (measured: 0.6 s for the bundled bag's 140k
-# Gaussians with objects.db on a loaded 2-core machine, 0.5-0.9 s for the files alone at 1-2M).
+# What `stop` expects the final snapshot (its files and its save listeners: objects.db) to take at least: a base,
+# a share per million Gaussians and one per MB of keyframes deferred with it (mask and RGB). Measured on a 2-core
+# machine with two busy processes beside the node: 0.62 s for the bundled bag's 140k Gaussians with 5 keyframes
+# of 0.71 MB deferred, 0.97 s with 30 (objects.db 0.36 s of each); the files alone 0.3-0.5 s at 1-2M (issue 25).
 SAVE_S_BASE = 0.5
-SAVE_S_PER_MILLION = 1.0
+SAVE_S_PER_MILLION = 0.4
+SAVE_S_PER_DEFERRED_MB = 0.02
 # The estimate is multiplied by this: a snapshot written under load takes longer than the one timed before.
 SAVE_S_MARGIN = 1.5
 
@@ -262,7 +264,8 @@ class MapWorker:
         self._last_publish = -float("inf")
         self._publish_s = 0.0  # the last publication's time
         self._last_save = time.monotonic()
-        self._save_s: float | None = None  # the last snapshot's time, save listeners included (stop's estimate)
+        # The last snapshot's time, save listeners included, and its map's size (stop's estimate).
+        self._save_timed: tuple[float, int] | None = None
         self._capture_s = 0.0  # the periodic snapshot being written: its capture's time
 
     # ------------------------------------------------------------------ public API (any thread)
@@ -373,15 +376,16 @@ class MapWorker:
         start = time.monotonic()
         saving = bool(final_snapshot and self.settings.map_directory)
 
-        def deadline() -> float:  # the estimate changes when a queued save_map runs in the drain
+        def deadline(deferred_mb: float) -> float:  # recomputed as keyframes left to defer and timings change
             if not saving:
                 return start + within_s
-            writing = self._writing is not None and not self._writing.done()  # finished before the final one
-            return start + within_s - self.save_estimate_s() * (2 if writing else 1)
+            writing = self._writing  # the worker thread may clear it meanwhile
+            before = 2 if writing is not None and not writing.done() else 1  # finished before the final one
+            return start + within_s - before * self.save_estimate_s(deferred_mb)
 
         self.queue.close()
         if self._thread is not None:
-            self._thread.join(max(deadline() - start, 0.0) + STOP_GRACE_S)
+            self._thread.join(max(deadline(0.0) - start, 0.0) + STOP_GRACE_S)
             if self._thread.is_alive():
                 self.log.error(
                     f"shutdown: the worker is still busy after {time.monotonic() - start:.1f} s; no final snapshot "
@@ -394,7 +398,7 @@ class MapWorker:
         self._writer.shutdown(wait=False)
         if drained or deferred:
             self.log.info(f"shutdown: integrated {drained} queued keyframes, deferred {len(deferred)}")
-        if not (final_snapshot and self.settings.map_directory and self.session.mapper is not None):
+        if not (saving and self.session.mapper is not None):
             if deferred:
                 why = "no map directory" if not self.settings.map_directory else "no map to save them with"
                 self.log.warning(f"shutting down with {len(deferred)} keyframes not integrated ({why})")
@@ -410,21 +414,24 @@ class MapWorker:
             self.log.error(f"final snapshot failed: {exc}")
         return None
 
-    def save_estimate_s(self) -> float:
-        """What `stop` expects the final snapshot to take (s): the last one timed, else a guess from the map's
-        size; times SAVE_S_MARGIN."""
-        if self._save_s is not None:
-            return SAVE_S_MARGIN * self._save_s
+    def save_estimate_s(self, deferred_mb: float = 0.0) -> float:
+        """What `stop` expects the final snapshot with `deferred_mb` MB of keyframes to take (s), times
+        SAVE_S_MARGIN: the last snapshot timed (scaled to a map grown since), never less than the guess from
+        the sizes."""
         mapper = self.session.mapper
         n = 0 if mapper is None else len(mapper.gaussians)
-        return SAVE_S_MARGIN * (SAVE_S_BASE + SAVE_S_PER_MILLION * n / 1e6)
+        guess = SAVE_S_BASE + SAVE_S_PER_MILLION * n / 1e6 + SAVE_S_PER_DEFERRED_MB * deferred_mb
+        if self._save_timed is not None:
+            seconds, timed_n = self._save_timed
+            guess = max(guess, seconds * max(1.0, n / max(timed_n, 1)))
+        return SAVE_S_MARGIN * guess
 
-    def _drain(self, deadline: Callable[[], float]) -> tuple[int, list[Keyframe]]:
-        """Applies the queued tasks in order until `deadline()` (on the caller's thread: the worker has left);
-        returns (keyframes integrated, keyframes left over, oldest first, with any pose correction the
-        session holds for them). After the deadline keyframes are kept, calls fail (WorkerStopped) and map
-        updates are dropped (the SLAM sends its map again); a first map is still applied, or nothing could
-        be saved."""
+    def _drain(self, deadline: Callable[[float], float]) -> tuple[int, list[Keyframe]]:
+        """Applies the queued tasks in order until `deadline(MB of keyframes that stopping now would defer)`
+        (on the caller's thread: the worker has left); returns (keyframes integrated, keyframes left over,
+        oldest first, with any pose correction the session holds for them). After the deadline keyframes are
+        kept, calls fail (WorkerStopped) and map updates are dropped (the SLAM sends its map again); a first
+        map is still applied, or nothing could be saved."""
         integrated, late = 0, []
 
         def guarded(step: Callable[[], Any]) -> Any:
@@ -436,10 +443,15 @@ class MapWorker:
                 return None
 
         longest = 0.0  # the longest keyframe so far: one is only started when one as long still fits
+        queued = 0  # keyframe tasks taken from the queue and not handled yet
+        mb = 0.0  # a keyframe's mask and RGB (MB)
+
+        def left() -> float:
+            return (self.session.waiting + queued + len(late)) * mb
 
         def integrate_ready() -> None:
             nonlocal integrated, longest
-            while self.session.keyframes_ready and time.monotonic() + longest < deadline():
+            while self.session.keyframes_ready and time.monotonic() + longest < deadline(left()):
                 start = time.monotonic()
                 if guarded(self.session.integrate_next) is not None:
                     integrated += 1
@@ -448,14 +460,18 @@ class MapWorker:
 
         # Twice: an input callback still running when the queue closed may have put one more task.
         for _ in range(2):
-            for task in self.queue.drain():
+            tasks = self.queue.drain()
+            keyframes = [task.payload for task in tasks if task.kind == "keyframe"]
+            queued, mb = len(keyframes), max([mb, *(_megabytes(k) for k in keyframes[:1])])
+            for task in tasks:
                 integrate_ready()  # the session's keyframes are older than any queued task, as in _run
-                if time.monotonic() < deadline() or (task.kind == "map" and self.session.mapper is None):
+                if time.monotonic() < deadline(left()) or (task.kind == "map" and self.session.mapper is None):
                     guarded(lambda task=task: self._execute(task))
                 elif task.kind == "keyframe":
                     late.append(task.payload)
                 elif task.future is not None and task.future.set_running_or_notify_cancel():
                     task.future.set_exception(WorkerStopped(f"{task.name or 'call'}: the node is shutting down"))
+                queued -= task.kind == "keyframe"
             integrate_ready()
         return integrated, self.session.take_waiting(late)
 
@@ -465,7 +481,7 @@ class MapWorker:
         self._collect_snapshot(wait=True)  # one writer at a time: snapshot numbers and CURRENT stay in order
         start = time.perf_counter()
         info = self.session.save(directory, deferred)
-        self._save_s = time.perf_counter() - start
+        self._timed_save(time.perf_counter() - start)
         if Path(directory).resolve() == _resolved(self.settings.map_directory):
             self._unsaved = False
             self._last_save = time.monotonic()
@@ -643,11 +659,17 @@ class MapWorker:
             self._unsaved = True  # what it captured is in no snapshot
             self._snapshot_failed(directory, exc)
             return
+        self.stats.add(worker_s_snapshots=time.perf_counter() - start)
+        start = time.perf_counter()  # the write is info.seconds, waited for or not
         self.session.saved(directory, info)
         told = time.perf_counter() - start
-        self._save_s = self._capture_s + info.seconds + told  # what the same snapshot would take in one go
+        self._timed_save(self._capture_s + info.seconds + told)  # what the same snapshot would take in one go
         self.stats.add(worker_s_snapshots=told)
         self.log.info(f"snapshot {info.path.name}: {info.keyframes} keyframes, written in {info.seconds:.2f} s")
+
+    def _timed_save(self, seconds: float) -> None:
+        mapper = self.session.mapper
+        self._save_timed = (seconds, 0 if mapper is None else len(mapper.gaussians))
 
     def _snapshot_failed(self, directory: str, exc: Exception) -> None:
         self._last_save = time.monotonic()  # retry one period later, not on every task
@@ -657,6 +679,10 @@ class MapWorker:
     def _listener_failed(self, fn: Callable[..., Any], exc: Exception) -> None:
         self.stats.add(worker_errors=1)
         self.log.error(f"listener {getattr(fn, '__qualname__', fn)} failed: {type(exc).__name__}: {exc}")
+
+
+def _megabytes(keyframe: Keyframe) -> float:
+    return (keyframe.mask.nbytes + (0 if keyframe.rgb is None else keyframe.rgb.nbytes)) / 1e6
 
 
 def _resolved(directory: str) -> Path | None:

@@ -273,15 +273,16 @@ class ObjectIndex:
         segment_labels: Mapping[int, str] | None = None,
         label_confidence: Mapping[int, float] | None = None,
         max_objects: int | None = None,
-        should_stop: Callable[[], bool] = lambda: False,
+        should_stop: Callable[[], bool] | None = None,
     ) -> RefreshReport:
         """Updates geometry from ``mapper`` (or ``gaussians`` + ``result``), re-embeds dirty objects (at
         most ``max_objects`` of them, never-embedded ones and large ones first) and publishes the new
         records. Without geometry arguments only embeddings are brought up to date. ``segment_labels`` and
         ``label_confidence`` (the mapper's ``object_labels()`` and ``object_label_confidence()``, taken with
         ``result``): the segmenter's class names and how sure they are, which ``refresh(mapper)`` reads itself.
-        ``should_stop`` is asked between chunks of views: a stopping node does not wait for a whole batch;
-        objects not reached stay pending, views already embedded keep their embeddings."""
+        ``should_stop`` (a live node's stop) is asked between chunks of EMBED_CHUNK_VIEWS views: a stopping node
+        does not wait for a whole batch; objects not reached stay pending, views already embedded keep their
+        embeddings. Without it, the batch goes to the image encoder at once."""
         start = time.perf_counter()
         report = RefreshReport()
         with self._refresh_lock:
@@ -336,23 +337,24 @@ class ObjectIndex:
         self._geometry_key = key
 
     def _embed_objects(
-        self, batch: list[int], versions: Mapping[int, int], backend, should_stop: Callable[[], bool]
+        self, batch: list[int], versions: Mapping[int, int], backend, should_stop: Callable[[], bool] | None
     ) -> tuple[int, int]:
-        """Embeds `batch`'s objects in order, in chunks of about EMBED_CHUNK_VIEWS new views, until
-        `should_stop`; returns (objects embedded, views newly embedded)."""
+        """Embeds `batch`'s objects in order (with `should_stop`: in chunks of about EMBED_CHUNK_VIEWS new views,
+        until it says stop); returns (objects embedded, views newly embedded)."""
         key = self.view_key(backend_identity(backend))
+        chunk_views = EMBED_CHUNK_VIEWS if should_stop is not None else math.inf
         objects = views_done = 0
         chunk: dict[int, list[ObjectView]] = {}
         new_views = 0
         for n, oid in enumerate(batch):
             chunk[oid] = views = self.views.views(oid)
             new_views += sum(key not in v.embeddings for v in views)
-            if new_views < EMBED_CHUNK_VIEWS and n + 1 < len(batch):
+            if new_views < chunk_views and n + 1 < len(batch):
                 continue
             views_done += self._embed_chunk(chunk, key, versions, backend)
             objects += len(chunk)
             chunk, new_views = {}, 0
-            if should_stop():
+            if should_stop is not None and should_stop():
                 break
         return objects, views_done
 
