@@ -216,7 +216,9 @@ def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float
                 latency_ms_p50=round(float(np.percentile(lat, 50)), 1) if len(lat) else None,
                 latency_ms_p95=round(float(np.percentile(lat, 95)), 1) if len(lat) else None,
                 latency_ms_max=round(float(lat.max()), 1) if len(lat) else None,
-                queries={k: queries.get(k) for k in ("sent", "answered", "lost", "p50_ms", "p99_ms", "max_ms")},
+                queries={
+                    k: queries.get(k) for k in ("sent", "answered", "lost", "p50_ms", "p99_ms", "max_ms", "slowest")
+                },
             )
     return out
 

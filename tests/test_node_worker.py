@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -322,6 +323,32 @@ def test_periodic_and_final_snapshots(tmp_path):
     assert load_snapshot(tmp_path).state.stamps_ns.tolist() == [1, 2]
     assert info is None or info.keyframes == 2
     assert worker.stats.snapshots_saved >= 2
+
+
+def test_a_periodic_snapshot_does_not_wait_for_its_listeners_work_and_save_map_does(tmp_path):
+    """objects.db's images are encoded and written beside the worker: its save listener returns that work's
+    Future. A periodic snapshot goes on without it; save_map returns only once it is done."""
+    pool, gate, calls = ThreadPoolExecutor(max_workers=1), threading.Event(), []
+    worker, _, _ = make_worker(map_directory=str(tmp_path / "map"), save_period_s=0.01, queue_size=64)
+    worker.add_save_listener(lambda *_: calls.append(1) or pool.submit(gate.wait, 30))
+    worker.submit_map(plane_map())
+    worker.submit_keyframe(keyframe(1))
+    worker.start()
+    try:
+        wait_until(lambda: worker.stats.snapshots_saved >= 1 and calls, 10.0, "a periodic snapshot")
+        worker.submit_keyframe(keyframe(2))
+        drain(worker)  # its listener's work still waits for the gate
+        assert worker.stats.keyframes_processed == 2 and not gate.is_set()
+        n = len(calls)
+        saved = worker.call(lambda: worker.save(str(tmp_path / "explicit")), "save_map")
+        wait_until(lambda: len(calls) > n, 10.0, "save_map's listener")
+        assert not saved.done()  # waiting for the listener's work
+        gate.set()
+        assert saved.result(10).keyframes == 2
+    finally:
+        gate.set()
+        worker.stop(final_snapshot=False)
+        pool.shutdown()
 
 
 def test_periodic_snapshots_are_written_beside_the_worker_as_captured(tmp_path):

@@ -24,6 +24,7 @@ from __future__ import annotations
 import threading
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -67,7 +68,8 @@ SESSION_REASONS = (
 
 KeyframeListener = Callable[[Keyframe, SemanticMapper], None]
 LoadCheck = Callable[[str, SemanticMapper], "Callable[[], None] | None"]
-SaveListener = Callable[[str, SnapshotInfo, SemanticMapper], None]
+# May return a Future of work it goes on with beside the caller (objects.db's images and writes): see `saved`.
+SaveListener = Callable[[str, SnapshotInfo, SemanticMapper], Future | None]
 ListenerErrorHandler = Callable[[Callable[..., Any], Exception], None]
 
 
@@ -203,7 +205,8 @@ class MappingSession:
         self._reset_listeners.append(fn)
 
     def add_save_listener(self, fn: SaveListener) -> None:
-        """fn(directory, info, mapper) after every snapshot."""
+        """fn(directory, info, mapper) after every snapshot; it may return a Future of work it goes on with
+        (`save` waits for it, a periodic snapshot's `saved` hands it back)."""
         self._save_listeners.append(fn)
 
     def add_load_check(self, fn: LoadCheck) -> None:
@@ -362,7 +365,8 @@ class MappingSession:
     def save(self, directory: str, deferred: Sequence[Keyframe] = ()) -> SnapshotInfo:
         """A snapshot of the map; `deferred`: keyframes received but not integrated, saved with it (map_store)."""
         info = save_snapshot(self._mapper_to_save(), directory, deferred=deferred)
-        self.saved(directory, info)
+        for future in self.saved(directory, info):  # a save is whole when it returns (save_map, the last one)
+            self._notify(future.result)
         return info
 
     def capture(self, deferred: Sequence[Keyframe] = ()) -> SnapshotContent:
@@ -375,11 +379,12 @@ class MappingSession:
             raise ValueError("no map to save yet")
         return self._mapper
 
-    def saved(self, directory: str, info: SnapshotInfo) -> None:
-        """A snapshot was written into `directory`: counted, and the save listeners told."""
+    def saved(self, directory: str, info: SnapshotInfo) -> list[Future]:
+        """A snapshot was written into `directory`: counted, and the save listeners told; returns the Futures
+        of the work they go on with beside the caller."""
         self.stats.add(snapshots_saved=1)
-        for fn in self._save_listeners:
-            self._notify(fn, directory, info, self._mapper)
+        going_on = (self._notify(fn, directory, info, self._mapper) for fn in self._save_listeners)
+        return [future for future in going_on if isinstance(future, Future)]
 
     def load(self, path: str) -> SemanticMapper:
         """Replaces the mapper: a snapshot directory (state included) or a PLY file (fresh state).
@@ -421,14 +426,15 @@ class MappingSession:
             keyframe_log_keyframes=len(m.keyframe_log) if m else 0,
         )
 
-    def _notify(self, fn: Callable[..., Any], *args: Any) -> None:
+    def _notify(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """fn(*args), its errors handed to the listener error handler (None then) when there is one."""
         if self._on_listener_error is None:
-            fn(*args)
-            return
+            return fn(*args)
         try:
-            fn(*args)
+            return fn(*args)
         except Exception as exc:
             self._on_listener_error(fn, exc)
+            return None
 
 
 class _SilentLogger:

@@ -30,18 +30,21 @@ def query_client(node: Any, name: str = f"{DEFAULT_NAMESPACE}/query") -> Any:
 
 def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float = 30.0) -> dict[str, Any]:
     """Sends `count` queries at `rate_hz` (the client's node spins in another thread) and waits up to
-    `timeout_s` after the last for the answers: {sent, answered, lost, succeeded, p50_ms, p99_ms, max_ms}."""
+    `timeout_s` after the last for the answers: {sent, answered, lost, succeeded, p50_ms, p99_ms, max_ms,
+    slowest}; `slowest`: the 5 slowest as [time.time() when sent, ms], to set beside the node's log."""
     from monovoc_interfaces.srv import TextQuery
 
     lock = threading.Lock()
     latencies: list[float] = []
+    timed: list[tuple[float, float]] = []  # (time.time() sent, seconds)
     succeeded = [0]
     done = threading.Semaphore(0)
 
-    def on_done(future: Any, sent: float) -> None:
+    def on_done(future: Any, sent: float, sent_wall: float) -> None:
         elapsed = time.perf_counter() - sent
         with lock:
             latencies.append(elapsed)
+            timed.append((sent_wall, elapsed))
             succeeded[0] += bool(future.result() is not None and future.result().success)
         done.release()
 
@@ -52,9 +55,9 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
         now = time.perf_counter()
         if due > now:
             time.sleep(due - now)
-        sent = time.perf_counter()
+        sent, sent_wall = time.perf_counter(), time.time()
         future = client.call_async(TextQuery.Request(text=TEXTS[n % len(TEXTS)], top_k=5))
-        future.add_done_callback(lambda f, sent=sent: on_done(f, sent))
+        future.add_done_callback(lambda f, sent=sent, sent_wall=sent_wall: on_done(f, sent, sent_wall))
         futures.append(future)
     sending_s = time.perf_counter() - start
     deadline = time.monotonic() + timeout_s
@@ -63,6 +66,7 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
         answered += 1
     with lock:
         samples = sorted(latencies)
+        slowest = sorted(timed, key=lambda t: -t[1])[:5]
 
     def pct(q: float) -> float:
         return round(1e3 * samples[min(len(samples) - 1, int(q * len(samples)))], 1) if samples else float("nan")
@@ -76,6 +80,7 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
         "p50_ms": pct(0.50),
         "p99_ms": pct(0.99),
         "max_ms": round(1e3 * samples[-1], 1) if samples else float("nan"),
+        "slowest": [[round(wall, 3), round(1e3 * seconds, 1)] for wall, seconds in slowest],
     }
 
 

@@ -294,7 +294,9 @@ class MapWorker:
     def add_save_listener(self, fn: SaveListener) -> None:
         """fn(directory, info, mapper) runs on the worker thread after every snapshot (service, periodic, final):
         a periodic one is written beside the worker, and `mapper` may hold keyframes integrated meanwhile, but
-        never another map (map updates, re-integration swaps, resets and loads wait for the write)."""
+        never another map (map updates, re-integration swaps, resets and loads wait for the write). fn may return
+        a Future of work it goes on with beside the worker (objects.db's images and writes): save_map's snapshot
+        and the final one wait for it, a periodic one does not (fn orders its own work)."""
         self.session.add_save_listener(fn)
 
     def add_load_check(self, fn: LoadCheck) -> None:
@@ -661,9 +663,13 @@ class MapWorker:
             return
         self.stats.add(worker_s_snapshots=time.perf_counter() - start)
         start = time.perf_counter()  # the write is info.seconds, waited for or not
-        self.session.saved(directory, info)
+        going_on = self.session.saved(directory, info)
         told = time.perf_counter() - start
-        self._timed_save(self._capture_s + info.seconds + told)  # what the same snapshot would take in one go
+        # What the same snapshot would take in one go (the final one waits for its listeners' work).
+        in_one_go = self._capture_s + info.seconds + told
+        self._timed_save(in_one_go)
+        for future in going_on:  # done in order of their ends: the last one counts
+            future.add_done_callback(lambda _, t=in_one_go - told: self._timed_save(t + time.perf_counter() - start))
         self.stats.add(worker_s_snapshots=told)
         self.log.info(f"snapshot {info.path.name}: {info.keyframes} keyframes, written in {info.seconds:.2f} s")
 

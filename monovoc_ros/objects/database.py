@@ -96,6 +96,22 @@ class SaveReport:
     seconds: float
 
 
+@dataclass(frozen=True)
+class PreparedSave:
+    """What ObjectDatabase.save writes, taken from an index at one moment (ObjectDatabase.prepare)."""
+
+    objects: list[tuple]  # the objects table's rows
+    views: list[ObjectView]  # their images are encoded when written (only those the file lacks)
+    view_key: tuple | None  # the embeddings stored with the views
+    observations: list[tuple[int, int]]  # (object id, masks seen in)
+    object_ids: np.ndarray | None  # (N,) per-Gaussian object index
+    meta: dict
+    snapshot: str | None
+    map_version: int | None
+    keyframes: int | None
+    seconds: float  # the time taken to prepare it
+
+
 @dataclass
 class GaussianIndex:
     """The per-Gaussian object ids of one map snapshot."""
@@ -242,13 +258,21 @@ class ObjectDatabase:
         keyframes: int | None = None,
     ) -> SaveReport:
         """Writes the index (records, views, observations, per-Gaussian ids, settings) in one transaction."""
+        return self.write(self.prepare(index, snapshot=snapshot, map_version=map_version, keyframes=keyframes))
+
+    def prepare(
+        self,
+        index: ObjectIndex,
+        *,
+        snapshot: str | None = None,
+        map_version: int | None = None,
+        keyframes: int | None = None,
+    ) -> PreparedSave:
+        """What `save` writes, taken from the index now (cheap: the views' images are encoded by `write`, which
+        a live node runs beside its worker while the index goes on changing)."""
         start = time.perf_counter()
-        records = index.records()
-        views = index.views.all_views()
         info = index.backend_info
         model = model_name(info) if info else ""
-        dim = int(info["dim"]) if info else 0
-        view_key = index.view_key(info) if info else None
         meta = {
             "backend": info,
             "embedding_model": model,
@@ -260,11 +284,27 @@ class ObjectDatabase:
             "saved_unix": time.time(),
             "snapshot": snapshot,
         }
-        object_rows = [_object_row(r, model, dim) for r in records]
+        return PreparedSave(
+            objects=[_object_row(r, model, int(info["dim"]) if info else 0) for r in index.records()],
+            views=index.views.all_views(),
+            view_key=index.view_key(info) if info else None,
+            observations=sorted(index.views.observation_counts().items()),
+            object_ids=index.object_ids,
+            meta=meta,
+            snapshot=snapshot,
+            map_version=map_version,
+            keyframes=keyframes,
+            seconds=time.perf_counter() - start,
+        )
+
+    def write(self, prepared: PreparedSave) -> SaveReport:
+        """Writes what `prepare` took, in one transaction: only the views the file lacks are encoded."""
+        start = time.perf_counter()
+        view_key = prepared.view_key
         gaussians = 0
         with self._transaction(write=True) as db:
             stored = set(db.execute("SELECT object_id, stamp_ns FROM views").fetchall())
-            wanted = {v.key: v for v in views}
+            wanted = {v.key: v for v in prepared.views}
             stale = [key for key in stored if key not in wanted]
             fresh = [v for key, v in wanted.items() if key not in stored]
             db.executemany("DELETE FROM views WHERE object_id = ? AND stamp_ns = ?", stale)
@@ -281,17 +321,17 @@ class ObjectDatabase:
                 ],
             )
             db.execute("DELETE FROM objects")
-            db.executemany(f"INSERT INTO objects VALUES ({', '.join('?' * 33)})", object_rows)
+            db.executemany(f"INSERT INTO objects VALUES ({', '.join('?' * 33)})", prepared.objects)
             db.execute("DELETE FROM observations")
-            db.executemany("INSERT INTO observations VALUES (?, ?)", sorted(index.views.observation_counts().items()))
-            if index.object_ids is not None:
-                ids, positions = encode_positions(index.object_ids)
+            db.executemany("INSERT INTO observations VALUES (?, ?)", prepared.observations)
+            if prepared.object_ids is not None:
+                ids, positions = encode_positions(prepared.object_ids)
                 db.execute(
                     "INSERT OR REPLACE INTO gaussian_index VALUES (0, ?, ?, ?, ?, ?, ?, ?, ?)",
                     (
-                        snapshot,
-                        map_version,
-                        keyframes,
+                        prepared.snapshot,
+                        prepared.map_version,
+                        prepared.keyframes,
                         int(positions.size),
                         ids.tobytes(),
                         positions.tobytes(),
@@ -302,9 +342,10 @@ class ObjectDatabase:
                 gaussians = int(positions.size)
             db.executemany(
                 "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
-                [(k, json.dumps(v)) for k, v in meta.items()],
+                [(k, json.dumps(v)) for k, v in prepared.meta.items()],
             )
-        return SaveReport(self.path, len(records), len(fresh), len(stale), gaussians, time.perf_counter() - start)
+        seconds = prepared.seconds + time.perf_counter() - start
+        return SaveReport(self.path, len(prepared.objects), len(fresh), len(stale), gaussians, seconds)
 
     # ------------------------------------------------------------------ reading
 
