@@ -267,6 +267,7 @@ class MapWorker:
         # The last snapshot's time, save listeners included, and its map's size (stop's estimate).
         self._save_timed: tuple[float, int] | None = None
         self._capture_s = 0.0  # the periodic snapshot being written: its capture's time
+        self._listener_work: list[Future] = []  # the last periodic snapshot's save listeners' work beside the worker
 
     # ------------------------------------------------------------------ public API (any thread)
 
@@ -381,8 +382,8 @@ class MapWorker:
         def deadline(deferred_mb: float) -> float:  # recomputed as keyframes left to defer and timings change
             if not saving:
                 return start + within_s
-            writing = self._writing  # the worker thread may clear it meanwhile
-            before = 2 if writing is not None and not writing.done() else 1  # finished before the final one
+            writing = [self._writing, *self._listener_work]  # the worker thread may replace them meanwhile
+            before = 2 if any(w is not None and not w.done() for w in writing) else 1  # finished before the final one
             return start + within_s - before * self.save_estimate_s(deferred_mb)
 
         self.queue.close()
@@ -668,6 +669,7 @@ class MapWorker:
         # What the same snapshot would take in one go (the final one waits for its listeners' work).
         in_one_go = self._capture_s + info.seconds + told
         self._timed_save(in_one_go)
+        self._listener_work = going_on
         for future in going_on:  # done in order of their ends: the last one counts
             future.add_done_callback(lambda _, t=in_one_go - told: self._timed_save(t + time.perf_counter() - start))
         self.stats.add(worker_s_snapshots=told)
