@@ -67,7 +67,15 @@ from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
 
 REFRESH_DEFER_S = 5.0  # longest time embedding waits while keyframes are queued for the worker
-EMBEDDING_NICENESS = 10  # added to the indexing thread's (and its encoder threads') nice value
+# Added to the nice value of the indexing thread (and its encoder threads) and of the objects.db writer.
+BACKGROUND_NICENESS = 10
+
+
+def _lower_priority() -> None:
+    """This thread below the mapping worker in the scheduler (Linux niceness is per thread; threads it
+    creates inherit it)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), BACKGROUND_NICENESS)
 
 
 @dataclass(frozen=True)
@@ -158,7 +166,7 @@ class ObjectQueryComponent:
         self._highlight_wake = threading.Event()
         self._highlighter = threading.Thread(target=self._run_highlights, name="monovoc-query-highlight", daemon=True)
         # objects.db writes, one at a time, in order (`save`).
-        self._db_writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-objects-db")
+        self._db_writer = ThreadPoolExecutor(1, "monovoc-objects-db", initializer=_lower_priority)
         self._db_write: Future | None = None
 
     # ------------------------------------------------------------------ life cycle
@@ -261,10 +269,7 @@ class ObjectQueryComponent:
     # ------------------------------------------------------------------ indexing thread
 
     def _run(self) -> None:
-        # Embedding is background work: below the mapping worker in the scheduler (Linux niceness is per
-        # thread, and onnxruntime's pool threads, created with the models just below, inherit it).
-        with contextlib.suppress(OSError, AttributeError):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), EMBEDDING_NICENESS)
+        _lower_priority()  # background work, as are onnxruntime's pool threads, created with the models below
         try:
             _ = self.index.backend  # load the models now, so the first query does not pay for it
         except (ModelMissingError, ValueError, OSError) as exc:  # a clip_onnx dir with bad files: ValueError

@@ -368,8 +368,8 @@ class MapWorker:
     def stop(self, *, final_snapshot: bool = True, within_s: float = 0.0) -> SnapshotInfo | None:
         """Stops the worker so that the final snapshot is written about `within_s` seconds from now: queued
         keyframes are integrated while the snapshot's expected time (`save_estimate_s`) still fits, the rest
-        deferred. Bounded: never waits for the worker thread longer than that (plus STOP_GRACE_S for the task
-        in progress).
+        deferred. Bounded: never waits for the task in progress on the worker thread longer than `within_s`
+        plus STOP_GRACE_S (a map update at 2M takes ~1-2 s; without it there would be no final snapshot).
 
         Keyframes, maps and pose corrections queued are applied in order until the bound; keyframes left over
         are deferred: saved with the final snapshot (with a map directory) and integrated first on resume.
@@ -388,7 +388,7 @@ class MapWorker:
 
         self.queue.close()
         if self._thread is not None:
-            self._thread.join(max(deadline(0.0) - start, 0.0) + STOP_GRACE_S)
+            self._thread.join(max(within_s, 0.0) + STOP_GRACE_S)  # a task in progress cannot be cut short
             if self._thread.is_alive():
                 self.log.error(
                     f"shutdown: the worker is still busy after {time.monotonic() - start:.1f} s; no final snapshot "
