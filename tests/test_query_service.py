@@ -27,6 +27,7 @@ from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.objects.database import DB_NAME, ObjectDatabase
 from monovoc_ros.ros_harness import (
     ClientNode,
+    DiagnosticsMonitor,
     MessageCollector,
     NodeProcess,
     call_service,
@@ -351,4 +352,15 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
         wait_for_service(load, process=node)
         assert call_service(load, LoadMap.Request(), 60.0, process=node).success
         wait_until(sofa_found, 20.0, "the objects restored with the map", process=node, interval=0.2)
+
+        # objects.db is written beside the worker: a write that fails is logged and counted, the snapshot and
+        # the node go on.
+        broken = tmp_path / "broken"
+        (broken / DB_NAME).mkdir(parents=True)
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        saved = call_service(save, SaveMap.Request(directory=str(broken)), 60.0, process=node)
+        assert saved.success, saved.message
+        diagnostics.wait_for(lambda v: v.get("objects.save_errors") == "1", 30.0, process=node)
+        node.wait_for_output("could not save objects to", 10.0)
+        assert sofa_found()
         node.check_running()

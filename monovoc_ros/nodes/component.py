@@ -63,7 +63,7 @@ class MappingHost:
     add_keyframe_listener: Callable[[KeyframeListener], None]  # fn(keyframe, mapper) after each keyframe
     add_result_listener: Callable[[ResultListener], None]  # fn(mapper, result) before each publication
     add_reset_listener: Callable[[Callable[[], None]], None]  # fn() after a reset
-    add_save_listener: Callable[[SaveListener], None]  # fn(directory, info, mapper) -> Future | None: MapWorker's
+    add_save_listener: Callable[[SaveListener], None]  # see MapWorker.add_save_listener
     add_load_check: Callable[[LoadCheck], None]  # see MapWorker.add_load_check
     add_diagnostics_source: Callable[[Callable[[], dict[str, Any]]], None]  # fn() -> pairs for /diagnostics
     # Object labels (core.segments.object_labels): set_label_provider(fn), fn() -> {object id: ObjectLabel}, gives the

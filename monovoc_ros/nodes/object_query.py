@@ -62,6 +62,7 @@ from monovoc_ros.objects.database import (
     ObjectDatabaseError,
     PreparedSave,
     load_object_index,
+    prepare_save,
 )
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
@@ -157,6 +158,7 @@ class ObjectQueryComponent:
         handler = guarded(Ask, "ask", self._on_ask, log=self.log.error, on_error=count_error, text_field="answer")
         self.ask_service = host.create_service(Ask, "ask", handler, SERVICE_QOS)
         self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
+        self.save_errors = 0  # objects.db writes that failed (logged; the next save writes what the file lacks)
         self.highlight = host.create_publisher(PointCloud2, "query/highlight", latched_qos())
         self.markers = host.create_publisher(MarkerArray, "query/markers", latched_qos())
         self._thread = threading.Thread(target=self._run, name="monovoc-object-index", daemon=True)
@@ -243,6 +245,7 @@ class ObjectQueryComponent:
             "queries.answered": self.queries_answered,
             "queries.failed": self.queries_failed,
             "objects.restore_errors": self.restore_errors,
+            "objects.save_errors": self.save_errors,
         }
 
     # ------------------------------------------------------------------ hooks (worker thread)
@@ -347,24 +350,22 @@ class ObjectQueryComponent:
         write's Future (None when nothing could be taken). Errors are logged: a snapshot must not fail for
         them."""
         self._finish_save()
-        index = self.index
-        try:
-            if mapper is not None and index.object_ids is None:
-                index.object_ids = mapper.result().object_ids
-            database = ObjectDatabase(directory)
-            prepared = database.prepare(index, snapshot=snapshot, map_version=getattr(mapper, "map_version", None),
-                                        keyframes=keyframes)  # fmt: skip
-        except (ObjectDatabaseError, OSError) as exc:
-            self.log.error(f"could not save objects to {directory}: {exc}")
+        if self._stopping.is_set():  # the writer is gone (a worker still busy after the node's stop)
             return None
-        self._db_write = self._db_writer.submit(self._write, database, prepared)
+        index = self.index
+        if mapper is not None and index.object_ids is None:
+            index.object_ids = mapper.result().object_ids
+        prepared = prepare_save(index, snapshot=snapshot, map_version=getattr(mapper, "map_version", None),
+                                keyframes=keyframes)  # fmt: skip
+        self._db_write = self._db_writer.submit(self._write, directory, prepared)
         return self._db_write
 
-    def _write(self, database: ObjectDatabase, prepared: PreparedSave) -> None:
+    def _write(self, directory: str, prepared: PreparedSave) -> None:
         try:
-            report = database.write(prepared)
-        except Exception as exc:  # logged here: nobody may wait for this write (a periodic snapshot's)
-            self.log.error(f"could not save objects to {database.path}: {type(exc).__name__}: {exc}")
+            report = ObjectDatabase(directory).write(prepared)
+        except Exception as exc:  # logged and counted here: nobody may wait for this write (a periodic one)
+            self.save_errors += 1
+            self.log.error(f"could not save objects to {directory}: {type(exc).__name__}: {exc}")
             return
         self.log.info(
             f"{report.path}: {report.objects} objects, {report.views_written} new views in {report.seconds:.2f} s"

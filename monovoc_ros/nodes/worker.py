@@ -366,7 +366,8 @@ class MapWorker:
         self._thread.start()
 
     def stop(self, *, final_snapshot: bool = True, within_s: float = 0.0) -> SnapshotInfo | None:
-        """Stops the worker so that the final snapshot is written about `within_s` seconds from now: queued
+        """Stops the worker so that the final snapshot is written about `within_s` seconds from now (later only
+        when the task in progress outlasts that, or the snapshot its estimate): queued
         keyframes are integrated while the snapshot's expected time (`save_estimate_s`) still fits, the rest
         deferred. Bounded: never waits for the task in progress on the worker thread longer than `within_s`
         plus STOP_GRACE_S (a map update at 2M takes ~1-2 s; without it there would be no final snapshot).
@@ -668,16 +669,23 @@ class MapWorker:
         told = time.perf_counter() - start
         # What the same snapshot would take in one go (the final one waits for its listeners' work).
         in_one_go = self._capture_s + info.seconds + told
-        self._timed_save(in_one_go)
+        n = self._timed_save(in_one_go)
         self._listener_work = going_on
+
+        def done(_: Future, before: float = in_one_go - told) -> None:  # on the listener's thread
+            if self._listener_work is going_on:  # not a snapshot's before it (n: the size this one captured)
+                self._save_timed = (before + time.perf_counter() - start, n)
+
         for future in going_on:  # done in order of their ends: the last one counts
-            future.add_done_callback(lambda _, t=in_one_go - told: self._timed_save(t + time.perf_counter() - start))
+            future.add_done_callback(done)
         self.stats.add(worker_s_snapshots=told)
         self.log.info(f"snapshot {info.path.name}: {info.keyframes} keyframes, written in {info.seconds:.2f} s")
 
-    def _timed_save(self, seconds: float) -> None:
+    def _timed_save(self, seconds: float) -> int:
+        """Records a snapshot's time with its map's size (returned)."""
         mapper = self.session.mapper
         self._save_timed = (seconds, 0 if mapper is None else len(mapper.gaussians))
+        return self._save_timed[1]
 
     def _snapshot_failed(self, directory: str, exc: Exception) -> None:
         self._last_save = time.monotonic()  # retry one period later, not on every task

@@ -98,7 +98,7 @@ class SaveReport:
 
 @dataclass(frozen=True)
 class PreparedSave:
-    """What ObjectDatabase.save writes, taken from an index at one moment (ObjectDatabase.prepare)."""
+    """What ObjectDatabase.save writes, taken from an index at one moment (`prepare_save`)."""
 
     objects: list[tuple]  # the objects table's rows
     views: list[ObjectView]  # their images are encoded when written (only those the file lacks)
@@ -258,47 +258,10 @@ class ObjectDatabase:
         keyframes: int | None = None,
     ) -> SaveReport:
         """Writes the index (records, views, observations, per-Gaussian ids, settings) in one transaction."""
-        return self.write(self.prepare(index, snapshot=snapshot, map_version=map_version, keyframes=keyframes))
-
-    def prepare(
-        self,
-        index: ObjectIndex,
-        *,
-        snapshot: str | None = None,
-        map_version: int | None = None,
-        keyframes: int | None = None,
-    ) -> PreparedSave:
-        """What `save` writes, taken from the index now (cheap: the views' images are encoded by `write`, which
-        a live node runs beside its worker while the index goes on changing)."""
-        start = time.perf_counter()
-        info = index.backend_info
-        model = model_name(info) if info else ""
-        meta = {
-            "backend": info,
-            "embedding_model": model,
-            "config": index.config.to_dict(),
-            "floor": index.floor_height(),
-            "up": [float(v) for v in index.up_vector()],
-            "viewpoint": None if index.viewpoint is None else [float(v) for v in index.viewpoint.ravel()],
-            "keyframes_seen": index.views.keyframes,
-            "saved_unix": time.time(),
-            "snapshot": snapshot,
-        }
-        return PreparedSave(
-            objects=[_object_row(r, model, int(info["dim"]) if info else 0) for r in index.records()],
-            views=index.views.all_views(),
-            view_key=index.view_key(info) if info else None,
-            observations=sorted(index.views.observation_counts().items()),
-            object_ids=index.object_ids,
-            meta=meta,
-            snapshot=snapshot,
-            map_version=map_version,
-            keyframes=keyframes,
-            seconds=time.perf_counter() - start,
-        )
+        return self.write(prepare_save(index, snapshot=snapshot, map_version=map_version, keyframes=keyframes))
 
     def write(self, prepared: PreparedSave) -> SaveReport:
-        """Writes what `prepare` took, in one transaction: only the views the file lacks are encoded."""
+        """Writes what `prepare_save` took, in one transaction: only the views the file lacks are encoded."""
         start = time.perf_counter()
         view_key = prepared.view_key
         gaussians = 0
@@ -483,6 +446,43 @@ def _same_backend(stored: dict, backend: object) -> bool:
 
 
 # ---------------------------------------------------------------------- map directory helpers
+
+
+def prepare_save(
+    index: ObjectIndex,
+    *,
+    snapshot: str | None = None,
+    map_version: int | None = None,
+    keyframes: int | None = None,
+) -> PreparedSave:
+    """What ObjectDatabase.save writes, taken from the index now (cheap: the views' images are encoded by
+    ObjectDatabase.write, which a live node runs beside its worker while the index goes on changing)."""
+    start = time.perf_counter()
+    info = index.backend_info
+    model = model_name(info) if info else ""
+    meta = {
+        "backend": info,
+        "embedding_model": model,
+        "config": index.config.to_dict(),
+        "floor": index.floor_height(),
+        "up": [float(v) for v in index.up_vector()],
+        "viewpoint": None if index.viewpoint is None else [float(v) for v in index.viewpoint.ravel()],
+        "keyframes_seen": index.views.keyframes,
+        "saved_unix": time.time(),
+        "snapshot": snapshot,
+    }
+    return PreparedSave(
+        objects=[_object_row(r, model, int(info["dim"]) if info else 0) for r in index.records()],
+        views=index.views.all_views(),
+        view_key=index.view_key(info) if info else None,
+        observations=sorted(index.views.observation_counts().items()),
+        object_ids=index.object_ids,
+        meta=meta,
+        snapshot=snapshot,
+        map_version=map_version,
+        keyframes=keyframes,
+        seconds=time.perf_counter() - start,
+    )
 
 
 def save_object_index(index: ObjectIndex, location: str | os.PathLike, **kwargs) -> SaveReport:
