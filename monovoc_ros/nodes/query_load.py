@@ -31,19 +31,17 @@ def query_client(node: Any, name: str = f"{DEFAULT_NAMESPACE}/query") -> Any:
 def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float = 30.0) -> dict[str, Any]:
     """Sends `count` queries at `rate_hz` (the client's node spins in another thread) and waits up to
     `timeout_s` after the last for the answers: {sent, answered, lost, succeeded, p50_ms, p99_ms, max_ms,
-    slowest}; `slowest`: the 5 slowest as [time.time() when sent, ms], to set beside the node's log."""
+    slowest}; `slowest`: the 5 slowest answered as [time.time() when sent, ms], to set beside the node's log."""
     from monovoc_interfaces.srv import TextQuery
 
     lock = threading.Lock()
-    latencies: list[float] = []
-    timed: list[tuple[float, float]] = []  # (time.time() sent, seconds)
+    timed: list[tuple[float, float]] = []  # (time.time() sent, seconds) of each answered query
     succeeded = [0]
     done = threading.Semaphore(0)
 
     def on_done(future: Any, sent: float, sent_wall: float) -> None:
         elapsed = time.perf_counter() - sent
         with lock:
-            latencies.append(elapsed)
             timed.append((sent_wall, elapsed))
             succeeded[0] += bool(future.result() is not None and future.result().success)
         done.release()
@@ -65,8 +63,8 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
     while answered < count and done.acquire(timeout=max(0.0, deadline - time.monotonic())):
         answered += 1
     with lock:
-        samples = sorted(latencies)
-        slowest = sorted(timed, key=lambda t: -t[1])[:5]
+        slowest = sorted(timed, key=lambda t: -t[1])
+    samples = [seconds for _, seconds in reversed(slowest)]
 
     def pct(q: float) -> float:
         return round(1e3 * samples[min(len(samples) - 1, int(q * len(samples)))], 1) if samples else float("nan")
@@ -80,7 +78,7 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
         "p50_ms": pct(0.50),
         "p99_ms": pct(0.99),
         "max_ms": round(1e3 * samples[-1], 1) if samples else float("nan"),
-        "slowest": [[round(wall, 3), round(1e3 * seconds, 1)] for wall, seconds in slowest],
+        "slowest": [[round(wall, 3), round(1e3 * seconds, 1)] for wall, seconds in slowest[:5]],
     }
 
 

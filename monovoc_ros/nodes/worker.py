@@ -367,10 +367,10 @@ class MapWorker:
 
     def stop(self, *, final_snapshot: bool = True, within_s: float = 0.0) -> SnapshotInfo | None:
         """Stops the worker so that the final snapshot is written about `within_s` seconds from now (later only
-        when the task in progress outlasts that, or the snapshot its estimate): queued
-        keyframes are integrated while the snapshot's expected time (`save_estimate_s`) still fits, the rest
-        deferred. Bounded: never waits for the task in progress on the worker thread longer than `within_s`
-        plus STOP_GRACE_S (a map update at 2M takes ~1-2 s; without it there would be no final snapshot).
+        when the task in progress outlasts that, or the snapshot its estimate): queued keyframes are integrated
+        while the snapshot's expected time (`save_estimate_s`) still fits, the rest deferred. Bounded: never
+        waits for the task in progress on the worker thread longer than `within_s` plus STOP_GRACE_S (a map
+        update at 2M takes ~1-2 s; without it there would be no final snapshot).
 
         Keyframes, maps and pose corrections queued are applied in order until the bound; keyframes left over
         are deferred: saved with the final snapshot (with a map directory) and integrated first on resume.
