@@ -141,9 +141,12 @@ class KeyframeLog:
         return changed
 
     def move_poses(self, move) -> None:
-        """Every pose moved by `move` ((4, 4) -> (4, 4))."""
+        """Every pose moved by `move`, which takes them all at once ((P, 4, 4) -> (P, 4, 4) float64)."""
+        if not self.entries:
+            return
+        moved = move(np.stack([entry.cam_to_world for entry in self.entries]))
         for k, entry in enumerate(self.entries):
-            self.entries[k] = replace(entry, cam_to_world=move(entry.cam_to_world))
+            self.entries[k] = replace(entry, cam_to_world=moved[k])
 
     def follow_poses(self, other: KeyframeLog) -> None:
         """Each entry takes the pose of `other`'s entry of the same stamp (a rebuild's log, when a map update

@@ -31,6 +31,11 @@ from scipy.spatial import cKDTree
 from monovoc_ros.core.follow.map_follow_kernels import move_points
 from monovoc_ros.core.map.camera import quat_wxyz_to_matrix, validate_pose
 
+# Poses moved together by MapMotion.move_poses (a (chunk, support) distance matrix: 64 x 20k float64, 10 MB).
+_POSE_CHUNK = 64
+_FIRST_AXES = np.diag([1.0, 1.0, 0.0])
+_LAST_AXIS = np.diag([0.0, 0.0, 1.0])
+
 
 @dataclass(frozen=True)
 class MotionConfig:
@@ -51,6 +56,13 @@ class MotionConfig:
     # rigid_residual metres (the noise of a re-sampled surface); otherwise a field follows the bend.
     rigid_inliers: float = 0.95
     rigid_residual: float = 0.005
+    # With sampled targets (maps over target_sample) that residual is mostly the sample's spacing, which hides a
+    # bend of a few mm: there the rigid motion must also leave every block of `rigid_block` metres (holding at
+    # least `rigid_block_points` of the sample) a median point-to-plane residual within `rigid_plane_residual`
+    # metres of the new map's own (flat targets: the plane does not depend on the sample's spacing).
+    rigid_plane_residual: float = 0.0005
+    rigid_block: float = 4.0
+    rigid_block_points: int = 200
     max_rms: float = 0.03  # metres: a fit leaving a larger inlier residual did not converge
     smoothing: float = 3.0  # pseudo-points pulling each field node towards its neighbours' mean
     seed: int = 0
@@ -123,6 +135,48 @@ class MapMotion:
         out[:3, 3] = R @ T[:3, 3] + t
         return out
 
+    def move_poses(self, cam_to_world: np.ndarray, support: np.ndarray, moved: np.ndarray, radius: float) -> np.ndarray:
+        """(P, 4, 4) float64: each of the poses `cam_to_world` (P, 4, 4) moved as `move_pose` moves it with the
+        old centres `support` (S, 3) within `radius` metres of its camera (`moved` (S, 3): where the motion puts
+        them), all at once: each camera's fit from sums over its ball (one matrix product per chunk of poses),
+        where a ball query and a fit per pose took ~1.6 ms at 1M Gaussians, and a keyframe log holds thousands."""
+        poses = np.asarray(cam_to_world, np.float64).reshape(-1, 4, 4)
+        support = np.asarray(support, np.float64).reshape(-1, 3)
+        out = np.array(poses)
+        if not len(poses):
+            return out
+        origin = support.mean(axis=0) if len(support) else np.zeros(3)
+        src, dst = support - origin, np.asarray(moved, np.float64).reshape(-1, 3) - origin  # centred: exact sums
+        # Per support point: 1, its old and moved coordinates, and their outer product (what a fit sums).
+        outer = (src[:, :, None] * dst[:, None, :]).reshape(-1, 9)
+        terms = np.concatenate([np.ones((len(src), 1)), src, dst, outer], axis=1)  # (S, 16)
+        src_sq = np.einsum("ij,ij->i", src, src)
+        for start in range(0, len(poses), _POSE_CHUNK):
+            chunk = poses[start : start + _POSE_CHUNK]
+            centres = chunk[:, :3, 3] - origin  # (C, 3)
+            d2 = np.einsum("ij,ij->i", centres, centres)[:, None] + src_sq[None, :] - 2.0 * centres @ src.T
+            sums = (d2 <= radius * radius).astype(np.float64) @ terms  # (C, 16)
+            n = sums[:, 0]
+            fit = n >= 3
+            R = np.broadcast_to(self.rotation, (len(chunk), 3, 3)).copy()
+            t = np.empty((len(chunk), 3))
+            if fit.any():
+                cs = sums[fit, 1:4] / n[fit, None]
+                cd = sums[fit, 4:7] / n[fit, None]
+                H = sums[fit, 7:].reshape(-1, 3, 3) - n[fit, None, None] * cs[:, :, None] * cd[:, None, :]
+                U, _, Vt = np.linalg.svd(H)
+                V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+                d = np.sign(np.linalg.det(V @ Ut))
+                d[d == 0] = 1.0
+                R[fit] = V @ (d[:, None, None] * _LAST_AXIS + _FIRST_AXES) @ Ut
+                t[fit] = cd - np.einsum("nij,nj->ni", R[fit], cs) + origin - R[fit] @ origin
+            if (~fit).any():  # too little support: the rigid rotation and the motion of the camera centre
+                centre = chunk[~fit, :3, 3]
+                t[~fit] = self.apply(centre) - centre @ self.rotation.T
+            out[start : start + _POSE_CHUNK, :3, :3] = R @ chunk[:, :3, :3]
+            out[start : start + _POSE_CHUNK, :3, 3] = np.einsum("nij,nj->ni", R, chunk[:, :3, 3]) + t
+        return out
+
 
 def kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R (3, 3), t (3,)) minimizing sum |R src + t - dst|^2 for paired points src, dst (N, 3)."""
@@ -191,15 +245,23 @@ class _Targets:
         """(T, 3) surface normal per target (zero where not flat); only the field needs them."""
         return None if self._frames is None else surface_normals(*self._frames)
 
-    def floor(self, trim: float) -> tuple[float, float]:
-        """(share within trim, median distance) of the new map's own centres to their nearest target: what a
-        perfectly registered old centre can reach when the targets are a sample, farther apart than the
-        map's centres ((1, 0) when every new centre is a target)."""
+    def floor(self, trim: float) -> tuple[float, float, float | None]:
+        """(share within trim, median distance, median point-to-plane distance) of the new map's own centres
+        to their nearest target: what a perfectly registered old centre can reach when the targets are a
+        sample, farther apart than the map's centres ((1, 0, None) when every new centre is a target; the
+        last is None too without flat targets)."""
         if not len(self._others):
-            return 1.0, 0.0
-        d = self.tree.query(self._others, k=1, distance_upper_bound=trim)[0]
-        near = d[np.isfinite(d)]
-        return float(np.isfinite(d).mean()), float(np.median(near)) if near.size else trim
+            return 1.0, 0.0, None
+        d, i = self.tree.query(self._others, k=1, distance_upper_bound=trim)
+        near = np.isfinite(d)
+        plane = None
+        if self.normals is not None and near.any():
+            normals = self.normals[i[near]]
+            flat = np.any(normals != 0, axis=1)
+            if flat.any():
+                offsets = (self.points[i[near]] - self._others[near])[flat]
+                plane = float(np.median(np.abs(np.einsum("ni,ni->n", offsets, normals[flat]))))
+        return float(near.mean()), float(np.median(d[near])) if near.any() else trim, plane
 
     def subset(self, rows: slice) -> _Targets:
         """The targets of the sample's rows `rows` (known partners are per sample row; a tree is shared)."""
@@ -333,14 +395,38 @@ def _rigid_motion(
 ) -> MapMotion | None:
     """The rigid motion alone when it explains the map (densified, pruned, moved as a whole), else None (a
     field follows the bend)."""
-    inlier, target, _ = sample.targets.pairs(rigid_moved, trim)
+    inlier, target, normals = sample.targets.pairs(rigid_moved, trim, normals=True)
     res = np.linalg.norm(target - rigid_moved, axis=1)[inlier]
-    share, spacing = sample.targets.floor(trim)
+    share, spacing, plane_floor = sample.targets.floor(trim)
     explained = res.size and np.median(res) <= config.rigid_residual + spacing
+    if explained and plane_floor is not None and normals is not None:
+        worst = worst_block_plane_residual(
+            rigid_moved[inlier], (target - rigid_moved)[inlier], normals[inlier], config.rigid_block,
+            config.rigid_block_points,
+        )  # fmt: skip
+        explained = worst <= plane_floor + config.rigid_plane_residual
     if inlier.mean() >= config.rigid_inliers * share and explained:
         rms = float(np.sqrt(np.mean(res**2)))
         return MapMotion(R, t, rms=rms, inliers=float(inlier.mean()), converged=rms <= config.max_rms, by=sample.by)
     return None
+
+
+def worst_block_plane_residual(
+    points: np.ndarray, residuals: np.ndarray, normals: np.ndarray, block: float, min_points: int
+) -> float:
+    """Metres: the largest per-block median of |residual . normal| over the pairs with a flat target, in cubes
+    of `block` metres holding at least `min_points` of them (0 when none does). points, residuals, normals:
+    (S, 3); normals zero where the target is not flat. A bend leaves its far blocks off their planes while a
+    rigid motion leaves every block at the noise of the surfaces."""
+    flat = np.any(normals != 0, axis=1)
+    off_plane = np.abs(np.einsum("ni,ni->n", residuals[flat], normals[flat]))
+    cells = np.floor(points[flat] / block).astype(np.int64)
+    _, which, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    which = which.ravel()
+    worst = 0.0
+    for b in np.flatnonzero(counts >= min_points):
+        worst = max(worst, float(np.median(off_plane[which == b])))
+    return worst
 
 
 @dataclass

@@ -30,7 +30,6 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, LoggedKeyframe
@@ -228,15 +227,9 @@ def move_logged_poses(log: KeyframeLog, means: np.ndarray, motion: MapMotion) ->
     if motion.by == "identity" or not len(support) or np.linalg.norm(moved - support, axis=1).max() < _POSE_MOVE_MIN_M:
         return  # densify / prune noise: poses stay (no random walk)
     if not np.any(motion.offsets):  # one rigid motion: the same for every pose
-        log.move_poses(lambda T: motion.move_pose(T, ()))
+        log.move_poses(lambda poses: np.stack([motion.move_pose(T, ()) for T in poses]))
         return
-    tree = cKDTree(support)  # one index for every logged camera (tens of thousands at the log's bound)
-
-    def move(T: np.ndarray) -> np.ndarray:
-        near = tree.query_ball_point(T[:3, 3], _POSE_SUPPORT_M)
-        return motion.move_pose(T, support[near], moved[near])
-
-    log.move_poses(move)
+    log.move_poses(lambda poses: motion.move_poses(poses, support, moved, _POSE_SUPPORT_M))
 
 
 def correct_logged_poses(log: KeyframeLog, poses: dict[int, np.ndarray]) -> int:
