@@ -323,3 +323,14 @@ def test_move_poses_equals_move_pose_around_each_camera():
         expected.append(motion.move_pose(T, support[near], moved[near]))
     np.testing.assert_allclose(motion.move_poses(poses, support, moved, 1.5), np.array(expected), atol=1e-9)
     assert len(tree.query_ball_point(poses[-1, :3, 3], 1.5)) == 0
+
+
+def test_surface_normals_equal_their_plain_twin():
+    from monovoc_ros.core.follow.map_motion import surface_normals, surface_normals_reference
+
+    rng = np.random.default_rng(2)
+    quats = rng.normal(size=(5000, 4)) * rng.uniform(0.5, 2.0, (5000, 1))  # not unit: both normalize
+    scales = rng.uniform(0.001, 0.05, (5000, 3))
+    scales[:100] = 0.01  # ties: the first smallest axis, as a stable sort takes it
+    scales[100:200, 1] = scales[100:200, 0]
+    np.testing.assert_allclose(surface_normals(quats, scales), surface_normals_reference(quats, scales), atol=1e-12)

@@ -288,11 +288,31 @@ class _Targets:
 
 def surface_normals(quats: np.ndarray, scales: np.ndarray, flat: float = 0.3) -> np.ndarray:
     """(N, 3) float64 unit normal (the axis of the smallest scale) of each flat Gaussian (smallest scale under
-    `flat` times the middle one), zero for the others. quats (N, 4) wxyz, scales (N, 3)."""
-    order = np.argsort(scales, axis=1)
-    smallest = order[:, 0]
+    `flat` times the middle one), zero for the others. quats (N, 4) wxyz, scales (N, 3). Only the rotation's
+    column of the smallest axis is computed (a quarter of the time of whole matrices at 250k targets);
+    `surface_normals_reference` is its twin."""
+    scales = np.asarray(scales, np.float64)
+    q = np.asarray(quats, np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    rows = np.arange(len(q))
+    j = np.argmin(scales, axis=1)
+    k, m = (j + 1) % 3, (j + 2) % 3
+    w, v = q[:, 0], q[:, 1:]
+    qj, qk, qm = v[rows, j], v[rows, k], v[rows, m]
+    normals = np.empty((len(q), 3))
+    # Column j of camera.quat_wxyz_to_matrix, with (j, k, m) a cyclic order of the axes.
+    normals[rows, j] = 1 - 2 * (qk * qk + qm * qm)
+    normals[rows, k] = 2 * (qj * qk + w * qm)
+    normals[rows, m] = 2 * (qj * qm - w * qk)
+    s = np.sort(scales, axis=1)
+    return np.where((s[:, 0] < flat * s[:, 1])[:, None], normals, 0.0)
+
+
+def surface_normals_reference(quats: np.ndarray, scales: np.ndarray, flat: float = 0.3) -> np.ndarray:
+    """Plain twin of `surface_normals`: whole rotation matrices."""
+    order = np.argsort(scales, axis=1, kind="stable")
     R = quat_wxyz_to_matrix(np.asarray(quats, np.float64))
-    normals = R[np.arange(len(R)), :, smallest]
+    normals = R[np.arange(len(R)), :, order[:, 0]]
     s = np.take_along_axis(np.asarray(scales, np.float64), order, axis=1)
     return np.where((s[:, 0] < flat * s[:, 1])[:, None], normals, 0.0)
 
