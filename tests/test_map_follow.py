@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.follow.map_follow import GRID_CELL_M, FollowConfig, follow_map, nearest_within
+from monovoc_ros.core.follow.map_follow_kernels import PointGrid
 from monovoc_ros.core.follow.map_motion import MapMotion, estimate_motion, kabsch, worst_block_plane_residual
 from monovoc_ros.core.follow.map_updater import MapMotionError, motion_refusal, update_map
 from monovoc_ros.core.map.gaussians import GaussianMap
@@ -182,6 +183,16 @@ def test_kernels_equal_their_plain_twins():
             nearest_within(pts, far, np.array([20.0]), cell=cell)[0]
             == nearest_within_reference(pts, far, np.array([20.0]))[0]
         )
+
+    # One grid searched again and again (the registration's targets), at the radii its ICP and field use.
+    grid = PointGrid.build(pts, 0.1)
+    for r in (0.5, 0.2, 0.05, 0.02):
+        fast = grid.nearest(queries, np.full(len(queries), r))
+        plain = nearest_within_reference(pts, queries, np.full(len(queries), r))
+        np.testing.assert_array_equal(fast >= 0, plain >= 0)
+        hit = fast >= 0
+        d_fast = np.linalg.norm(pts[fast[hit]] - queries[hit], axis=1)
+        np.testing.assert_array_equal(d_fast, np.linalg.norm(pts[plain[hit]] - queries[hit], axis=1))
 
     scene = small_scene()
     motion = estimate_motion(scene.gaussians.means, churn.drift_correction(scene.gaussians).gaussians.means)

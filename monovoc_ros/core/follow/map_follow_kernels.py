@@ -2,8 +2,8 @@
 tests hold it against:
 
 * `move_points`: the motion of core.follow.map_motion (rigid, then the trilinear field); twin `MapMotion.apply`.
-* `grid_nearest`: per query the nearest point within its own radius, on a sorted uniform grid; twin
-  `map_follow.nearest_within_reference` (scipy's cKDTree).
+* `grid_nearest` (`PointGrid`, to search one grid many times): per query the nearest point within its own
+  radius, on a sorted uniform grid; twin `map_follow.nearest_within_reference` (scipy's cKDTree).
 * `argsort_keys`: the grid's stable argsort of its cell keys; twin numpy's `argsort(kind="stable")`.
 
 At 1M Gaussians on 2 cores the twins take 0.65 s (the field) and ~0.8 s (tree build and query); the kernels
@@ -12,6 +12,8 @@ and the parallel row gather (used here and by the evidence stores) are core.map.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -215,31 +217,54 @@ def _search(
     return out
 
 
+@dataclass(frozen=True)
+class PointGrid:
+    """Points binned in cubes of `cell` metres, sorted by cell, for nearest-within-radius searches
+    (`PointGrid.nearest`): built once, searched as often as needed (the registration's targets)."""
+
+    cell: float
+    sorted_points: np.ndarray  # (N, 3) float64 the points in cell order
+    order: np.ndarray  # (N,) int64 the row of each sorted point
+    table_keys: np.ndarray  # open-addressing hash table: cell key -> index into cell_starts (keys -1: empty)
+    table_values: np.ndarray
+    cell_starts: np.ndarray  # (cells + 1,) int64 first sorted point of each cell
+
+    @classmethod
+    def build(cls, points: np.ndarray, cell: float) -> PointGrid:
+        points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        keys = _cell_keys(points, float(cell))
+        order = argsort_keys(keys)  # stable; the order within a cell is free anyway: ties go to the lower row
+        sorted_keys = keys[order]
+        first = np.flatnonzero(np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1])))
+        table_keys, table_values = _cell_table(sorted_keys[first])
+        cell_starts = np.append(first, len(points)).astype(np.int64)
+        return cls(float(cell), gather_rows(points, order), order, table_keys, table_values, cell_starts)
+
+    def nearest(self, queries: np.ndarray, radius: np.ndarray) -> np.ndarray:
+        """(Q,) int64: per query (Q, 3) the row of the nearest point within its radius (Q,) (ties: the lower
+        row), or -1."""
+        radius = np.ascontiguousarray(np.broadcast_to(radius, (len(queries),)), np.float64)
+        if not len(self.order) or not len(queries):
+            return np.full(len(queries), -1, np.int64)
+        queries = np.ascontiguousarray(queries, np.float64)
+        # Queries grouped by cell: each group looks its 27 neighbour cells up once, and neighbouring groups read
+        # neighbouring memory.
+        q_keys = _cell_keys(queries, self.cell)
+        q_order = argsort_keys(q_keys)
+        q_sorted = q_keys[q_order]
+        q_starts = np.append(np.flatnonzero(np.concatenate(([True], q_sorted[1:] != q_sorted[:-1]))), len(queries))
+        found = _search(
+            self.sorted_points, self.order, self.table_keys, self.table_values, self.cell_starts,
+            gather_rows(queries, q_order), q_starts.astype(np.int64), radius[q_order], self.cell,
+        )  # fmt: skip
+        out = np.empty(len(queries), np.int64)
+        out[q_order] = found
+        return out
+
+
 def grid_nearest(points: np.ndarray, queries: np.ndarray, radius: np.ndarray, cell: float) -> np.ndarray:
     """(Q,) int64: per query (Q, 3) the row of the nearest of `points` (N, 3) within its radius (Q,) (ties: the
     lower row), or -1; points are binned in cubes of `cell` metres (about the typical radius)."""
-    radius = np.ascontiguousarray(radius, np.float64)
-    cell = float(cell)
     if not len(points) or not len(queries):
         return np.full(len(queries), -1, np.int64)
-    points = np.ascontiguousarray(points, np.float64)
-    queries = np.ascontiguousarray(queries, np.float64)
-    keys = _cell_keys(points, cell)
-    order = argsort_keys(keys)  # stable; the order within a cell is free anyway: ties go to the lower row
-    sorted_keys = keys[order]
-    first = np.flatnonzero(np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1])))
-    table_keys, table_values = _cell_table(sorted_keys[first])
-    cell_starts = np.append(first, len(points)).astype(np.int64)
-    # Queries grouped by cell: each group looks its 27 neighbour cells up once, and neighbouring groups read
-    # neighbouring memory.
-    q_keys = _cell_keys(queries, cell)
-    q_order = argsort_keys(q_keys)
-    q_sorted = q_keys[q_order]
-    q_starts = np.append(np.flatnonzero(np.concatenate(([True], q_sorted[1:] != q_sorted[:-1]))), len(queries))
-    found = _search(
-        gather_rows(points, order), order, table_keys, table_values, cell_starts, gather_rows(queries, q_order),
-        q_starts.astype(np.int64), radius[q_order], cell,
-    )  # fmt: skip
-    out = np.empty(len(queries), np.int64)
-    out[q_order] = found
-    return out
+    return PointGrid.build(points, cell).nearest(queries, radius)
