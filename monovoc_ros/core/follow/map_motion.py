@@ -5,7 +5,8 @@ rigidly or bends it smoothly (HI-SLAM2 moves each Gaussian with its anchor keyfr
 recovers that motion as a `MapMotion`:
 
 1. a rigid part: trimmed point-to-point ICP of a sample of the old Gaussian centres against the new ones;
-2. when the rigid part leaves the map unexplained (a bent map), a smooth translation field on a coarse grid
+2. when the rigid part leaves the map unexplained (a bent map; with a sampled target map, also where a block's
+   point-to-plane residuals stand off the new map's own: `_rigid_motion`), a smooth translation field on a coarse grid
    (`spacing` metres, trilinear between nodes), fitted to nearest-neighbour residuals measured along the
    surface normals of flat Gaussians (point-to-plane: sliding along a wall is no evidence), starting from a
    wide trim again (the bent part was the rigid fit's outliers), with every node pulled towards its
@@ -263,7 +264,8 @@ class _Targets:
 
     @cached_property
     def normals(self) -> np.ndarray | None:
-        """(T, 3) surface normal per target (zero where not flat); only the field needs them."""
+        """(T, 3) surface normal per target (zero where not flat): for the field, and for the rigid motion's
+        test when the targets are a sample (`_rigid_motion`)."""
         return None if self._frames is None else surface_normals(*self._frames)
 
     def floor(self, trim: float) -> tuple[float, float, float | None]:
