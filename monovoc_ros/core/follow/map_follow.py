@@ -77,11 +77,11 @@ def nearest_within_reference(points: np.ndarray, queries: np.ndarray, radius: np
     return out
 
 
-def transfer_radius(new: GaussianMap, rows: np.ndarray, config: FollowConfig) -> np.ndarray:
-    """(len(rows),) float64 transfer radius of the new Gaussians `rows`."""
-    if not len(rows):
+def transfer_radius(new: GaussianMap, rows: np.ndarray | None, config: FollowConfig) -> np.ndarray:
+    """(len(rows),) float64 transfer radius of the new Gaussians `rows` (None: all of them)."""
+    s = new.scales if rows is None else new.scales[rows]
+    if not len(s):
         return np.zeros(0)
-    s = new.scales[rows]
     largest = np.maximum(np.maximum(s[:, 0], s[:, 1]), s[:, 2]).astype(np.float64)  # 5x numpy's max(axis=1)
     return np.minimum(config.radius + config.scale_factor * largest, config.max_radius)
 
@@ -127,7 +127,10 @@ def follow_positions(follow: FollowResult, new: GaussianMap, config: FollowConfi
         rest = rest[np.isin(rest, follow.new_finite)]
     if rest.size and len(follow.old_means):
         moved = follow.motion.apply(follow.old_means)
-        found = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config))
+        if rest.size == len(new):  # no ids: every new Gaussian, without gathering 1M rows twice
+            found = nearest_within(moved, new.means, transfer_radius(new, None, config))
+        else:
+            found = nearest_within(moved, new.means[rest], transfer_radius(new, rest, config))
         if old_ok is not None:
             found = np.where(found >= 0, old_ok[np.maximum(found, 0)], -1)
         sources[rest] = found
