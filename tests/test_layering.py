@@ -42,9 +42,9 @@ def test_core_imports_only_core():
             assert not above, f"{name} imports {sorted(above)}"
 
 
-# core's stages in import order (monovoc_ros/core/__init__.py). At core's root, blas_threads comes first and
+# core's stages in import order (monovoc_ros/core/__init__.py). At core's root, thread_pools comes first and
 # keyframe and sync right after map/ (every stage may take them); the rest of the root sits above every stage.
-CORE_STAGES = ("blas_threads", "map", "keyframe", "sync", "raster", "evidence", "segments", "follow", "evaluation")
+CORE_STAGES = ("thread_pools", "map", "keyframe", "sync", "raster", "evidence", "segments", "follow", "evaluation")
 
 
 def _core_rank(name: str) -> int:

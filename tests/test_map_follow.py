@@ -204,22 +204,6 @@ def test_kernels_equal_their_plain_twins():
     np.testing.assert_allclose(g.covariances, plain_cov, rtol=0, atol=1e-6 * np.abs(plain_cov).max())  # float32 ulps
 
 
-def test_argsort_keys_equals_numpys_stable_argsort():
-    from monovoc_ros.core.follow.map_follow_kernels import argsort_keys
-
-    rng = np.random.default_rng(3)
-    cases = [
-        rng.integers(0, 2**62, 5000),  # every digit differs
-        (1 << 41) * 7 + rng.integers(0, 300, 5000),  # high digits shared (skipped), many ties
-        np.full(100, 12345),  # one key
-        rng.integers(0, 2**20, 1),
-        np.zeros(0, np.int64),
-    ]
-    for keys in cases:
-        keys = np.asarray(keys, np.int64)
-        np.testing.assert_array_equal(argsort_keys(keys), np.argsort(keys, kind="stable"))
-
-
 def test_gaussians_with_non_finite_means_neither_take_nor_give_evidence():
     """The rasterizer culls a Gaussian with a NaN mean; a map update must not crash on one either."""
     scene = small_scene()

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 from numba import njit
-from test_raster import random_scene
+from test_raster import random_quats, random_scene
 
+from monovoc_ros.core.map.camera import Intrinsics, pose_from_translation_quat
+from monovoc_ros.core.map.gaussians import MAP_CHUNK, GaussianMap, chunk_bounds_reference
 from monovoc_ros.core.raster import accumulate
 from monovoc_ros.core.raster import numba_impl as ni
 from monovoc_ros.core.raster import numba_kernels as nk
@@ -38,9 +40,87 @@ def test_radix_depth_sort_is_a_stable_argsort():
     rect = np.zeros((depth.size, 4), np.int32)
     visible = rng.random(depth.size) < 0.8
     rect[visible] = (0, 1, 0, 1)
-    got = nk.visible_by_depth(depth.astype(np.float32), rect)
+    got = nk.visible_by_depth(depth.astype(np.float32), rect, np.ones(2, np.bool_))
     idx = np.flatnonzero(visible)
     np.testing.assert_array_equal(got, idx[np.argsort(depth[idx], kind="stable")])
+    # A chunk the view culled is skipped whatever its rows hold.
+    got = nk.visible_by_depth(depth.astype(np.float32), rect, np.array([False, True]))
+    idx = idx[idx >= MAP_CHUNK]
+    np.testing.assert_array_equal(got, idx[np.argsort(depth[idx], kind="stable")])
+
+
+def _chunked_scene(seed: int, chunks: int = 24):
+    """Chunks of MAP_CHUNK Gaussians scattered around and behind a camera looking down +z, many just off the
+    image or the near plane, some of them large enough to reach into the image from outside."""
+    rng = np.random.default_rng(seed)
+    k = Intrinsics(80.0, 75.0, 47.0, 41.0, 96, 80)
+    means, scales = [], []
+    for _ in range(chunks):
+        z = rng.uniform(-2.0, 12.0)
+        edge = rng.choice([-1.0, 1.0]) * rng.uniform(0.3, 1.6) * np.array([48 / 80, 40 / 75]) * abs(z)
+        center = np.array([*edge * rng.permutation([1.0, rng.uniform(-1, 1)]), z])
+        spread = rng.uniform(0.01, 0.5)
+        means.append(center + rng.normal(0.0, spread, (MAP_CHUNK, 3)))
+        scales.append(np.exp(rng.uniform(np.log(1e-3), np.log(rng.uniform(0.01, 1.5)), (MAP_CHUNK, 3))))
+    # Tiny Gaussians just left of the image, whose footprints (the 2D dilation) still touch its first tiles.
+    z = np.full(MAP_CHUNK, 2.5)
+    u = rng.uniform(-0.9, -0.3, MAP_CHUNK)
+    means.append(np.stack([(u - k.cx) * z / k.fx, rng.uniform(-0.3, 0.3, MAP_CHUNK) * z, z], axis=1))
+    scales.append(np.full((MAP_CHUNK, 3), 1e-4))
+    means, scales = np.concatenate(means), np.concatenate(scales)
+    n = len(means)
+    gmap = GaussianMap(means, scales, random_quats(rng, n), rng.uniform(0.05, 1.0, n))
+    pose = pose_from_translation_quat(np.zeros(3), np.array([1.0, *rng.normal(0, 0.001, 3)]))
+    return gmap, k, pose
+
+
+def test_chunk_cull_keeps_every_chunk_a_visible_gaussian_is_in():
+    """`live_chunks` drops a chunk only when the reference projection keeps none of its Gaussians, and the
+    numba path then sees exactly the reference's visible Gaussians in depth order."""
+    culled = 0
+    for seed in range(4):
+        gmap, k, pose = _chunked_scene(seed)
+        for far in (np.inf, 6.0):
+            view = check_view(gmap, k, pose, far)
+            live = ni.live_chunks(gmap, view)
+            visible = project_map(gmap, view).visible
+            holds = visible.reshape(-1, MAP_CHUNK).any(axis=1)
+            assert not np.any(holds & ~live), (seed, far, np.flatnonzero(holds & ~live))
+            culled += int(np.count_nonzero(~live))
+            b = ni.bin_view(gmap, view, None, numba.get_num_threads())
+            np.testing.assert_array_equal(np.sort(b.order), np.flatnonzero(visible))
+    assert culled >= 40  # of 200 chunks: the cull does its job on chunks far off the view
+
+
+def test_chunk_bounds_equal_their_plain_twin():
+    gmap, _, _ = _chunked_scene(5, chunks=3)
+    part = gmap.subset(np.arange(2 * MAP_CHUNK + 100))  # a last chunk of 100
+    for got, want in zip(part.chunk_bounds, chunk_bounds_reference(part.means, part.scales, MAP_CHUNK), strict=True):
+        np.testing.assert_array_equal(got, want)
+    lower, upper, reach = part.chunk_bounds
+    assert lower.shape == upper.shape == (3, 3) and reach.shape == (3,)
+    np.testing.assert_array_equal(lower[2], part.means[2 * MAP_CHUNK :].min(axis=0))
+    bad = GaussianMap(np.where(np.arange(len(part))[:, None] == 5, np.nan, part.means), part.scales, part.quats,
+                      part.opacities)  # fmt: skip
+    assert np.isnan(bad.chunk_bounds[0][0]).all() and not np.isnan(bad.chunk_bounds[0][1:]).any()
+    for got, want in zip(bad.chunk_bounds, chunk_bounds_reference(bad.means, bad.scales, MAP_CHUNK), strict=True):
+        np.testing.assert_array_equal(got, want)
+    view = check_view(part, Intrinsics(80.0, 75.0, 47.0, 41.0, 96, 80), np.eye(4))
+    assert ni.live_chunks(bad, view)[0]  # a chunk with a non-finite mean is never dropped
+
+
+def test_argsort_keys_equals_numpys_stable_argsort():
+    rng = np.random.default_rng(3)
+    cases = [
+        rng.integers(0, 2**62, 5000),  # every digit differs
+        (1 << 41) * 7 + rng.integers(0, 300, 5000),  # high digits shared (skipped), many ties
+        np.full(100, 12345),  # one key
+        rng.integers(0, 2**20, 1),
+        np.zeros(0, np.int64),
+    ]
+    for keys in cases:
+        keys = np.asarray(keys, np.int64)
+        np.testing.assert_array_equal(nk.argsort_keys(keys), np.argsort(keys, kind="stable"))
 
 
 def test_ranks_by_index_is_the_argsort_of_the_depth_order():
@@ -139,3 +219,32 @@ def test_blas_runs_on_one_thread_unless_the_user_chose(tmp_path):
     assert ours and {n for _, n in ours} == {1}, ours
     # OpenBLAS runs no more threads than there are CPUs.
     assert {n for _, n in blas(OPENBLAS_NUM_THREADS="2")} == {min(2, os.cpu_count() or 1)}
+
+
+_OPENMP_WAIT_POLICY = """
+import ctypes, numba, numpy
+from monovoc_ros.core.map.gaussians import gather_rows
+gather_rows(numpy.ones((64, 3)), numpy.arange(64))  # a parallel kernel: the OpenMP runtime starts here
+assert numba.threading_layer() == "omp", numba.threading_layer()
+gomp = sorted({line.split()[-1] for line in open("/proc/self/maps") if "libgomp" in line})
+ctypes.CDLL(gomp[0]).omp_display_env(1)  # the runtime's own settings (verbose: its spin count), on stderr
+"""
+
+
+def test_openmp_threads_sleep_when_idle_unless_the_user_chose(tmp_path):
+    """libgomp's idle threads spin after every parallel region, taking the core from the node's other threads:
+    the OpenMP runtime numba's kernels run on waits passively, unless the user set OMP_WAIT_POLICY."""
+    import os
+    import subprocess
+    import sys
+
+    def spin_count(**env) -> int:
+        """How long libgomp's idle threads spin before they sleep (the wait policy's effect)."""
+        clean = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+        out = subprocess.run([sys.executable, "-c", _OPENMP_WAIT_POLICY], env={**clean, **env}, capture_output=True,
+                             text=True, check=True, cwd=tmp_path)  # fmt: skip
+        (line,) = [ln for ln in out.stderr.splitlines() if ln.strip().startswith("GOMP_SPINCOUNT")]
+        return int(line.split("=")[1].strip().strip("'"))
+
+    assert spin_count() == 0
+    assert spin_count(OMP_WAIT_POLICY="ACTIVE") > 10**6

@@ -8,9 +8,13 @@
 - ``evaluation/``: scoring and the dataset readers.
 
 A stage imports from itself and from the stages listed before it, never from one after it. At the root:
-``blas_threads`` (one BLAS thread, imports nothing) comes before every stage; ``keyframe`` and ``sync``
+``thread_pools`` (idle thread pools sleep; imports nothing of ours) comes before every stage; ``keyframe`` and ``sync``
 (a keyframe, and pairing messages into keyframes) import nothing from core but ``map/`` and every stage may
 take them; ``mapping`` (SemanticMapper), ``session`` (its life), ``map_store`` (crash-safe snapshots),
 ``warm_up`` and ``object_geometry`` (an object's one geometry) sit above every stage and may import all of
 them. Nothing in core imports from outside it (tests/test_layering.py holds both rules).
 """
+
+from monovoc_ros.core.thread_pools import passive_openmp
+
+passive_openmp()  # before the first numba parallel kernel of the process (core.thread_pools)

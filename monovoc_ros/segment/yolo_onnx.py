@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.core.blas_threads import single_threaded_blas
+from monovoc_ros.core.thread_pools import single_threaded_blas
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.embed.onnx_session import DEFAULT_THREADS, make_session
 from monovoc_ros.segment.backend import SegmenterModelError

@@ -4,7 +4,6 @@ tests hold it against:
 * `move_points`: the motion of core.follow.map_motion (rigid, then the trilinear field); twin `MapMotion.apply`.
 * `grid_nearest` (`PointGrid`, to search one grid many times): per query the nearest point within its own
   radius, on a sorted uniform grid; twin `map_follow.nearest_within_reference` (scipy's cKDTree).
-* `argsort_keys`: the grid's stable argsort of its cell keys; twin numpy's `argsort(kind="stable")`.
 
 At 1M Gaussians on 2 cores the twins take 0.65 s (the field) and ~0.8 s (tree build and query); the kernels
 a few tens of milliseconds each (benchmarks/bench_map_churn.py). The covariance kernel (Sigma = R S S^T R^T)
@@ -19,7 +18,7 @@ import numba
 import numpy as np
 
 from monovoc_ros.core.map.gaussians import gather_rows
-from monovoc_ros.core.raster.numba_kernels import radix_argsort
+from monovoc_ros.core.raster.numba_kernels import argsort_keys
 
 # Grid keys pack three 21-bit cell coordinates (2M cells per axis: 40 km at 2 cm).
 _BITS = 21
@@ -105,12 +104,6 @@ def _find(keys, values, bits, key):
         if k == -1:
             return -1
         h = (h + 1) & mask
-
-
-def argsort_keys(keys: np.ndarray) -> np.ndarray:
-    """(N,) int64 stable argsort of non-negative int64 keys (a map's grid cells: 63 bits, the high ones mostly
-    shared): core.raster's radix sort on 16-bit digits. 1M cell keys: ~15 ms; numpy's quicksort 160 ms."""
-    return radix_argsort(np.array(keys, np.int64), np.arange(len(keys), dtype=np.int64), 16, 64)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

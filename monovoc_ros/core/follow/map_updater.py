@@ -184,6 +184,9 @@ def plan_map_update(old: GaussianMap, new: GaussianMap, config: FollowConfig) ->
     refusal = motion_refusal(follow, config)
     if not refusal:
         follow_positions(follow, new, config)
+        # The rasterizer's per-map values, cached with the map: here, beside a live worker, and not in its first
+        # keyframe after the update (1M Gaussians: the covariances ~50-90 ms).
+        _ = (new.covariances, new.chunk_bounds)
     return MapUpdatePlan(old, new, config, follow, refusal)
 
 

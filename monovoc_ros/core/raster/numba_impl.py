@@ -1,6 +1,7 @@
 """The production CPU rasterizer: numba tile kernels (numba_kernels.py) driven per keyframe.
 
-Per call: float64 EWA projection, one global stable radix sort by depth, packing the visible
+Per call: the chunks of the map the view may see (`live_chunks`: a building's map is mostly out of view),
+float64 EWA projection of those, one global stable radix sort by depth, packing the visible
 Gaussians into 64-byte rows in depth order, binning them into 16x16 tiles with the ellipse cull (a
 stable counting sort, so every tile list is already front to back), compositing the tiles, and a
 per-Gaussian reduction of the per-pair partial sums. All but the sort run on numba's threads.
@@ -18,14 +19,15 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from monovoc_ros.core.blas_threads import single_threaded_blas
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.raster import numba_kernels as nk
+from monovoc_ros.core.raster.constants import NEAR_PLANE, TILE
 from monovoc_ros.core.raster.inputs import View
 from monovoc_ros.core.raster.projection import jacobian_limits, tile_grid
+from monovoc_ros.core.thread_pools import single_threaded_blas
 
 _LOCK = threading.Lock()
-single_threaded_blas()  # its threads would busy-wait on these kernels' cores (core.blas_threads)
+single_threaded_blas()  # its threads would busy-wait on these kernels' cores (core.thread_pools)
 _NO_VALID = np.ones((1, 1), dtype=np.bool_)
 _NO_COLORS = np.zeros((1, 3), dtype=np.float32)
 _ZERO_BG = np.zeros(3, dtype=np.float32)
@@ -83,6 +85,47 @@ class Binned:
     grid: tuple[int, int]
 
 
+# Pixels of slack in the chunk cull beyond the footprint's bound (its +3.9 px, float rounding).
+_CULL_SLACK_PX = 8.0
+
+
+def live_chunks(gmap: GaussianMap, view: View) -> np.ndarray:
+    """(C,) bool: the chunks of `gmap.chunk_bounds` that may hold a Gaussian the view's projection keeps.
+
+    A chunk is dropped only when every Gaussian of it is culled whatever its covariance: its depth is below the
+    near plane or beyond `far` for the whole box of means, or its footprint misses the tile grid on one side. A
+    footprint's radius is ceil(3 sqrt(lambda_max)) with lambda_max <= trace + 0.32 <= |J W|_F^2 s^2 + 0.92 (s the
+    largest scale, J the Jacobian at the clamped x/z), so radius * z <= 3 sqrt(K) s + 3.9 z with K bounding
+    |J W|_F^2 z^2; `u + radius < 0` is then implied by fx x + (cx + slack) z + 3 sqrt(K) s < 0, linear in the
+    mean: its largest value over the chunk's box decides (and likewise for the other three sides)."""
+    lower, upper, reach = gmap.chunk_bounds
+    k = view.intrinsics
+    rot, trans = view.world_to_cam[:3, :3], view.world_to_cam[:3, 3]
+    lim_xn, lim_xp, lim_yn, lim_yp = jacobian_limits(view)
+    spectral = float(np.linalg.norm(rot, 2))
+    lx, ly = max(lim_xn, lim_xp), max(lim_yn, lim_yp)
+    bound = 3.0 * spectral * np.sqrt(k.fx**2 * (1 + lx**2) + k.fy**2 * (1 + ly**2))
+    gx, gy = tile_grid(k.width, k.height)
+    center, half = 0.5 * (lower + upper), 0.5 * (upper - lower)
+
+    def extremes(x: float, y: float, z: float) -> tuple[np.ndarray, np.ndarray]:
+        """Smallest and largest value over each box of x * x_cam + y * y_cam + z * z_cam."""
+        w = x * rot[0] + y * rot[1] + z * rot[2]
+        mid = center @ w + (x * trans[0] + y * trans[1] + z * trans[2])
+        spread = half @ np.abs(w)
+        return mid - spread, mid + spread
+
+    with np.errstate(invalid="ignore"):  # NaN boxes (non-finite chunks) compare false: kept
+        z_lo, z_hi = extremes(0.0, 0.0, 1.0)
+        pad = bound * reach
+        culled = (z_hi < NEAR_PLANE) | (z_lo > view.far)
+        culled |= extremes(k.fx, 0.0, k.cx + _CULL_SLACK_PX)[1] + pad < 0.0
+        culled |= extremes(k.fx, 0.0, k.cx - TILE * gx - _CULL_SLACK_PX)[0] - pad > 0.0
+        culled |= extremes(0.0, k.fy, k.cy + _CULL_SLACK_PX)[1] + pad < 0.0
+        culled |= extremes(0.0, k.fy, k.cy - TILE * gy - _CULL_SLACK_PX)[0] - pad > 0.0
+    return ~culled
+
+
 def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: int) -> Binned:
     """Projection, depth order, packing and tile binning; call under _LOCK."""
     ws = WORKSPACE
@@ -95,11 +138,12 @@ def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: 
     depth = ws.get("depth", (n,), np.float32)
     rect = ws.get("rect", (n, 4), np.int32)
     lims = np.array(jacobian_limits(view), dtype=np.float64)
+    live = live_chunks(gmap, view)
     nk.project(
         gmap.means, gmap.covariances, view.world_to_cam, float(k.fx), float(k.fy), float(k.cx), float(k.cy),
-        lims, float(view.far), k.width, k.height, u, v, conic, depth, rect, workers,
+        lims, float(view.far), k.width, k.height, u, v, conic, depth, rect, live, workers,
     )  # fmt: skip
-    order = nk.visible_by_depth(depth, rect)
+    order = nk.visible_by_depth(depth, rect, live)
     rows = ws.get("rows", (len(order), nk.ROW_WIDTH), np.float32)
     rects = ws.get("rects", (len(order), 4), np.int32)
     nk.pack_rows(

@@ -27,6 +27,7 @@ from numba import njit, prange
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
+from monovoc_ros.core.map.gaussians import MAP_CHUNK
 from monovoc_ros.core.raster.constants import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -186,20 +187,26 @@ def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, far, gx, gy, u, v, con
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def project(means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, width, height, u, v, conic, depth, rect, n_workers):
+def project(
+    means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, width, height, u, v, conic, depth, rect, live, n_workers
+):  # fmt: skip
     """EWA projection in float64 (see projection.py); rect = (0, 0, 0, 0) marks a culled Gaussian (before the
     near plane, beyond `far`, or touching no tile) and
-    conic holds the factored form (A, R, S) of the inverse 2D covariance (see _project_one)."""
+    conic holds the factored form (A, R, S) of the inverse 2D covariance (see _project_one). Only the chunks of
+    MAP_CHUNK Gaussians that `live` (n_chunks,) keeps are projected: the others' outputs are left as they were."""
     n = means.shape[0]
     gx = (width + TILE - 1) // TILE
     gy = (height + TILE - 1) // TILE
-    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    n_chunks = (n + MAP_CHUNK - 1) // MAP_CHUNK
     counter = np.zeros(1, np.int64)
     for _ in prange(n_workers):
         c = _fetch_add(counter, 0)
         while c < n_chunks:
-            for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
-                _project_one(i, means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, gx, gy, u, v, conic, depth, rect)
+            if live[c]:
+                for i in range(c * MAP_CHUNK, min(n, (c + 1) * MAP_CHUNK)):
+                    _project_one(
+                        i, means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, gx, gy, u, v, conic, depth, rect
+                    )  # fmt: skip
             c = _fetch_add(counter, 0)
 
 
@@ -207,24 +214,35 @@ def project(means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, width, height,
 
 
 @njit(cache=True, nogil=True)
-def visible_by_depth(depth, rect):
-    """Indices of visible Gaussians sorted by depth, stable (ties keep map order): LSD radix sort on the
-    float32 bit patterns, which order like the values for positive floats."""
+def visible_by_depth(depth, rect, live):
+    """Indices of visible Gaussians of the `live` chunks (see `project`) sorted by depth, stable (ties keep map
+    order): LSD radix sort on the float32 bit patterns, which order like the values for positive floats."""
     n = depth.shape[0]
     count = 0
-    for i in range(n):
-        if rect[i, 1] > rect[i, 0]:
-            count += 1
+    for c in range(live.shape[0]):
+        if live[c]:
+            for i in range(c * MAP_CHUNK, min(n, (c + 1) * MAP_CHUNK)):
+                if rect[i, 1] > rect[i, 0]:
+                    count += 1
     idx = np.empty(count, np.int32)
     keys = np.empty(count, np.uint32)
     bits = depth.view(np.uint32)
     m = 0
-    for i in range(n):
-        if rect[i, 1] > rect[i, 0]:
-            idx[m] = i
-            keys[m] = bits[i]
-            m += 1
+    for c in range(live.shape[0]):
+        if live[c]:
+            for i in range(c * MAP_CHUNK, min(n, (c + 1) * MAP_CHUNK)):
+                if rect[i, 1] > rect[i, 0]:
+                    idx[m] = i
+                    keys[m] = bits[i]
+                    m += 1
     return radix_argsort(keys, idx, 11, 32)
+
+
+def argsort_keys(keys: np.ndarray) -> np.ndarray:
+    """(N,) int64 stable argsort of non-negative int64 keys (grid cells, voxels of objects: 63 bits, the high
+    ones mostly shared): `radix_argsort` on 16-bit digits; twin numpy's `argsort(kind="stable")`. 1M keys:
+    ~15 ms; numpy's quicksort 160 ms."""
+    return radix_argsort(np.array(keys, np.int64), np.arange(len(keys), dtype=np.int64), 16, 64)
 
 
 @njit(cache=True, nogil=True)
