@@ -82,6 +82,14 @@ def test_gaussian_index_takes_one_byte_per_gaussian_up_to_255_objects():
     many = np.arange(300, dtype=np.uint32)
     table, positions = encode_positions(many)
     assert positions.dtype == np.dtype("<u2") and np.array_equal(table[positions], many)
+    rng = np.random.default_rng(0)
+    for ids in (rng.choice(np.array([0, 5, 0xFFFFFF, 0xFFFFFFFF, 2**31], np.uint32), 10_000), np.zeros(0, np.uint32),
+                rng.integers(0, 2**32, 70_000, dtype=np.uint32)):  # fmt: skip
+        table, positions = encode_positions(ids)
+        want_table, want_positions = np.unique(ids, return_inverse=True)  # its plain twin
+        np.testing.assert_array_equal(table, want_table)
+        np.testing.assert_array_equal(positions, want_positions)
+        assert positions.dtype.itemsize == (1 if table.size <= 256 else 2 if table.size <= 65536 else 4)
 
 
 WRITER = textwrap.dedent(

@@ -33,6 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from monovoc_ros.core.raster.numba_kernels import argsort_keys
 from monovoc_ros.core.segments.object_labels import stored_source
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, backend_identity, lazy_backend, model_name
 from monovoc_ros.objects.records import ObjectRecord
@@ -131,10 +132,19 @@ def database_path(location: str | os.PathLike) -> Path:
 
 
 def encode_positions(object_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(distinct ids uint32, per-element position in them in the smallest unsigned type)."""
-    ids, positions = np.unique(np.asarray(object_ids, np.uint32), return_inverse=True)
+    """(distinct ids uint32 ascending, per-element position in them in the smallest unsigned type): numpy's
+    unique(return_inverse=True) by the radix argsort (1M ids: numpy's sort took ~100 ms of each objects.db write)."""
+    flat = np.asarray(object_ids, np.uint32).reshape(-1)
+    order = argsort_keys(flat)
+    ordered = flat[order]
+    first = np.empty(flat.size, bool)
+    first[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
+    ids = ordered[first]
     size = 1 if ids.size <= 0x100 else 2 if ids.size <= 0x10000 else 4
-    return ids.astype(_U32), positions.reshape(-1).astype(_POSITION_DTYPES[size])
+    positions = np.empty(flat.size, _POSITION_DTYPES[size])
+    positions[order] = np.cumsum(first) - 1
+    return ids.astype(_U32), positions
 
 
 def _png(image: np.ndarray) -> bytes:
