@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.follow.map_follow import FollowConfig
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
@@ -19,7 +20,13 @@ from monovoc_ros.core.map_store import current_snapshot, load_deferred, load_sna
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
-from monovoc_ros.nodes.worker import MapWorker, TaskQueue, WorkerSettings, WorkerStopped
+from monovoc_ros.nodes.worker import (
+    KEYFRAMES_PER_REINTEGRATION_STEP,
+    MapWorker,
+    TaskQueue,
+    WorkerSettings,
+    WorkerStopped,
+)
 from monovoc_ros.ros_harness import wait_until
 from tests.evidence import assert_same_evidence
 from tests.node_scene import RecordingLog
@@ -620,6 +627,36 @@ class GeometrySink(Sink):
     def publish(self, mapper, result):
         super().publish(mapper, result)
         return 0 if result is None else len(result.objects(mapper.gaussians).objects)
+
+
+def test_a_reintegration_steps_once_per_three_waiting_keyframes_and_finishes_when_none_wait():
+    """Live keyframes first: while they wait, a rebuild takes one step per KEYFRAMES_PER_REINTEGRATION_STEP of
+    them (it took one after each, half of the worker at 2M Gaussians); with nothing waiting it catches up."""
+    worker, _, _ = make_worker(queue_size=64)
+    seen: list[tuple[int, int]] = []  # (live keyframe, rebuild steps so far) right after its integration
+    worker.add_keyframe_listener(lambda kf, _: seen.append((kf.stamp_ns, worker.stats.reintegration_steps)))
+    worker.start()
+    try:
+        worker.submit_map(plane_map())
+        for stamp in range(1, 10):
+            worker.submit_keyframe(keyframe(stamp))
+        drain(worker)
+        release = threading.Event()
+        worker.call(lambda: release.wait(10.0))  # everything below queues behind it
+        shifted = np.eye(4)
+        shifted[0, 3] = 0.01
+        worker.submit_keyframe_poses(KeyframePoses(tuple((stamp, shifted) for stamp in range(1, 10))))
+        for stamp in range(10, 22):
+            worker.submit_keyframe(keyframe(stamp))
+        release.set()
+        drain(worker)
+        wait_until(lambda: worker.stats.reintegrations == 1, 10.0, "the re-integration to finish", process=None)
+    finally:
+        worker.stop(final_snapshot=False)
+    assert KEYFRAMES_PER_REINTEGRATION_STEP == 3
+    # The corrected poses start the rebuild and it steps at once; then once per three live keyframes.
+    assert [steps for stamp, steps in seen if stamp >= 10] == [1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4]
+    assert worker.stats.reintegration_steps == 9 + 12  # every logged keyframe, the live ones too, once
 
 
 def test_worker_time_is_accounted_by_activity(tmp_path):

@@ -46,6 +46,7 @@ class MapperStats(SessionStats):
     worker_s_keyframes: float = 0.0  # integration, association and the keyframe listeners (object views)
     worker_s_map_updates: float = 0.0  # checks, registration and evidence transfer of new SLAM maps
     worker_s_reintegration: float = 0.0  # re-integration steps after a map update that bent the map
+    reintegration_steps: int = 0  # logged keyframes integrated again (one per step)
     worker_s_labels: float = 0.0  # the semantic result (labels of every Gaussian) for a publication
     worker_s_objects: float = 0.0  # the object geometry of a publication
     worker_s_publish: float = 0.0  # the cloud, objects and markers messages and the result listeners

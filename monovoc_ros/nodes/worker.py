@@ -68,6 +68,12 @@ MapPreparer = Callable[[GaussianMap | None, GaussianMap], Future | None]
 # BUSY_PUBLISH_SHARE of that time (at 1M Gaussians one took ~0.35 s: the work it is behind with comes first).
 BUSY_PUBLISH_PERIOD_S = 1.0
 BUSY_PUBLISH_SHARE = 0.2
+# While keyframes wait, a re-integration in progress advances one step (one logged keyframe, about a live
+# keyframe's cost) per this many live keyframes integrated: the robot's newest evidence comes first. At 2M
+# Gaussians every map update of the robot-scale bench bent the map past REINTEGRATE_BEND_M, and a step after
+# every keyframe took 36-40% of the worker, the same rebuild restarted or followed map after map. When nothing
+# waits it steps at full speed.
+KEYFRAMES_PER_REINTEGRATION_STEP = 3
 # How often an idle worker looks whether the snapshot being written is done (s).
 _SNAPSHOT_POLL_S = 0.1
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
@@ -263,6 +269,7 @@ class MapWorker:
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
         self._publish_s = 0.0  # the last publication's time
+        self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
         self._last_save = time.monotonic()
         # The last snapshot's time, save listeners included, and its map's size (stop's estimate).
         self._save_timed: tuple[float, int] | None = None
@@ -528,17 +535,21 @@ class MapWorker:
                 if ready:
                     if self.session.integrate_next() is not None:
                         self._changed()
+                        self._keyframes_since_step += 1
                     self.stats.add(worker_s_keyframes=time.perf_counter() - start)
                 elif task is not None:
                     self._execute(task)
                     self.stats.add(**{_ACTIVITY[task.kind]: time.perf_counter() - start})
-                if self.session.reintegrating:
+                if self.session.reintegrating and (
+                    self.keyframes_waiting == 0 or self._keyframes_since_step >= KEYFRAMES_PER_REINTEGRATION_STEP
+                ):
                     if self.session.reintegration_swaps_next:
                         self._collect_snapshot(wait=True)
                     start = time.perf_counter()
+                    self._keyframes_since_step = 0
                     if not self.session.reintegration_step():
                         self._changed()  # the re-integrated state was swapped in
-                    self.stats.add(worker_s_reintegration=time.perf_counter() - start)
+                    self.stats.add(worker_s_reintegration=time.perf_counter() - start, reintegration_steps=1)
                 self.stats.update(queue_length=self.keyframes_waiting)
                 self._maybe_publish()
                 self._maybe_save()
