@@ -84,3 +84,23 @@ def test_no_module_level_import_cycles():
     for name in sorted(graph):
         if name not in state:
             visit(name, [name])
+
+
+def test_every_numba_kernel_releases_the_interpreter():
+    """The executor's callbacks (the query service among them) run beside the worker and the planning thread:
+    a kernel compiled without nogil holds the GIL for its whole run and stalls them."""
+    import ast
+
+    holding = []
+    for name, path in _modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.FunctionDef):
+                continue
+            for deco in node.decorator_list:
+                if isinstance(deco, ast.Call) and ast.unparse(deco.func) in ("njit", "numba.njit"):
+                    nogil = [k for k in deco.keywords if k.arg == "nogil"]
+                    if not nogil or not (isinstance(nogil[0].value, ast.Constant) and nogil[0].value.value is True):
+                        holding.append(f"{name}.{node.name}")
+                elif ast.unparse(deco) in ("njit", "numba.njit"):
+                    holding.append(f"{name}.{node.name}")
+    assert not holding, holding

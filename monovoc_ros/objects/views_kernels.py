@@ -9,7 +9,7 @@ from numba import njit, prange
 from monovoc_ros.core.evidence.palette_kernels import lower_bound
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def label_image(mask: np.ndarray, ids: np.ndarray, out: np.ndarray) -> None:
     """out (H, W) int32: the index of each pixel's packed color in the ascending ``ids`` (R,) uint32, -1 when
     it is not there. mask (H, W, 3) uint8."""
@@ -22,7 +22,7 @@ def label_image(mask: np.ndarray, ids: np.ndarray, out: np.ndarray) -> None:
             out[y, x] = lo if lo < r and ids[lo] == key else -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def label_boxes(labels: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Per label 0..k-1 of labels (H, W) int32 (-1 = none): its pixel count (k,) int64 and end-exclusive box
     (k, 4) int64 (y0, x0, y1, x1); labels without pixels get an empty box (h, w, 0, 0)."""

@@ -105,7 +105,7 @@ def label_tiles(rows, tile_start, tile_list, tile_order, gx, width, height, out_
             m = _fetch_add(counter, 0)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def compact_index(ids: np.ndarray, table: np.ndarray, unobserved: np.uint32, out: np.ndarray) -> int:
     """Per Gaussian the position of its object id in the sorted ``table``: out (N,) int32, -1 where the id is
     ``unobserved``, -2 where it is not in the table; returns how many are not. ids (N,) uint32, table (R,)
