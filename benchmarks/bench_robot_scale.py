@@ -2,6 +2,7 @@
 
     scripts/with_env.sh python benchmarks/bench_robot_scale.py                       # 1M and 2M Gaussians
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead
 
 The scene: Replica office_0's 204k-Gaussian map tiled side by side to the size (benchmarks/bench_map_churn.py's
 `tiled`, per-Gaussian ids dropped: most SLAM front-ends have none), its 81 RGB keyframes replayed in every tile
@@ -123,8 +124,11 @@ def worker_shares(values: dict[str, str], wall_s: float) -> dict:
     return shares
 
 
-def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float, query_rate_hz: float = 5.0) -> dict:
-    """One run of the node on `bag` (`keyframes` keyframes, `maps` map messages, the first included)."""
+def run(
+    bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float, ahead: bool, query_rate_hz: float = 5.0
+) -> dict:
+    """One run of the node on `bag` (`keyframes` keyframes, `maps` map messages, the first included);
+    `ahead`: the node's `map_update_ahead`."""
     mask_topic = topic_names()["mask"]
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
     first_log = bag_info(bag).start_ns  # the first map, just before the first keyframe
@@ -134,6 +138,7 @@ def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float
         "queue_size": keyframes + 8,
         "map_directory": str(work / f"map_{kind}"),
         "map_update_max_shrink": 1.0,
+        "map_update_ahead": ahead,
     }
     # Named after the bag (size and run): the sizes share the work folder.
     start_file, queries_file = work / f"{bag.stem}_queries.start", work / f"{bag.stem}_queries.json"
@@ -188,6 +193,7 @@ def run(bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float
             "maps_received": int(values["maps_decoded"]),
             "map_updates_applied": int(values["map_updates"]),
             "map_updates_prepared": int(values["map_updates_prepared"]),
+            "map_updates_ahead": int(values["map_updates_ahead"]),
             "reintegrations": int(values["reintegrations"]),
             "maps_coalesced": int(values["maps_coalesced"]),
             "gaussians_at_end": int(values["gaussians"]),
@@ -232,6 +238,7 @@ def main() -> int:
     parser.add_argument("--fast-keyframes", type=int, default=120, help="stamped at 10/s")
     parser.add_argument("--fast-rate", type=float, default=1.0, help="replay rate of the fast run (1: 10 keyframes/s)")
     parser.add_argument("--update-period-s", type=float, default=2.0)
+    parser.add_argument("--map-update-ahead", action="store_true", help="the node's map_update_ahead")
     args = parser.parse_args()
     if not (REPLICA / "traj.txt").exists():
         print(f"{REPLICA} not present: nothing to measure", file=sys.stderr)
@@ -240,7 +247,8 @@ def main() -> int:
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 232)))
     loopback_environment(work / "ros_log")
     base = open_sequence(str(REPLICA))
-    report = {"source": str(REPLICA), "cpus": os.cpu_count(), "update_period_s": args.update_period_s, "rows": []}
+    report = {"source": str(REPLICA), "cpus": os.cpu_count(), "update_period_s": args.update_period_s,
+              "map_update_ahead": args.map_update_ahead, "rows": []}  # fmt: skip
     for n in (int(s) for s in args.sizes.split(",")):
         for kind in args.runs.split(","):
             rate, count = (args.robot_rate, args.robot_keyframes) if kind == "robot" else (10.0, args.fast_keyframes)
@@ -256,7 +264,7 @@ def main() -> int:
                 "bag_build_s": round(built),
             }
             replay_rate = 1.0 if kind == "robot" else args.fast_rate
-            row.update(run(bag, work, kind, count, 1 + len(seq.updates), replay_rate))
+            row.update(run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, args.map_update_ahead))
             seq.updates.clear()
             bag.unlink()
             report["rows"].append(row)

@@ -10,7 +10,13 @@ import pytest
 from monovoc_ros.core.follow.map_follow import GRID_CELL_M, FollowConfig, follow_map, nearest_within
 from monovoc_ros.core.follow.map_follow_kernels import PointGrid
 from monovoc_ros.core.follow.map_motion import MapMotion, estimate_motion, kabsch, worst_block_plane_residual
-from monovoc_ros.core.follow.map_updater import MapMotionError, motion_refusal, update_map
+from monovoc_ros.core.follow.map_updater import (
+    MapMotionError,
+    motion_refusal,
+    pose_mover,
+    unmoved_pose,
+    update_map,
+)
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import MappingSession
@@ -318,6 +324,29 @@ def test_move_poses_equals_move_pose_around_each_camera():
         expected.append(motion.move_pose(T, support[near], moved[near]))
     np.testing.assert_allclose(motion.move_poses(poses, support, moved, 1.5), np.array(expected), atol=1e-9)
     assert len(tree.query_ball_point(poses[-1, :3, 3], 1.5)) == 0
+
+
+def test_unmoved_pose_is_the_pose_a_map_update_moves_to_the_given_one():
+    """A keyframe posed in a map not applied yet goes into the map in use with the pose the update will move
+    back to its own (the logged poses' mover): one rigid motion exactly, a bent map to a micrometre."""
+    scene = small_scene()
+    old = scene.gaussians
+    bent = follow_map(old, churn.drift_correction(old, seed=3).gaussians).motion
+    rigid = MapMotion(
+        rotation=kabsch(np.eye(3), np.eye(3) + 0.05)[0], translation=np.array([0.3, -0.1, 0.05]), by="registration"
+    )
+    rng = np.random.default_rng(4)
+    for motion in (bent, rigid):
+        mover = pose_mover(old.means, motion)
+        assert mover is not None
+        for _ in range(20):
+            T = np.eye(4)
+            T[:3, :3] = kabsch(rng.normal(size=(4, 3)), rng.normal(size=(4, 3)))[0]
+            T[:3, 3] = old.means.mean(axis=0) + rng.uniform(-3, 3, 3)
+            back = unmoved_pose(mover, T)
+            np.testing.assert_allclose(mover(back[None])[0], T, atol=1e-6)
+            assert np.linalg.norm(back[:3, 3] - T[:3, 3]) > 0.01  # it did move
+    assert pose_mover(old.means, MapMotion()) is None  # an identity: poses stay
 
 
 def test_surface_normals_equal_their_plain_twin():

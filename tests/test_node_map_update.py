@@ -51,7 +51,10 @@ def changed_map(old: GaussianMap, seed: int = 0) -> GaussianMap:
     return gmap.subset(rng.permutation(len(gmap)))
 
 
-def test_map_update_carries_evidence_by_id(tmp_path):
+@pytest.mark.parametrize("ahead", [False, True])
+def test_map_update_carries_evidence_by_id(tmp_path, ahead):
+    """With `map_update_ahead` too: no keyframe comes between the map and its update here, so the node ends as
+    offline mapping does either way."""
     from monovoc_interfaces.srv import SaveMap
 
     scene, messages = small_scene(), scene_messages()
@@ -69,7 +72,7 @@ def test_map_update_carries_evidence_by_id(tmp_path):
 
     env = ros_environment(tmp_path)
     # The transfer alone (10% moved 0.3 m bends the fitted motion: no re-integration of its own accord here).
-    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "reintegrate_below": 0.0}
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "reintegrate_below": 0.0, "map_update_ahead": ahead}
     with (
         NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
         ClientNode(env) as client,
@@ -87,6 +90,7 @@ def test_map_update_carries_evidence_by_id(tmp_path):
         publisher.gaussians.publish(update_msg)
         updated_values = diagnostics.wait_for(lambda v: v["map_updates"] == "1", 20.0, process=node)
         assert updated_values["map_updates_prepared"] == "1"  # its plan was made beside the worker
+        assert updated_values["map_updates_ahead"] in (("0", "1") if ahead else ("0",))
         assert call_service(save, SaveMap.Request(directory=str(tmp_path / "mid")), process=node).success
         for msgs in messages[8:]:
             publisher.publish_messages(msgs)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import (
     KEYFRAMES_PER_REINTEGRATION_STEP,
     MapWorker,
+    Preparation,
     TaskQueue,
     WorkerSettings,
     WorkerStopped,
@@ -657,6 +659,70 @@ def test_a_reintegration_steps_once_per_three_waiting_keyframes_and_finishes_whe
     # The corrected poses start the rebuild and it steps at once; then once per three live keyframes.
     assert [steps for stamp, steps in seen if stamp >= 10] == [1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4]
     assert worker.stats.reintegration_steps == 9 + 12  # every logged keyframe, the live ones too, once
+
+
+class HeldPlans(MapWorker):
+    """A worker whose map update plans are held until `release` is set, as a slow plan at robot scale is."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.release = threading.Event()
+
+    def _prepare_map(self, base, gaussians):
+        prepared = super()._prepare_map(base, gaussians)
+        if prepared is None or base is None:  # the first map has nothing to prepare
+            return prepared
+        held: Future = Future()
+
+        def hold() -> None:
+            self.release.wait(10.0)
+            held.set_result(prepared.plan.result())
+
+        threading.Thread(target=hold, daemon=True).start()
+        return Preparation(held, prepared.motion)
+
+
+@pytest.mark.parametrize("ahead", [False, True])
+def test_keyframes_after_a_map_update_go_ahead_into_the_map_in_use_only_when_asked(ahead):
+    """map_update_ahead: keyframes posed in a map whose plan is not ready go into the map in use, their poses
+    taken back by its motion, and the update then moves their logged poses to where they were sent; without
+    it they wait for the update (as offline mapping integrates them)."""
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=ahead)
+    worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
+    first = plane_map()
+    shift = np.eye(4)
+    shift[2, 3] = 0.05  # the SLAM moved its map 5 cm (a loop closure): the next keyframes are posed in the new one
+    second = GaussianMap(first.means + shift[:3, 3], first.scales, first.quats, first.opacities, ids=first.ids)
+    seen: list[tuple[int, bool, np.ndarray]] = []  # (stamp, integrated into the first map, pose)
+    worker.add_keyframe_listener(lambda kf, m: seen.append((kf.stamp_ns, m.gaussians is first, kf.cam_to_world)))
+    worker.start()
+    try:
+        worker.submit_map(first)
+        for stamp in range(1, 4):
+            worker.submit_keyframe(keyframe(stamp))
+        drain(worker)
+        worker.submit_map(second)
+        sent = {}
+        for stamp in range(4, 7):
+            kf = keyframe(stamp)
+            sent[stamp] = shift @ kf.cam_to_world
+            worker.submit_keyframe(replace(kf, cam_to_world=sent[stamp]))
+        if ahead:
+            wait_until(lambda: len(seen) == 6, 10.0, "the keyframes after the map", process=None)
+            assert worker.session.mapper.gaussians is first  # the update still waits for its plan
+        worker.release.set()
+        drain(worker)
+        logged = {e.stamp_ns: e.cam_to_world for e in worker.session.mapper.keyframe_log.entries}
+    finally:
+        worker.stop(final_snapshot=False)
+    assert worker.session.mapper.gaussians is second
+    assert [stamp for stamp, _, _ in seen] == [1, 2, 3, 4, 5, 6]
+    assert [into_first for stamp, into_first, _ in seen if stamp >= 4] == [ahead] * 3
+    for stamp, _, pose in seen[3:]:
+        # Ahead: integrated 5 cm back, into the first map; the update moved the logged pose to where it was sent.
+        np.testing.assert_allclose(pose[2, 3], sent[stamp][2, 3] - (0.05 if ahead else 0.0), atol=1e-6)
+        np.testing.assert_allclose(logged[stamp], sent[stamp], atol=1e-6)
+    assert worker.stats.map_updates_ahead == int(ahead) and worker.stats.map_updates == 1
 
 
 def test_worker_time_is_accounted_by_activity(tmp_path):

@@ -32,6 +32,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
+from monovoc_ros.core.follow.map_motion import MapMotion
 from monovoc_ros.core.follow.map_updater import (
     MapMotionError,
     MapUpdatePlan,
@@ -267,16 +268,28 @@ class MappingSession:
 
     # ------------------------------------------------------------------ maps
 
-    def plan_map(self, base: GaussianMap | None, gaussians: GaussianMap) -> MapUpdatePlan | None:
+    def plan_map(
+        self,
+        base: GaussianMap | None,
+        gaussians: GaussianMap,
+        on_motion: Callable[[MapMotion | None], None] | None = None,
+    ) -> MapUpdatePlan | None:
         """The update of `base` (None: the map in use) to `gaussians` prepared for `add_map` (the registration
         and the evidence's sources: core.follow.map_updater.MapUpdatePlan), None when there is nothing to
         prepare (no map yet, or the same map again). Reads no state but the map in use, so a live node runs
-        it on a thread of its own while the mapper goes on with keyframes."""
+        it on a thread of its own while the mapper goes on with keyframes. `on_motion`: see plan_map_update."""
         mapper = self._mapper
         base = base if base is not None else (mapper.gaussians if mapper is not None else None)
         if base is None or len(gaussians) == 0 or same_geometry(base, gaussians):
             return None
-        return plan_map_update(base, gaussians, self.config.follow())
+        return plan_map_update(base, gaussians, self.config.follow(), on_motion)
+
+    @property
+    def poses_corrected(self) -> bool:
+        """Whether the SLAM's corrected poses wait for queued keyframes or will keep the next map update from
+        moving the logged poses (they are in that map's frame already)."""
+        mapper = self._mapper
+        return bool(self._pending_poses) or (mapper is not None and mapper.keyframe_log.poses_given)
 
     def add_map(self, gaussians: GaussianMap, name: str = "", plan: MapUpdatePlan | None = None) -> bool:
         """The first map or a map update; returns whether the map changed (False: refused or unchanged).

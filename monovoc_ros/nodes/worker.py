@@ -11,7 +11,11 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
   registration and evidence sources (~90% of an update without ids) are prepared at once on a planning
   thread against the map queued before it (`MappingSession.plan_map`), while the worker integrates the
   keyframes ahead of it; when its turn comes the worker applies the plan if that map is the one in use
-  (else the session computes the update itself: the same function, the same result). The session
+  (else the session computes the update itself: the same function, the same result). With `map_update_ahead`
+  the keyframes after a map whose plan is not ready do not wait for it: once the registration has the map's
+  motion (about half of the plan), they go into the map in use with their poses taken back by that motion
+  (`unmoved_pose`), and the update, applied when its plan is ready or before any other task, carries their
+  evidence with the rest and moves their logged poses back to where they were sent. The session
   skips unchanged maps and refuses (and counts) a map without Gaussians or one removing more than
   `map_update_max_shrink` of them: one empty cloud must not wipe the map.
 * calls (services, plugins): never dropped; run in arrival order with the rest, results via a Future.
@@ -38,13 +42,13 @@ import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
-from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
-from monovoc_ros.core.follow.map_updater import MapUpdatePlan
+from monovoc_ros.core.follow.map_updater import MapUpdatePlan, PoseMover, pose_mover, unmoved_pose
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import SnapshotInfo, write_snapshot
@@ -60,8 +64,18 @@ from monovoc_ros.core.session import (
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
-# (base, gaussians) -> the Future of a map update's plan, or None (TaskQueue.put_map).
-MapPreparer = Callable[[GaussianMap | None, GaussianMap], Future | None]
+
+
+@dataclass(frozen=True)
+class Preparation:
+    """A map update being prepared beside the worker (MappingSession.plan_map)."""
+
+    plan: Future  # its MapUpdatePlan (None: nothing to prepare)
+    motion: Future  # the map's MapMotion as soon as the registration has it (None: refused or none)
+
+
+# (base, gaussians) -> the update being prepared, or None (TaskQueue.put_map).
+MapPreparer = Callable[[GaussianMap | None, GaussianMap], Preparation | None]
 # With publish_period_s 0 (publish as soon as nothing runnable is queued), a worker that never runs out of work
 # still publishes this often (s): a robot outrunning the mapper sees its map grow, late, rather than never
 # (the robot-scale bench's 2M run published no cloud at all). Less often when a publication takes more than
@@ -74,6 +88,8 @@ BUSY_PUBLISH_SHARE = 0.2
 # every keyframe took 36-40% of the worker, the same rebuild restarted or followed map after map. When nothing
 # waits it steps at full speed.
 KEYFRAMES_PER_REINTEGRATION_STEP = 3
+# How often the worker looks whether the plan of a map update applied ahead is ready (s).
+_AHEAD_POLL_S = 0.005
 # How often an idle worker looks whether the snapshot being written is done (s).
 _SNAPSHOT_POLL_S = 0.1
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
@@ -114,6 +130,9 @@ class WorkerSettings:
     # A map update removing a larger share of the Gaussians (by id when both maps have ids, else by count) is
     # refused and counted (map_shrink): one empty or truncated cloud must not wipe the map. 1.0 = allow all.
     map_update_max_shrink: float = DEFAULT_MAX_SHRINK
+    # Keyframes that come after a map update whose plan is not ready yet are integrated into the map in use
+    # (their poses taken back by the update's motion) instead of waiting for it (module docstring).
+    map_update_ahead: bool = False
 
 
 @dataclass
@@ -124,6 +143,15 @@ class _Task:
     name: str = ""
     base: GaussianMap | None = None  # a map's: the map queued before it (None: none since the start)
     plan: Future | None = None  # a map's: its update prepared beside the worker (MappingSession.plan_map)
+    motion: Future | None = None  # a map's: the motion of that update, known before the plan (Preparation)
+
+
+@dataclass
+class _Ahead:
+    """A map update whose later keyframes are integrated into the map in use while its plan is finished."""
+
+    task: _Task
+    mover: PoseMover | None  # how the update moves poses (None: they stay)
 
 
 class TaskQueue:
@@ -175,8 +203,9 @@ class TaskQueue:
                 base = replaced.base
                 if replaced.plan is not None:
                     replaced.plan.cancel()
-            plan = prepare(base, gaussians) if prepare is not None else None
-            self._tasks.append(_Task("map", gaussians, name=name, base=base, plan=plan))
+            prepared = prepare(base, gaussians) if prepare is not None else None
+            plan, motion = (prepared.plan, prepared.motion) if prepared is not None else (None, None)
+            self._tasks.append(_Task("map", gaussians, name=name, base=base, plan=plan, motion=motion))
             self._newest_map = gaussians
             self._cond.notify()
         # The same map again is skipped by the session: the one before it stays in use. Compared outside the
@@ -270,6 +299,7 @@ class MapWorker:
         self._last_publish = -float("inf")
         self._publish_s = 0.0  # the last publication's time
         self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
+        self._ahead: _Ahead | None = None  # a map update applied once its plan is ready (map_update_ahead)
         self._last_save = time.monotonic()
         # The last snapshot's time, save listeners included, and its map's size (stop's estimate).
         self._save_timed: tuple[float, int] | None = None
@@ -326,15 +356,20 @@ class MapWorker:
         if self.queue.put_map(gaussians, name, self._prepare_map):
             self.stats.add(maps_coalesced=1)
 
-    def _prepare_map(self, base: GaussianMap | None, gaussians: GaussianMap) -> Future | None:
+    def _prepare_map(self, base: GaussianMap | None, gaussians: GaussianMap) -> Preparation | None:
+        motion: Future = Future()
+
         def plan() -> MapUpdatePlan | None:
             start = time.perf_counter()
-            out = self.session.plan_map(base, gaussians)
-            self.stats.add(map_prepare_s=time.perf_counter() - start)
-            return out
+            try:
+                return self.session.plan_map(base, gaussians, motion.set_result)
+            finally:
+                if not motion.done():  # nothing to prepare, or it failed
+                    motion.set_result(None)
+                self.stats.add(map_prepare_s=time.perf_counter() - start)
 
         try:
-            return self._planner.submit(plan)
+            return Preparation(self._planner.submit(plan), motion)
         except RuntimeError:  # stopping (a map decoded as the node shut down): the session computes it, if ever
             return None
 
@@ -469,6 +504,12 @@ class MapWorker:
                     self._changed()
                 longest = max(longest, time.monotonic() - start)
 
+        # A map update applied ahead: the keyframes the session holds are posed in the map in use, those queued
+        # in the update's map.
+        integrate_ready()
+        if not self.session.keyframes_ready:
+            guarded(self._apply_ahead)
+        self._ahead = None  # else dropped with the keyframes the deadline leaves (the SLAM sends its map again)
         # Twice: an input callback still running when the queue closed may have put one more task.
         for _ in range(2):
             tasks = self.queue.drain()
@@ -526,11 +567,19 @@ class MapWorker:
         while not self.queue.closed:
             # Keyframes the session holds are older than anything queued: they go first.
             ready = self.session.keyframes_ready
-            # A re-integration in progress advances between tasks: the queue is only polled meanwhile.
-            task = None if ready else self.queue.take(0.0 if self.session.reintegrating else self._wait_time())
+            # A re-integration in progress advances between tasks: the queue is only polled meanwhile, and so it
+            # is while a map update is applied ahead (for its plan).
+            polling = self.session.reintegrating or self._ahead is not None
+            task = None if ready else self.queue.take(_AHEAD_POLL_S if polling else self._wait_time())
             if task is None and self.queue.closed:
                 return
             try:
+                # Applied once its plan is ready, or before any other task (only keyframes go ahead of it), but
+                # never while the session holds keyframes: they are posed in the map in use.
+                ahead = self._ahead
+                if ahead is not None and not ready:
+                    if ahead.task.plan.done() or (task is not None and task.kind != "keyframe"):
+                        self._apply_ahead()
                 start = time.perf_counter()
                 if ready:
                     if self.session.integrate_next() is not None:
@@ -559,11 +608,13 @@ class MapWorker:
 
     def _execute(self, task: _Task) -> None:
         if task.kind == "keyframe":
-            self.session.add_keyframe(task.payload)
+            keyframe = task.payload
+            if self._ahead is not None and self._ahead.mover is not None:  # posed in the map not applied yet
+                keyframe = replace(keyframe, cam_to_world=unmoved_pose(self._ahead.mover, keyframe.cam_to_world))
+            self.session.add_keyframe(keyframe)
         elif task.kind == "map":
-            self._collect_snapshot(wait=True)  # its save listeners see the map it was captured from
-            if self.session.add_map(task.payload, task.name, self._plan_of(task)):
-                self._changed()
+            if not self._start_ahead(task):
+                self._apply_map(task)
         else:
             assert task.future is not None
             if not task.future.set_running_or_notify_cancel():
@@ -572,6 +623,43 @@ class MapWorker:
                 task.future.set_result(task.payload())
             except Exception as exc:
                 task.future.set_exception(exc)
+
+    def _apply_map(self, task: _Task) -> None:
+        self._collect_snapshot(wait=True)  # its save listeners see the map it was captured from
+        if self.session.add_map(task.payload, task.name, self._plan_of(task)):
+            self._changed()
+
+    def _start_ahead(self, task: _Task) -> bool:
+        """With `map_update_ahead`, when the plan of this map update is not ready: waits for its motion only and
+        lets the keyframes after it into the map in use, their poses taken back by that motion (`unmoved_pose`);
+        the update is applied, moving every logged pose with the map, once its plan is ready or before any other
+        task. Not when the SLAM's corrected poses are in play (they are in the new map's frame) or a
+        re-integration runs."""
+        mapper = self.session.mapper
+        if (
+            not self.settings.map_update_ahead
+            or task.plan is None
+            or task.motion is None
+            or task.plan.done()
+            or mapper is None
+            or task.base is not mapper.gaussians
+            or self.session.reintegrating
+            or self.session.poses_corrected
+        ):
+            return False
+        wait([task.motion, task.plan], return_when=FIRST_COMPLETED)
+        if not task.motion.done() or task.motion.result() is None:  # cancelled, refused, or nothing to prepare
+            return False
+        self._ahead = _Ahead(task, pose_mover(mapper.gaussians.means, task.motion.result()))
+        self.stats.add(map_updates_ahead=1)
+        return True
+
+    def _apply_ahead(self) -> None:
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None:
+            start = time.perf_counter()
+            self._apply_map(ahead.task)
+            self.stats.add(worker_s_map_updates=time.perf_counter() - start)
 
     def _changed(self, unsaved: bool = True) -> None:
         self._output_dirty = True
@@ -641,7 +729,7 @@ class MapWorker:
         """A periodic snapshot: captured here, written on the snapshot thread (its files, fsyncs and semantic.ply
         take most of it: ~0.5 s at 1M Gaussians), finished here when written (`_collect_snapshot`)."""
         self._collect_snapshot()
-        if self._writing is not None:
+        if self._writing is not None or self._ahead is not None:  # a snapshot holds applied map updates only
             return
         if not (self._save_enabled() and self._unsaved and self.session.mapper is not None):
             return

@@ -26,6 +26,7 @@ SLAM front-end do to the mapper a MappingSession (core.session) holds.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -177,11 +178,19 @@ class MapUpdatePlan:
         return self.old is old and self.new is new and self.config == config
 
 
-def plan_map_update(old: GaussianMap, new: GaussianMap, config: FollowConfig) -> MapUpdatePlan:
+def plan_map_update(
+    old: GaussianMap,
+    new: GaussianMap,
+    config: FollowConfig,
+    on_motion: Callable[[MapMotion | None], None] | None = None,
+) -> MapUpdatePlan:
     """The map update of `old` to `new` up to the evidence transfer (see MapUpdatePlan); reads nothing else,
-    so any thread may compute it."""
+    so any thread may compute it. `on_motion` hears the map's motion (None: refused) as soon as it is known,
+    before the transfer (a live worker may integrate keyframes meanwhile: nodes/worker.py)."""
     follow = follow_ids(old, new, config)
     refusal = motion_refusal(follow, config)
+    if on_motion is not None:
+        on_motion(None if refusal else follow.motion)
     if not refusal:
         follow_positions(follow, new, config)
         # The rasterizer's per-map values, cached with the map: here, beside a live worker, and not in its first
@@ -225,14 +234,36 @@ def move_logged_poses(log: KeyframeLog, means: np.ndarray, motion: MapMotion) ->
     if log.poses_given:  # in the frame of this map already
         log.poses_given = False
         return
+    mover = pose_mover(means, motion)
+    if mover is not None:
+        log.move_poses(mover)
+
+
+PoseMover = Callable[[np.ndarray], np.ndarray]  # (P, 4, 4) cam_to_world in the old map -> the same in the new
+
+
+def pose_mover(means: np.ndarray, motion: MapMotion) -> PoseMover | None:
+    """How a map update moves camera poses with the map whose old centres are `means` (N, 3): each by the motion's
+    rigid fit around its camera; None when poses stay (the motion is the noise of a densified map)."""
     support = means[:: max(1, len(means) // 20000)].astype(np.float64)
     moved = motion.apply(support)
     if motion.by == "identity" or not len(support) or np.linalg.norm(moved - support, axis=1).max() < _POSE_MOVE_MIN_M:
-        return  # densify / prune noise: poses stay (no random walk)
+        return None  # densify / prune noise: poses stay (no random walk)
     if not np.any(motion.offsets):  # one rigid motion: the same for every pose
-        log.move_poses(lambda poses: np.stack([motion.move_pose(T, ()) for T in poses]))
-        return
-    log.move_poses(lambda poses: motion.move_poses(poses, support, moved, _POSE_SUPPORT_M))
+        return lambda poses: np.stack([motion.move_pose(T, ()) for T in poses])
+    return lambda poses: motion.move_poses(poses, support, moved, _POSE_SUPPORT_M)
+
+
+def unmoved_pose(mover: PoseMover, cam_to_world: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """(4, 4) float64: the old map's pose that `mover` moves to `cam_to_world` (a pose in the new map), by
+    fixed-point iteration on the local rigid motion `mover` applies around the camera (exact for one rigid
+    motion; the field's fit changes slowly with the camera's position)."""
+    target = np.asarray(cam_to_world, np.float64)
+    guess = target
+    for _ in range(iterations):
+        local = mover(guess[None])[0] @ np.linalg.inv(guess)  # how the map moves around the guess
+        guess = np.linalg.inv(local) @ target
+    return guess
 
 
 def correct_logged_poses(log: KeyframeLog, poses: dict[int, np.ndarray]) -> int:
