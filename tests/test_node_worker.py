@@ -725,6 +725,34 @@ def test_keyframes_after_a_map_update_go_ahead_into_the_map_in_use_only_when_ask
     assert worker.stats.map_updates_ahead == int(ahead) and worker.stats.map_updates == 1
 
 
+def test_a_stop_applies_the_map_update_applied_ahead_before_the_final_snapshot(tmp_path):
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=True,
+                              map_directory=str(tmp_path / "m"))  # fmt: skip
+    worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
+    first = plane_map()
+    second = GaussianMap(first.means + np.float32([0, 0, 0.05]), first.scales, first.quats, first.opacities,
+                         ids=first.ids)  # fmt: skip
+    shift = np.eye(4)
+    shift[2, 3] = 0.05
+    worker.start()
+    worker.submit_map(first)
+    worker.submit_keyframe(keyframe(1))
+    drain(worker)
+    worker.submit_map(second)
+    for stamp in (2, 3):
+        worker.submit_keyframe(replace(keyframe(stamp), cam_to_world=shift))
+    wait_until(lambda: worker.stats.keyframes_processed == 3, 10.0, "the keyframes after the map", process=None)
+    assert worker.stats.map_updates_ahead == 1 and worker.session.mapper.gaussians is first
+    worker.release.set()  # its plan is ready as the node stops
+    info = worker.stop(within_s=5.0)
+    assert info is not None and worker.session.mapper.gaussians is second
+    saved = load_snapshot(tmp_path / "m")
+    np.testing.assert_array_equal(saved.gaussians.means, second.means)
+    logged = {e.stamp_ns: e.cam_to_world for e in saved.keyframe_log.entries}
+    for stamp in (2, 3):
+        np.testing.assert_allclose(logged[stamp], shift, atol=1e-6)  # moved back to where they were sent
+
+
 def test_worker_time_is_accounted_by_activity(tmp_path):
     settings = WorkerSettings(queue_size=8, publish_period_s=0.0, save_period_s=0.01, map_directory=str(tmp_path / "m"))
     worker = MapWorker(MapperConfig(), settings, sink=GeometrySink(), log=RecordingLog())

@@ -291,10 +291,15 @@ class MappingSession:
         mapper = self._mapper
         return bool(self._pending_poses) or (mapper is not None and mapper.keyframe_log.poses_given)
 
+    def map_refusal(self, gaussians: GaussianMap) -> tuple[str, str] | None:
+        """(reason, detail) when `add_map` would refuse `gaussians` before any registration (no Gaussians, or too
+        many removed); None when it may take them."""
+        return self._updates.refusal(self._mapper, gaussians)
+
     def add_map(self, gaussians: GaussianMap, name: str = "", plan: MapUpdatePlan | None = None) -> bool:
         """The first map or a map update; returns whether the map changed (False: refused or unchanged).
         `plan`: the update prepared by `plan_map`, used when it is of the map in use and this one."""
-        refusal = self._updates.refusal(self._mapper, gaussians)
+        refusal = self.map_refusal(gaussians)
         if refusal is not None:
             reason, detail = refusal
             self.stats.reject(reason)

@@ -504,12 +504,19 @@ class MapWorker:
                     self._changed()
                 longest = max(longest, time.monotonic() - start)
 
-        # A map update applied ahead: the keyframes the session holds are posed in the map in use, those queued
-        # in the update's map.
-        integrate_ready()
-        if not self.session.keyframes_ready:
-            guarded(self._apply_ahead)
-        self._ahead = None  # else dropped with the keyframes the deadline leaves (the SLAM sends its map again)
+        def settle_ahead(drop: bool) -> None:
+            """A map update applied ahead is applied while the deadline allows (the keyframes the session holds,
+            posed in the map in use, first); else queued keyframes keep being taken back into the map in use until
+            it is dropped as a queued map would be (the SLAM sends its map again)."""
+            if self._ahead is None:
+                return
+            integrate_ready()
+            if not self.session.keyframes_ready and time.monotonic() < deadline(left()):
+                self._apply_ahead()
+            if drop:
+                self._ahead = None
+
+        settle_ahead(drop=False)
         # Twice: an input callback still running when the queue closed may have put one more task.
         for _ in range(2):
             tasks = self.queue.drain()
@@ -517,6 +524,8 @@ class MapWorker:
             queued, mb = len(keyframes), max([mb, *(_megabytes(k) for k in keyframes[:1])])
             for task in tasks:
                 integrate_ready()  # the session's keyframes are older than any queued task, as in _run
+                if task.kind != "keyframe":
+                    settle_ahead(drop=True)  # only keyframes go ahead of it, as in _run
                 if time.monotonic() < deadline(left()) or (task.kind == "map" and self.session.mapper is None):
                     guarded(lambda task=task: self._execute(task))
                 elif task.kind == "keyframe":
@@ -525,6 +534,7 @@ class MapWorker:
                     task.future.set_exception(WorkerStopped(f"{task.name or 'call'}: the node is shutting down"))
                 queued -= task.kind == "keyframe"
             integrate_ready()
+        settle_ahead(drop=True)
         return integrated, self.session.take_waiting(late)
 
     # ------------------------------------------------------------------ operations (worker thread)
@@ -567,10 +577,13 @@ class MapWorker:
         while not self.queue.closed:
             # Keyframes the session holds are older than anything queued: they go first.
             ready = self.session.keyframes_ready
-            # A re-integration in progress advances between tasks: the queue is only polled meanwhile, and so it
-            # is while a map update is applied ahead (for its plan).
-            polling = self.session.reintegrating or self._ahead is not None
-            task = None if ready else self.queue.take(_AHEAD_POLL_S if polling else self._wait_time())
+            # A re-integration in progress advances between tasks: the queue is only polled meanwhile; a map update
+            # applied ahead is looked at every _AHEAD_POLL_S (for its plan).
+            if self.session.reintegrating:
+                timeout = 0.0
+            else:
+                timeout = _AHEAD_POLL_S if self._ahead is not None else self._wait_time()
+            task = None if ready else self.queue.take(timeout)
             if task is None and self.queue.closed:
                 return
             try:
@@ -645,6 +658,8 @@ class MapWorker:
             or task.base is not mapper.gaussians
             or self.session.reintegrating
             or self.session.poses_corrected
+            or self.queue.closed  # stopping: `_drain` applies maps in line, within its deadline
+            or self.session.map_refusal(task.payload) is not None
         ):
             return False
         wait([task.motion, task.plan], return_when=FIRST_COMPLETED)
@@ -655,11 +670,18 @@ class MapWorker:
         return True
 
     def _apply_ahead(self) -> None:
+        """Applies the map update applied ahead, if any; a failure is logged and counted, never lets it stand in
+        the way of the task behind it."""
         ahead, self._ahead = self._ahead, None
-        if ahead is not None:
-            start = time.perf_counter()
+        if ahead is None:
+            return
+        start = time.perf_counter()
+        try:
             self._apply_map(ahead.task)
-            self.stats.add(worker_s_map_updates=time.perf_counter() - start)
+        except Exception as exc:
+            self.stats.add(worker_errors=1)
+            self.log.error(f"map {ahead.task.name}: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+        self.stats.add(worker_s_map_updates=time.perf_counter() - start)
 
     def _changed(self, unsaved: bool = True) -> None:
         self._output_dirty = True
