@@ -682,6 +682,14 @@ class HeldPlans(MapWorker):
         return Preparation(held, prepared.motion)
 
 
+def moved_map(first: GaussianMap) -> tuple[GaussianMap, np.ndarray]:
+    """The SLAM moved its map 5 cm (a loop closure): the moved map, and the motion (4, 4) that poses the next
+    keyframes in it."""
+    shift = np.eye(4)
+    shift[2, 3] = 0.05
+    return GaussianMap(first.means + shift[:3, 3], first.scales, first.quats, first.opacities, ids=first.ids), shift
+
+
 @pytest.mark.parametrize("ahead", [False, True])
 def test_keyframes_after_a_map_update_go_ahead_into_the_map_in_use_only_when_asked(ahead):
     """map_update_ahead: keyframes posed in a map whose plan is not ready go into the map in use, their poses
@@ -690,9 +698,7 @@ def test_keyframes_after_a_map_update_go_ahead_into_the_map_in_use_only_when_ask
     settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=ahead)
     worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
     first = plane_map()
-    shift = np.eye(4)
-    shift[2, 3] = 0.05  # the SLAM moved its map 5 cm (a loop closure): the next keyframes are posed in the new one
-    second = GaussianMap(first.means + shift[:3, 3], first.scales, first.quats, first.opacities, ids=first.ids)
+    second, shift = moved_map(first)
     seen: list[tuple[int, bool, np.ndarray]] = []  # (stamp, integrated into the first map, pose)
     worker.add_keyframe_listener(lambda kf, m: seen.append((kf.stamp_ns, m.gaussians is first, kf.cam_to_world)))
     worker.start()
@@ -730,10 +736,7 @@ def test_a_stop_applies_the_map_update_applied_ahead_before_the_final_snapshot(t
                               map_directory=str(tmp_path / "m"))  # fmt: skip
     worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
     first = plane_map()
-    second = GaussianMap(first.means + np.float32([0, 0, 0.05]), first.scales, first.quats, first.opacities,
-                         ids=first.ids)  # fmt: skip
-    shift = np.eye(4)
-    shift[2, 3] = 0.05
+    second, shift = moved_map(first)
     worker.start()
     worker.submit_map(first)
     worker.submit_keyframe(keyframe(1))

@@ -210,6 +210,12 @@ def _search(
     return out
 
 
+def _run_starts(sorted_keys: np.ndarray) -> np.ndarray:
+    """(runs + 1,) int64: where each run of equal keys of `sorted_keys` (N,) starts, then N."""
+    first = np.flatnonzero(np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1])))
+    return np.append(first, len(sorted_keys)).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class PointGrid:
     """Points binned in cubes of `cell` metres, sorted by cell, for nearest-within-radius searches
@@ -228,9 +234,8 @@ class PointGrid:
         keys = _cell_keys(points, float(cell))
         order = argsort_keys(keys)  # stable; the order within a cell is free anyway: ties go to the lower row
         sorted_keys = keys[order]
-        first = np.flatnonzero(np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1])))
-        table_keys, table_values = _cell_table(sorted_keys[first])
-        cell_starts = np.append(first, len(points)).astype(np.int64)
+        cell_starts = _run_starts(sorted_keys)
+        table_keys, table_values = _cell_table(sorted_keys[cell_starts[:-1]])
         return cls(float(cell), gather_rows(points, order), order, table_keys, table_values, cell_starts)
 
     def nearest(self, queries: np.ndarray, radius: np.ndarray) -> np.ndarray:
@@ -244,11 +249,9 @@ class PointGrid:
         # neighbouring memory.
         q_keys = _cell_keys(queries, self.cell)
         q_order = argsort_keys(q_keys)
-        q_sorted = q_keys[q_order]
-        q_starts = np.append(np.flatnonzero(np.concatenate(([True], q_sorted[1:] != q_sorted[:-1]))), len(queries))
         found = _search(
             self.sorted_points, self.order, self.table_keys, self.table_values, self.cell_starts,
-            gather_rows(queries, q_order), q_starts.astype(np.int64), radius[q_order], self.cell,
+            gather_rows(queries, q_order), _run_starts(q_keys[q_order]), radius[q_order], self.cell,
         )  # fmt: skip
         out = np.empty(len(queries), np.int64)
         out[q_order] = found
