@@ -39,6 +39,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -125,10 +126,11 @@ def worker_shares(values: dict[str, str], wall_s: float) -> dict:
 
 
 def run(
-    bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float, ahead: bool, query_rate_hz: float = 5.0
-) -> dict:
+    bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float, node_params: dict,
+    query_rate_hz: float = 5.0,
+) -> dict:  # fmt: skip
     """One run of the node on `bag` (`keyframes` keyframes, `maps` map messages, the first included);
-    `ahead`: the node's `map_update_ahead`."""
+    `node_params`: the node's parameters the command line chose (map_update_ahead, map_reader_process)."""
     mask_topic = topic_names()["mask"]
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
     first_log = bag_info(bag).start_ns  # the first map, just before the first keyframe
@@ -138,7 +140,7 @@ def run(
         "queue_size": keyframes + 8,
         "map_directory": str(work / f"map_{kind}"),
         "map_update_max_shrink": 1.0,
-        "map_update_ahead": ahead,
+        **node_params,
     }
     # Named after the bag (size and run): the sizes share the work folder.
     start_file, queries_file = work / f"{bag.stem}_queries.start", work / f"{bag.stem}_queries.json"
@@ -207,6 +209,11 @@ def run(
             "snapshots": int(values["snapshots_saved"]),
             "worker_share": worker_shares(values, wall),
             "node_peak_rss_mb": round(peak_rss_mb(node.pid)),
+            "map_reader_peak_rss_mb": [
+                round(peak_rss_mb(c.pid))
+                for c in psutil.Process(node.pid).children()
+                if "monovoc_ros.nodes.map_reader" in c.cmdline()
+            ],
         }
         if kind == "robot":
             latencies = []
@@ -239,7 +246,9 @@ def main() -> int:
     parser.add_argument("--fast-rate", type=float, default=1.0, help="replay rate of the fast run (1: 10 keyframes/s)")
     parser.add_argument("--update-period-s", type=float, default=2.0)
     parser.add_argument("--map-update-ahead", action="store_true", help="the node's map_update_ahead")
+    parser.add_argument("--map-in-node", action="store_true", help="map_reader_process false: the node takes the map")
     args = parser.parse_args()
+    node_params = {"map_update_ahead": args.map_update_ahead, "map_reader_process": not args.map_in_node}
     if not (REPLICA / "traj.txt").exists():
         print(f"{REPLICA} not present: nothing to measure", file=sys.stderr)
         return 1
@@ -248,7 +257,7 @@ def main() -> int:
     loopback_environment(work / "ros_log")
     base = open_sequence(str(REPLICA))
     report = {"source": str(REPLICA), "cpus": os.cpu_count(), "update_period_s": args.update_period_s,
-              "map_update_ahead": args.map_update_ahead, "rows": []}  # fmt: skip
+              **node_params, "rows": []}  # fmt: skip
     for n in (int(s) for s in args.sizes.split(",")):
         for kind in args.runs.split(","):
             rate, count = (args.robot_rate, args.robot_keyframes) if kind == "robot" else (10.0, args.fast_keyframes)
@@ -264,7 +273,7 @@ def main() -> int:
                 "bag_build_s": round(built),
             }
             replay_rate = 1.0 if kind == "robot" else args.fast_rate
-            row.update(run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, args.map_update_ahead))
+            row.update(run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, node_params))
             seq.updates.clear()
             bag.unlink()
             report["rows"].append(row)

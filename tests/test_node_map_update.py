@@ -51,10 +51,10 @@ def changed_map(old: GaussianMap, seed: int = 0) -> GaussianMap:
     return gmap.subset(rng.permutation(len(gmap)))
 
 
-@pytest.mark.parametrize("ahead", [False, True])
-def test_map_update_carries_evidence_by_id(tmp_path, ahead):
+@pytest.mark.parametrize(("ahead", "reader_process"), [(False, True), (True, True), (False, False)])
+def test_map_update_carries_evidence_by_id(tmp_path, ahead, reader_process):
     """With `map_update_ahead` too: no keyframe comes between the map and its update here, so the node ends as
-    offline mapping does either way."""
+    offline mapping does either way; and with the map topic read in the node's own process."""
     from monovoc_interfaces.srv import SaveMap
 
     scene, messages = small_scene(), scene_messages()
@@ -72,7 +72,13 @@ def test_map_update_carries_evidence_by_id(tmp_path, ahead):
 
     env = ros_environment(tmp_path)
     # The transfer alone (10% moved 0.3 m bends the fitted motion: no re-integration of its own accord here).
-    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "reintegrate_below": 0.0, "map_update_ahead": ahead}
+    params = {
+        "publish_rate_hz": 0.0,
+        "diagnostics_period_s": 0.2,
+        "reintegrate_below": 0.0,
+        "map_update_ahead": ahead,
+        "map_reader_process": reader_process,
+    }
     with (
         NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
         ClientNode(env) as client,

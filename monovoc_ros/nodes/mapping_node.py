@@ -49,14 +49,17 @@ from monovoc_ros.contract import (
     keyframe_types,
     message_class,
 )
+from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map.ply import load_ply
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_deferred, load_snapshot
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import KeyframeListener
 from monovoc_ros.core.warm_up import kernels_cached, warm_up
 from monovoc_ros.ingest import KeyframeAssembler
+from monovoc_ros.nodes import map_reader
 from monovoc_ros.nodes.component import Component, MappingHost
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
+from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.param_spec import ParameterError, declare
 from monovoc_ros.nodes.params import PARAMETERS, NodeParams
@@ -102,6 +105,7 @@ class MappingNode(Node):
         )
         self._reject_log = RejectionLog(self.get_logger().warning)
         self._warned_frame: set[str] = set()
+        self._map_reader: MapReaderProcess | None = None
         self._diagnostics_sources: list[Callable[[], dict[str, Any]]] = []
         self._republish_lock = threading.Lock()
         self._republish_queued = False
@@ -140,6 +144,7 @@ class MappingNode(Node):
         try:
             check_stop(stop, "loading the map")
             self._queue_deferred()
+            self._map_reader = self._create_map_reader()  # its start-up overlaps the kernels' loading
             self._prepare_kernels(stop)
         except StartupAborted:
             self.destroy_node()  # nothing subscribed or written yet
@@ -251,6 +256,8 @@ class MappingNode(Node):
 
     def start(self) -> None:
         self.worker.start()
+        if self._map_reader is not None:
+            self._map_reader.start()
         p = self.params
         self.get_logger().info(
             f"ready: {self.get_namespace()} inputs {list(self.assembler.roles)} (image {p.image_transport}, mask "
@@ -264,7 +271,14 @@ class MappingNode(Node):
         is set) and the components' stop (TEARDOWN_RESERVE_S) still fit, the rest deferred to the snapshot.
         Call before the components' stop and destroy_node()."""
         end = (time.monotonic() if since is None else since) + self.params.shutdown_timeout_s
+        if self._map_reader is not None:  # no map arrives while the worker drains
+            self._map_reader.stop()
         self.worker.stop(within_s=end - TEARDOWN_RESERVE_S - time.monotonic())
+
+    def destroy_node(self) -> None:
+        if self._map_reader is not None:  # stopped already unless start-up was cut short
+            self._map_reader.stop()
+        super().destroy_node()
 
     # ------------------------------------------------------------------ set-up
 
@@ -326,6 +340,22 @@ class MappingNode(Node):
         self.stats.update(warm_up_ms=1e3 * seconds)
         log.info(f"mapping kernels loaded in {seconds:.1f} s")
 
+    def _create_map_reader(self) -> MapReaderProcess | None:
+        """The map topic's reader process (map_reader_process), or None: the map is taken in this process."""
+        if not self.params.map_reader_process:
+            return None
+        if not map_reader.supported():
+            self.get_logger().warning("map_reader_process: not supported on this platform (Linux only)")
+            return None
+        return MapReaderProcess(
+            self.resolve_topic_name("gaussians"),
+            f"_{self.get_name()}_map_reader",
+            on_map=self._on_received_map,
+            on_refused=self._on_reader_refusal,
+            on_restart=self._map_reader_restarted,
+            on_redelivered=lambda _m: self.stats.add(maps_redelivered=1),
+        )
+
     def _create_subscriptions(self) -> None:
         from sensor_msgs.msg import PointCloud2
 
@@ -339,9 +369,10 @@ class MappingNode(Node):
                 qos,
                 callback_group=self.callback_groups[f"input.{role}"],
             )
-        self.create_subscription(
-            PointCloud2, "gaussians", self._on_gaussians, latched_qos(), callback_group=self.callback_groups["map"]
-        )
+        if self._map_reader is None:
+            self.create_subscription(
+                PointCloud2, "gaussians", self._on_gaussians, latched_qos(), callback_group=self.callback_groups["map"]
+            )
         # Volatile, so that a SLAM publishing its path either way (latched or not) matches.
         self.create_subscription(
             message_class(KEYFRAME_POSES_TYPE),
@@ -418,15 +449,42 @@ class MappingNode(Node):
         try:
             gaussians = ma.cloud_to_gaussian_map(msg)
         except ValueError as exc:
-            self.stats.reject("bad_gaussians")
-            self._reject_log("bad_gaussians", f"Gaussian map ignored: {exc}")
+            self._refuse_map(f"Gaussian map ignored: {exc}")
             return
-        self.stats.add(map_decode_s=time.perf_counter() - start, maps_decoded=1)
-        frame = str(msg.header.frame_id)
+        self._accept_map(gaussians, ma.header_stamp_ns(msg), str(msg.header.frame_id), time.perf_counter() - start)
+
+    def _on_received_map(self, received: ReceivedMap) -> None:
+        try:
+            self._accept_map(received.gaussians, received.stamp_ns, received.frame_id, received.decode_s)
+        except Exception as exc:  # a bug must cost one map, not the map reader's thread, and show as a bug
+            self.stats.add(ingest_errors=1)
+            self.get_logger().error(
+                f"gaussians: handling a map failed ({type(exc).__name__}: {exc}); map dropped\n"
+                + "".join(traceback.format_exception(exc))
+            )
+
+    def _accept_map(self, gaussians: GaussianMap, stamp_ns: int, frame: str, decode_s: float) -> None:
+        """A decoded map message (from the map callback or the map reader process) -> the worker."""
+        self.stats.add(map_decode_s=decode_s, maps_decoded=1)
         if frame and frame != self.params.frame_id and frame not in self._warned_frame:
             self._warned_frame.add(frame)
             self.get_logger().warning(f"Gaussian map frame {frame!r} differs from frame_id {self.params.frame_id!r}")
-        self.worker.submit_map(gaussians, f"stamp {ma.header_stamp_ns(msg)}")
+        self.worker.submit_map(gaussians, f"stamp {stamp_ns}")
+
+    def _refuse_map(self, message: str) -> None:
+        self.stats.reject("bad_gaussians")
+        self._reject_log("bad_gaussians", message)
+
+    def _on_reader_refusal(self, refusal: Refusal) -> None:
+        if refusal.bad_input:
+            self._refuse_map(refusal.message)
+        else:
+            self.stats.add(ingest_errors=1)
+            self.get_logger().error(refusal.message)
+
+    def _map_reader_restarted(self, message: str) -> None:
+        self.stats.add(map_reader_restarts=1)
+        self.get_logger().error(message)
 
     def _on_keyframe_poses(self, msg: Any) -> None:
         try:

@@ -46,6 +46,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("input_reliability", "reliable", "QoS reliability of the keyframe inputs: 'reliable' or 'best_effort'", choices=RELIABILITIES),
     Param("input_depth", 100, "QoS history depth of the keyframe input subscriptions", low=1),
     Param("map_ply", "", "3DGS PLY loaded as the Gaussian map at start (empty: wait for `gaussians`)"),
+    Param("map_reader_process", True, "take and decode `gaussians` in a child process that hands the maps over in shared memory (a 1M-Gaussian map held this process's interpreter 60-130 ms per message, delaying queries); false: in this process"),
     # Processing
     Param("impl", _MAPPER.impl, "SCD rasterizer implementation: 'numba', 'torch' or 'reference'", choices=IMPLEMENTATIONS),
     Param("device", _MAPPER.device or "", "torch device when impl is 'torch' (e.g. 'cuda'); empty = default"),
@@ -94,6 +95,7 @@ class NodeParams:
     input_depth: int
     reorder_wait_s: float
     map_ply: str
+    map_reader_process: bool
     map_update_max_shrink: float
     map_update_ahead: bool
     queue_size: int
@@ -171,6 +173,7 @@ class NodeParams:
             input_depth=v["input_depth"],
             reorder_wait_s=v["reorder_wait_s"],
             map_ply=v["map_ply"],
+            map_reader_process=v["map_reader_process"],
             map_update_max_shrink=v["map_update_max_shrink"],
             map_update_ahead=v["map_update_ahead"],
             queue_size=v["queue_size"],

@@ -1,0 +1,155 @@
+"""The Gaussian map topic read in a child process (monovoc_ros.nodes.map_reader): the shared-memory hand-over
+bit for bit, its refusals, and the node with its reader: a reader that dies is replaced without applying the
+latched map twice, and a node that dies takes its reader with it."""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import signal
+import socket
+
+import numpy as np
+import psutil
+import pytest
+
+import msg_adapters as ma
+from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.nodes import map_reader
+from monovoc_ros.nodes.qos import latched_qos
+from monovoc_ros.ros_harness import (
+    ClientNode,
+    DiagnosticsMonitor,
+    NodeProcess,
+    ros_args,
+    wait_for_subscribers,
+    wait_until,
+)
+from tests.node_scene import NODE, small_scene
+from tests.rosutil import ros_environment
+
+
+def _pair() -> tuple[socket.socket, socket.socket]:
+    return socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+
+
+def _open_fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+@pytest.mark.parametrize("kind", ["full", "required arrays only", "empty"])
+def test_a_map_crosses_the_socket_bit_for_bit_and_read_only(kind):
+    gmap = small_scene().gaussians
+    if kind == "required arrays only":
+        gmap = GaussianMap(gmap.means, gmap.scales, gmap.quats, gmap.opacities)
+    elif kind == "empty":  # the node refuses it (empty_gaussians) but it must get there
+        gmap = gmap.subset(np.arange(0))
+    ours, theirs = _pair()
+    with ours, theirs:
+        before = _open_fds()
+        map_reader.send_map(ours, gmap, stamp_ns=17, frame_id="map", decode_s=0.25)
+        got = map_reader.receive(theirs)
+        assert _open_fds() == before + 1  # the mapping's own descriptor (Python's mmap keeps a duplicate)
+    held = _open_fds()
+    assert isinstance(got, map_reader.ReceivedMap)
+    assert (got.stamp_ns, got.frame_id, got.decode_s) == (17, "map", 0.25)
+    for name in ("means", "scales", "quats", "opacities", "colors", "ids"):
+        sent, received = getattr(gmap, name), getattr(got.gaussians, name)
+        if sent is None:
+            assert received is None, name
+            continue
+        assert received.dtype == sent.dtype and not received.flags.writeable, name
+        np.testing.assert_array_equal(received, sent, err_msg=name)
+    assert got.key == (17, len(gmap), "map")
+    del got, received
+    gc.collect()
+    assert _open_fds() == held - 1  # the map dropped, its shared memory is gone with it
+
+
+def test_refusals_end_of_stream_and_malformed_messages():
+    ours, theirs = _pair()
+    with ours, theirs:
+        refusal = map_reader.Refusal("Gaussian map ignored: no x field", bad_input=True)
+        map_reader.send_refusal(ours, refusal)
+        assert map_reader.receive(theirs) == refusal
+        ours.send(json.dumps({"kind": "map", "stamp_ns": 1}).encode())  # a map without its descriptor
+        with pytest.raises(ValueError, match="unexpected message 'map' with 0 descriptors"):
+            map_reader.receive(theirs)
+        fd = os.memfd_create("short")
+        os.ftruncate(fd, 8)
+        header = {"kind": "map", "stamp_ns": 1, "frame_id": "", "decode_s": 0, "size": 4096, "arrays": []}
+        socket.send_fds(ours, [json.dumps(header).encode()], [fd])
+        os.close(fd)
+        before = _open_fds()
+        with pytest.raises(ValueError, match="shared file of 8 bytes, header says 4096"):
+            map_reader.receive(theirs)
+        assert _open_fds() == before  # the received descriptor was closed all the same
+        ours.send(b"{not json")
+        with pytest.raises(ValueError, match="malformed header"):
+            map_reader.receive(theirs)
+        ours.shutdown(socket.SHUT_RDWR)
+        assert map_reader.receive(theirs) is None
+
+
+def _reader_of(node: NodeProcess) -> psutil.Process:
+    """The node's map reader process (the one child running monovoc_ros.nodes.map_reader)."""
+    found: list[psutil.Process] = []
+
+    def one() -> bool:
+        found[:] = [c for c in psutil.Process(node.pid).children() if "monovoc_ros.nodes.map_reader" in c.cmdline()]
+        return len(found) == 1
+
+    wait_until(one, 30.0, "the node's map reader process", process=node)
+    return found[0]
+
+
+@pytest.mark.ros
+def test_a_reader_that_dies_is_replaced_and_the_latched_map_is_not_applied_twice(tmp_path):
+    """On a remapped map topic: the reader subscribes to the name the node resolves."""
+    from sensor_msgs.msg import PointCloud2
+
+    scene = small_scene()
+    env = ros_environment(tmp_path)
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
+    args = ros_args(params, remaps={"gaussians": "/slam/map"})
+    with (
+        NodeProcess.python([*NODE, *args], env, name="mapping_node") as node,
+        ClientNode(env) as client,
+    ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        maps = client.node.create_publisher(PointCloud2, "/slam/map", latched_qos())
+
+        def publish_map(gmap: GaussianMap, stamp_ns: int) -> None:
+            maps.publish(ma.gaussian_map_to_cloud(gmap, stamp=stamp_ns))
+
+        wait_for_subscribers(maps, timeout=30.0, process=node)
+        publish_map(scene.gaussians, stamp_ns=1)
+        diagnostics.wait_for(lambda v: v["maps_decoded"] == "1" and v["gaussians"] == str(len(scene.gaussians)),
+                             30.0, process=node)  # fmt: skip
+        first = _reader_of(node)
+        first.send_signal(signal.SIGINT)  # a terminal's Ctrl-C reaches the reader too: only the node stops it
+        fewer = scene.gaussians.subset(np.arange(len(scene.gaussians) - 100))
+        publish_map(fewer, stamp_ns=2)
+        values = diagnostics.wait_for(lambda v: v["gaussians"] == str(len(fewer)), 30.0, process=node)
+        assert values["maps_decoded"] == "2" and values["map_reader_restarts"] == "0" and first.is_running()
+
+        first.kill()
+        first.wait(10.0)
+        diagnostics.wait_for(lambda v: v["map_reader_restarts"] == "1", 30.0, process=node)
+        second = _reader_of(node)
+        assert second.pid != first.pid
+        # It receives the latched map again, and skips it (the count of subscribers may still hold the dead one's).
+        diagnostics.wait_for(lambda v: v["maps_redelivered"] == "1", 30.0, process=node)
+        smaller = scene.gaussians.subset(np.arange(len(scene.gaussians) - 500))
+        publish_map(smaller, stamp_ns=3)
+        # Messages of one writer arrive in order: the redelivered map (skipped) before this one.
+        values = diagnostics.wait_for(lambda v: v["gaussians"] == str(len(smaller)), 30.0, process=node)
+        assert values["maps_decoded"] == "3" and values["map_reader_restarts"] == "1"
+        assert values["maps_redelivered"] == "1"
+        assert "the map reader exited" in node.output()
+
+        node.proc.kill()  # the node dies without a word: its reader must not outlive it
+        node.proc.wait()
+        wait_until(lambda: not second.is_running() or second.status() == psutil.STATUS_ZOMBIE, 10.0,
+                   "the reader to exit after its node")  # fmt: skip
