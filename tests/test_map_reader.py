@@ -97,7 +97,10 @@ def _reader_of(node: NodeProcess) -> psutil.Process:
     found: list[psutil.Process] = []
 
     def one() -> bool:
-        found[:] = [c for c in psutil.Process(node.pid).children() if "monovoc_ros.nodes.map_reader" in c.cmdline()]
+        try:
+            found[:] = [c for c in psutil.Process(node.pid).children() if "monovoc_ros.nodes.map_reader" in c.cmdline()]
+        except psutil.NoSuchProcess:  # a child that exited between the two calls: look again
+            return False
         return len(found) == 1
 
     wait_until(one, 30.0, "the node's map reader process", process=node)

@@ -4,8 +4,8 @@ Why: rclpy takes a message holding the interpreter lock. A 1M-Gaussian map (a 56
 60-130 ms per message in the node's process (docs/results.md, "where the query tail goes"), and every query
 that arrived meanwhile waited: the query p99 of the 1M robot runs was 4x the one without map updates.
 
-The child (``python -m monovoc_ros.nodes.map_reader``, a hidden node ``_<node>_map_reader``) subscribes to
-the map topic with the node's QoS, decodes each message with the node's own adapter
+The child (``python -m monovoc_ros.nodes.map_reader``, a hidden node ``_<node>_map_reader`` in the node's
+namespace) subscribes to the map topic with the node's QoS, decodes each message with the node's own adapter
 (msg_adapters.cloud_to_gaussian_map: the same checks and the same arrays as the in-process subscription and
 offline mapping), and writes the arrays into an anonymous shared-memory file (memfd). It sends the file
 descriptor (SCM_RIGHTS) with a small JSON header over a Unix socket; the node maps the file read-only and
@@ -162,13 +162,14 @@ class MapReaderProcess:
         self,
         topic: str,
         node_name: str,
+        namespace: str,
         *,
         on_map: Callable[[ReceivedMap], None],
         on_refused: Callable[[Refusal], None],
         on_restart: Callable[[str], None],
         on_redelivered: Callable[[ReceivedMap], None],
     ) -> None:
-        self.topic, self.node_name = topic, node_name
+        self.topic, self.node_name, self.namespace = topic, node_name, namespace
         self._on_map, self._on_refused, self._on_restart = on_map, on_refused, on_restart
         self._on_redelivered = on_redelivered
         self._stopping = threading.Event()
@@ -205,7 +206,7 @@ class MapReaderProcess:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         try:
             command = [sys.executable, "-m", "monovoc_ros.nodes.map_reader", "--fd", str(theirs.fileno()),
-                       "--topic", self.topic, "--node-name", self.node_name]  # fmt: skip
+                       "--topic", self.topic, "--node-name", self.node_name, "--namespace", self.namespace]  # fmt: skip
             child = subprocess.Popen(command, pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL)
         except BaseException:
             ours.close()
@@ -289,6 +290,7 @@ def _child_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fd", type=int, required=True)
     parser.add_argument("--topic", required=True)
     parser.add_argument("--node-name", required=True)
+    parser.add_argument("--namespace", default="/")
     args = parser.parse_args(argv)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the node decides when its reader stops
     sock = socket.socket(fileno=args.fd)
@@ -330,7 +332,7 @@ def _child_main(argv: list[str] | None = None) -> int:
 
     # rclpy's handlers would end the child on a terminal's Ctrl-C, under the node's feet.
     rclpy.init(args=["--ros-args", "--disable-rosout-logs"], signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node(args.node_name)
+    node = rclpy.create_node(args.node_name, namespace=args.namespace)
     node.create_subscription(PointCloud2, args.topic, on_map, latched_qos())  # the node's own QoS for `gaussians`
     try:
         rclpy.spin(node)

@@ -8,7 +8,8 @@ service composed beside it (``run(args, compose)``; the interface between them: 
 
 A thin adapter. Subscription callbacks validate and synchronize messages with the same KeyframeAssembler
 that offline bag processing uses (so both give identical keyframes) and queue completed keyframes and
-Gaussian maps for the `MapWorker` thread, which runs the same MappingSession as offline mapping
+Gaussian maps (taken and decoded by a process of the node's own, monovoc_ros.nodes.map_reader, unless
+`map_reader_process` is false) for the `MapWorker` thread, which runs the same MappingSession as offline mapping
 (monovoc_ros.core.session: the SemanticMapper and its life), publishes the semantic cloud / objects /
 markers and saves snapshots (monovoc_ros.nodes.worker). Services queue their
 operations on the same worker, so they apply in order with keyframes, while separate callback groups on a
@@ -350,6 +351,7 @@ class MappingNode(Node):
         return MapReaderProcess(
             self.resolve_topic_name("gaussians"),
             f"_{self.get_name()}_map_reader",
+            self.get_namespace(),
             on_map=self._on_received_map,
             on_refused=self._on_reader_refusal,
             on_restart=self._map_reader_restarted,
