@@ -4,11 +4,15 @@ latched map twice, and a node that dies takes its reader with it."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import gc
 import json
 import os
+import re
 import signal
 import socket
+from dataclasses import replace
 
 import numpy as np
 import psutil
@@ -34,8 +38,13 @@ def _pair() -> tuple[socket.socket, socket.socket]:
     return socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
 
 
-def _open_fds() -> int:
-    return len(os.listdir("/proc/self/fd"))
+def _maps_open() -> int:
+    """Descriptors of this process on map files (memfd "monovoc_map"): exact, whatever else the tests leak."""
+    count = 0
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(FileNotFoundError):  # the listing's own descriptor, closed since
+            count += os.readlink(f"/proc/self/fd/{fd}").startswith("/memfd:monovoc_map")
+    return count
 
 
 @pytest.mark.parametrize("kind", ["full", "required arrays only", "empty"])
@@ -47,13 +56,11 @@ def test_a_map_crosses_the_socket_bit_for_bit_and_read_only(kind):
         gmap = gmap.subset(np.arange(0))
     ours, theirs = _pair()
     with ours, theirs:
-        before = _open_fds()
-        map_reader.send_map(ours, gmap, stamp_ns=17, frame_id="map", decode_s=0.25)
+        map_reader.send_map(ours, gmap, stamp_ns=17, frame_id="map", decode_s=0.25, superseded=3)
         got = map_reader.receive(theirs)
-        assert _open_fds() == before + 1  # the mapping's own descriptor (Python's mmap keeps a duplicate)
-    held = _open_fds()
+    assert _maps_open() == 1  # the mapping's own descriptor (Python's mmap keeps a duplicate): no other
     assert isinstance(got, map_reader.ReceivedMap)
-    assert (got.stamp_ns, got.frame_id, got.decode_s) == (17, "map", 0.25)
+    assert (got.stamp_ns, got.frame_id, got.decode_s, got.superseded) == (17, "map", 0.25, 3)
     for name in ("means", "scales", "quats", "opacities", "colors", "ids"):
         sent, received = getattr(gmap, name), getattr(got.gaussians, name)
         if sent is None:
@@ -61,13 +68,51 @@ def test_a_map_crosses_the_socket_bit_for_bit_and_read_only(kind):
             continue
         assert received.dtype == sent.dtype and not received.flags.writeable, name
         np.testing.assert_array_equal(received, sent, err_msg=name)
-    assert got.key == (17, len(gmap), "map")
     del got, received
     gc.collect()
-    assert _open_fds() == held - 1  # the map dropped, its shared memory is gone with it
+    assert _maps_open() == 0  # the map dropped, its shared memory is gone with it
+
+
+def test_the_digest_tells_maps_apart_whatever_their_stamp_and_size():
+    """A latched map received again by a new reader is recognised by its content: a SLAM that stamps every map
+    0 and keeps its size must not have a changed map taken for the one handed over before."""
+    gmap = small_scene().gaussians
+    moved = replace(gmap, means=gmap.means + np.float32(0.001))
+    digests = []
+    for m in (gmap, moved, gmap):
+        ours, theirs = _pair()
+        with ours, theirs:
+            map_reader.send_map(ours, m, stamp_ns=0, frame_id="map", decode_s=0.0)
+            digests.append(map_reader.receive(theirs).digest)
+    assert digests[0] == digests[2] != digests[1]
+
+
+def _send_header(sock: socket.socket, header: dict, size: int = 4096, seal: bool = True) -> None:
+    fd = os.memfd_create("monovoc_map", os.MFD_ALLOW_SEALING)
+    os.ftruncate(fd, size)
+    if seal:
+        fcntl.fcntl(fd, fcntl.F_ADD_SEALS, map_reader._SEALS)
+    socket.send_fds(sock, [json.dumps(header).encode()], [fd])
+    os.close(fd)
 
 
 def test_refusals_end_of_stream_and_malformed_messages():
+    """What the node's end refuses however the header lies (our child never sends these): each one clear
+    ValueError, its descriptor closed."""
+    base = {"kind": "map", "stamp_ns": 1, "frame_id": "", "decode_s": 0, "digest": "", "superseded": 0, "size": 64}
+    means = {"name": "means", "dtype": "<f4", "shape": [4, 3], "offset": 0}
+    lies = [
+        ({**base, "size": 8192}, "shared file of 4096 bytes, header says 8192"),
+        ({**base, "arrays": [{**means, "dtype": "|O"}]}, "not expected"),  # object arrays from raw memory
+        ({**base, "arrays": [{**means, "dtype": "<f8"}]}, "not expected"),
+        ({**base, "arrays": [{**means, "name": "semantics"}]}, "not expected"),
+        ({**base, "arrays": [means, means]}, "not expected"),
+        ({**base, "arrays": [{**means, "shape": [-1, 3]}]}, "outside"),
+        ({**base, "arrays": [{**means, "shape": [2**70, 3]}]}, "outside"),
+        ({**base, "arrays": [{**means, "offset": 60}]}, "outside"),
+        ({**base, "arrays": [{**means, "offset": -4}]}, "outside"),
+        ([1, 2], "malformed message"),
+    ]
     ours, theirs = _pair()
     with ours, theirs:
         refusal = map_reader.Refusal("Gaussian map ignored: no x field", bad_input=True)
@@ -76,20 +121,36 @@ def test_refusals_end_of_stream_and_malformed_messages():
         ours.send(json.dumps({"kind": "map", "stamp_ns": 1}).encode())  # a map without its descriptor
         with pytest.raises(ValueError, match="unexpected message 'map' with 0 descriptors"):
             map_reader.receive(theirs)
-        fd = os.memfd_create("short")
-        os.ftruncate(fd, 8)
-        header = {"kind": "map", "stamp_ns": 1, "frame_id": "", "decode_s": 0, "size": 4096, "arrays": []}
-        socket.send_fds(ours, [json.dumps(header).encode()], [fd])
-        os.close(fd)
-        before = _open_fds()
-        with pytest.raises(ValueError, match="shared file of 8 bytes, header says 4096"):
+        for header, error in lies:
+            _send_header(ours, header)
+            with pytest.raises(ValueError, match=re.escape(error)):
+                map_reader.receive(theirs)
+            assert _maps_open() == 0, header
+        _send_header(ours, base, seal=False)  # a file that could still shrink under the node's arrays
+        with pytest.raises(ValueError, match="not sealed"):
             map_reader.receive(theirs)
-        assert _open_fds() == before  # the received descriptor was closed all the same
         ours.send(b"{not json")
-        with pytest.raises(ValueError, match="malformed header"):
+        with pytest.raises(ValueError, match="malformed message"):
             map_reader.receive(theirs)
         ours.shutdown(socket.SHUT_RDWR)
         assert map_reader.receive(theirs) is None
+    assert _maps_open() == 0
+
+
+def test_the_reader_keeps_only_the_newest_map_the_node_has_not_asked_for():
+    newest = map_reader.NewestMap()
+    for i in range(5):  # a node starting up, or busy
+        newest.put(i)
+    assert newest.take(timeout=0.0) is None  # not asked for
+    newest.credit()
+    assert newest.take(timeout=0.0) == (4, 4)  # the newest, and how many it replaced
+    assert newest.take(timeout=0.0) is None  # nothing new
+    newest.put(5)
+    assert newest.take(timeout=0.0) is None  # that credit was spent
+    newest.credit(2)
+    assert newest.take(timeout=0.0) == (5, 0)
+    newest.put(6)
+    assert newest.take(timeout=0.0) == (6, 0)  # the second credit
 
 
 def _reader_of(node: NodeProcess) -> psutil.Process:
@@ -131,7 +192,9 @@ def test_a_reader_that_dies_is_replaced_and_the_latched_map_is_not_applied_twice
         diagnostics.wait_for(lambda v: v["maps_decoded"] == "1" and v["gaussians"] == str(len(scene.gaussians)),
                              30.0, process=node)  # fmt: skip
         first = _reader_of(node)
-        first.send_signal(signal.SIGINT)  # a terminal's Ctrl-C reaches the reader too: only the node stops it
+        # A terminal's Ctrl-C, or a SIGTERM to the process group, reaches the reader too: only the node stops it.
+        first.send_signal(signal.SIGINT)
+        first.send_signal(signal.SIGTERM)
         fewer = scene.gaussians.subset(np.arange(len(scene.gaussians) - 100))
         publish_map(fewer, stamp_ns=2)
         values = diagnostics.wait_for(lambda v: v["gaussians"] == str(len(fewer)), 30.0, process=node)
@@ -154,5 +217,11 @@ def test_a_reader_that_dies_is_replaced_and_the_latched_map_is_not_applied_twice
 
         node.proc.kill()  # the node dies without a word: its reader must not outlive it
         node.proc.wait()
-        wait_until(lambda: not second.is_running() or second.status() == psutil.STATUS_ZOMBIE, 10.0,
-                   "the reader to exit after its node")  # fmt: skip
+        wait_until(lambda: _gone(second), 10.0, "the reader to exit after its node")
+
+
+def _gone(process: psutil.Process) -> bool:
+    try:
+        return not process.is_running() or process.status() == psutil.STATUS_ZOMBIE  # a zombie: exited, not reaped
+    except psutil.NoSuchProcess:
+        return True

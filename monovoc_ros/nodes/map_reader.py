@@ -7,21 +7,27 @@ that arrived meanwhile waited: the query p99 of the 1M robot runs was 4x the one
 The child (``python -m monovoc_ros.nodes.map_reader``, a hidden node ``_<node>_map_reader`` in the node's
 namespace) subscribes to the map topic with the node's QoS, decodes each message with the node's own adapter
 (msg_adapters.cloud_to_gaussian_map: the same checks and the same arrays as the in-process subscription and
-offline mapping), and writes the arrays into an anonymous shared-memory file (memfd). It sends the file
-descriptor (SCM_RIGHTS) with a small JSON header over a Unix socket; the node maps the file read-only and
-builds the GaussianMap on it without a copy. Nothing is ever in the file system, so whichever process dies,
-no memory is left behind: the file lives as long as the map's arrays do.
+offline mapping), and writes the arrays into an anonymous shared-memory file (memfd), sealed against writes
+and resizing. It sends the file descriptor (SCM_RIGHTS) with a small JSON header over a Unix socket; the node
+checks the header against the file, maps it read-only and builds the GaussianMap on it without a copy.
+Nothing is ever in the file system, so whichever process dies, no memory is left behind: the file lives as
+long as the map's arrays do. The node asks for each map (a credit byte) as soon as it has queued the one
+before; until then the child keeps only the newest (NewestMap), so a node starting up or falling behind never
+has a backlog of maps waiting in the socket.
 
 Lifetime: the child ends when the node closes its end of the socket (a stop, or the node dying in any way)
-and ignores SIGINT (a terminal's Ctrl-C reaches the whole process group; the node decides when to stop). If
-the child dies while the node runs, the node logs it, counts it (``map_reader_restarts``) and starts another
-after a back-off; the latched map that the new child receives again is not applied twice.
+and ignores SIGINT and SIGTERM (a terminal's Ctrl-C or a signal to the process group reaches it too; the node
+decides when it stops). If the child dies while the node runs, the node logs it, counts it
+(``map_reader_restarts``) and starts another after a back-off; the latched map that the new child receives
+again (the same digest as the last one handed over) is not applied twice.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import fcntl
+import hashlib
 import json
 import mmap
 import os
@@ -40,17 +46,27 @@ import numpy as np
 
 from monovoc_ros.core.map.gaussians import GaussianMap
 
-# Arrays of a GaussianMap that a map message carries (cloud_to_gaussian_map fills no others).
-_ARRAYS = ("means", "scales", "quats", "opacities", "colors", "ids")
+# The arrays of a GaussianMap that a map message carries (cloud_to_gaussian_map fills no others), as the
+# GaussianMap holds them: the only dtypes a header may name.
+_DTYPES = {"means": "<f4", "scales": "<f4", "quats": "<f4", "opacities": "<f4", "colors": "<f4", "ids": "<i8"}
 _ALIGN = 64
-_HEADER_BYTES = 1 << 16  # a header names six arrays and a frame id: far below
+_HEADER_BYTES = 1 << 16  # a header names six arrays and a frame id of at most _MAX_FRAME_ID characters
+_MAX_FRAME_ID = 1024
+# Sealed before it is sent: the node's arrays can then neither change nor lose their memory (a shrunk file
+# would be a SIGBUS in the node) whatever else holds the descriptor.
+_SEALS = (
+    fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_WRITE | fcntl.F_SEAL_SEAL
+    if hasattr(fcntl, "F_SEAL_SEAL")
+    else 0
+)
+_CREDIT = b"+"  # the node asks for one map (the newest the child holds)
 RESTART_DELAY_S = (1.0, 30.0)  # first and longest back-off before starting a child again
-STOP_WAIT_S = 2.0  # how long a stop waits for the child to exit on its own before killing it
+STOP_WAIT_S = 0.5  # how long a stop waits for the child to exit on its own (it exits at once) before killing it
 
 
 def supported() -> bool:
-    """Whether this platform can hand maps over (Linux: memfd and SCM_RIGHTS)."""
-    return hasattr(os, "memfd_create") and hasattr(socket, "send_fds") and hasattr(socket, "AF_UNIX")
+    """Whether this platform can hand maps over (Linux: memfd with seals, SCM_RIGHTS)."""
+    return hasattr(os, "memfd_create") and hasattr(socket, "send_fds") and _SEALS != 0
 
 
 @dataclass(frozen=True)
@@ -68,33 +84,35 @@ class ReceivedMap:
     stamp_ns: int
     frame_id: str
     decode_s: float  # the child's take-to-arrays time for this message
-
-    @property
-    def key(self) -> tuple[int, int, str]:
-        """What identifies a message delivered again (a latched map, to a new child)."""
-        return self.stamp_ns, len(self.gaussians), self.frame_id
+    digest: str  # of the arrays' bytes: the same map delivered again (a latched map, to a new child) has it too
+    superseded: int = 0  # maps the child decoded but replaced by this newer one before the node asked
 
 
 # ---------------------------------------------------------------------------------------------- transport
 
 
-def send_map(sock: socket.socket, gmap: GaussianMap, *, stamp_ns: int, frame_id: str, decode_s: float) -> None:
-    """Writes ``gmap``'s arrays into a new memfd and sends it with its header over ``sock`` (SOCK_SEQPACKET)."""
+def send_map(
+    sock: socket.socket, gmap: GaussianMap, *, stamp_ns: int, frame_id: str, decode_s: float, superseded: int = 0
+) -> None:
+    """Writes ``gmap``'s arrays into a new sealed memfd and sends it with its header over ``sock``
+    (SOCK_SEQPACKET)."""
     layout, offset = [], 0
-    for name in _ARRAYS:
-        array = getattr(gmap, name)
-        if array is None:
-            continue
-        layout.append({"name": name, "dtype": array.dtype.str, "shape": list(array.shape), "offset": offset})
-        offset += -(-array.nbytes // _ALIGN) * _ALIGN
-    fd = os.memfd_create("monovoc_map", os.MFD_CLOEXEC)
+    digest = hashlib.blake2b(digest_size=16)
+    fd = os.memfd_create("monovoc_map", os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
     try:
-        os.ftruncate(fd, max(offset, 1))
-        for entry in layout:
-            data = np.ascontiguousarray(getattr(gmap, entry["name"])).reshape(-1).view(np.uint8)
-            _write_all(fd, memoryview(data), entry["offset"])
+        arrays = [(name, getattr(gmap, name)) for name in _DTYPES if getattr(gmap, name) is not None]
+        size = sum(-(-a.nbytes // _ALIGN) * _ALIGN for _, a in arrays)
+        os.ftruncate(fd, max(size, 1))
+        for name, array in arrays:
+            data = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
+            digest.update(data)
+            _write_all(fd, memoryview(data), offset)
+            layout.append({"name": name, "dtype": array.dtype.str, "shape": list(array.shape), "offset": offset})
+            offset += -(-array.nbytes // _ALIGN) * _ALIGN
+        fcntl.fcntl(fd, fcntl.F_ADD_SEALS, _SEALS)
         header = {"kind": "map", "stamp_ns": int(stamp_ns), "frame_id": str(frame_id), "decode_s": float(decode_s),
-                  "size": offset, "arrays": layout}  # fmt: skip
+                  "digest": digest.hexdigest(), "superseded": int(superseded), "size": size,
+                  "arrays": layout}  # fmt: skip
         socket.send_fds(sock, [json.dumps(header).encode()], [fd])
     finally:
         os.close(fd)  # the receiver holds its own descriptor from here
@@ -106,40 +124,53 @@ def send_refusal(sock: socket.socket, refusal: Refusal) -> None:
 
 
 def receive(sock: socket.socket) -> ReceivedMap | Refusal | None:
-    """The next map from ``sock``, or a refusal, or None when the sender has gone. A malformed message raises
-    ValueError (its descriptor closed)."""
-    data, fds, _flags, _addr = socket.recv_fds(sock, _HEADER_BYTES, 1)
+    """The next map from ``sock``, or a refusal, or None when the sender has gone. A malformed message (what
+    our own child never sends) raises ValueError, its descriptor closed."""
+    data, fds, flags, _addr = socket.recv_fds(sock, _HEADER_BYTES, 1)
     try:
-        if not data:
+        if not data and not fds:
             return None
+        if flags & (socket.MSG_TRUNC | socket.MSG_CTRUNC):
+            raise ValueError("message truncated")
         header = json.loads(data)
-        if header.get("kind") == "refusal":
+        if header["kind"] == "refusal":
             return Refusal(str(header["message"]), bool(header["bad_input"]))
-        if header.get("kind") != "map" or len(fds) != 1:
-            raise ValueError(f"map reader: unexpected message {header.get('kind')!r} with {len(fds)} descriptors")
+        if header["kind"] != "map" or len(fds) != 1:
+            raise ValueError(f"unexpected message {header['kind']!r} with {len(fds)} descriptors")
         return ReceivedMap(
-            _map_of(fds[0], header), int(header["stamp_ns"]), str(header["frame_id"]), float(header["decode_s"])
+            _map_of(fds[0], header),
+            int(header["stamp_ns"]),
+            str(header["frame_id"]),
+            float(header["decode_s"]),
+            str(header["digest"]),
+            int(header["superseded"]),
         )
-    except (KeyError, TypeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"map reader: malformed header ({type(exc).__name__}: {exc})") from None
+    except Exception as exc:  # whatever the header holds, one clear error
+        raise ValueError(f"map reader: malformed message ({type(exc).__name__}: {exc})") from None
     finally:
         for fd in fds:
             os.close(fd)
 
 
 def _map_of(fd: int, header: dict[str, Any]) -> GaussianMap:
-    size = int(header["size"])
-    if os.fstat(fd).st_size < size:
-        raise ValueError(f"map reader: shared file of {os.fstat(fd).st_size} bytes, header says {size}")
+    if fcntl.fcntl(fd, fcntl.F_GET_SEALS) & _SEALS != _SEALS:
+        raise ValueError("the shared file is not sealed")
+    size, actual = int(header["size"]), os.fstat(fd).st_size
+    if not 0 <= size <= actual:
+        raise ValueError(f"shared file of {actual} bytes, header says {size}")
     memory = mmap.mmap(fd, max(size, 1), access=mmap.ACCESS_READ)  # the arrays keep it mapped, the fd is not needed
     arrays: dict[str, np.ndarray] = {}
     for entry in header["arrays"]:
-        name = entry["name"]
-        if name not in _ARRAYS:
-            raise ValueError(f"map reader: unknown array {name!r}")
-        dtype, shape = np.dtype(entry["dtype"]), tuple(int(s) for s in entry["shape"])
-        count = int(np.prod(shape))
-        arrays[name] = np.frombuffer(memory, dtype, count, int(entry["offset"])).reshape(shape)
+        name, dtype, offset = entry["name"], np.dtype(entry["dtype"]), int(entry["offset"])
+        shape = tuple(int(s) for s in entry["shape"])
+        if name not in _DTYPES or name in arrays or dtype.str != _DTYPES[name]:
+            raise ValueError(f"array {name!r} of {dtype.str} not expected")
+        count = 1
+        for s in shape:  # Python integers: no overflow
+            count *= s
+        if not 1 <= len(shape) <= 2 or min(shape) < 0 or offset < 0 or offset + count * dtype.itemsize > size:
+            raise ValueError(f"array {name!r} of shape {shape} at {offset} outside the {size} bytes")
+        arrays[name] = np.frombuffer(memory, dtype, count, offset).reshape(shape)
     return GaussianMap(**arrays)
 
 
@@ -149,14 +180,46 @@ def _write_all(fd: int, data: memoryview, offset: int) -> None:
         data, offset = data[written:], offset + written
 
 
+class NewestMap:
+    """The child's one map slot: a newer map replaces the one not asked for yet (counted), so a node that is
+    busy or not started yet never has more than one map waiting for it; ``take`` waits for a map and a credit."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._item: Any = None
+        self._credits = 0
+        self._superseded = 0
+
+    def put(self, item: Any) -> None:
+        with self._cond:
+            self._superseded += self._item is not None
+            self._item = item
+            self._cond.notify_all()
+
+    def credit(self, count: int = 1) -> None:
+        with self._cond:
+            self._credits += count
+            self._cond.notify_all()
+
+    def take(self, timeout: float | None = None) -> tuple[Any, int] | None:
+        """(the newest map, how many it replaced), or None after ``timeout``."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._item is not None and self._credits > 0, timeout):
+                return None
+            item, superseded = self._item, self._superseded
+            self._item, self._superseded, self._credits = None, 0, self._credits - 1
+            return item, superseded
+
+
 # ---------------------------------------------------------------------------------------------- node side
 
 
 class MapReaderProcess:
     """Runs a child reading ``topic`` from construction on; from ``start()`` until ``stop()`` calls, on a
     thread of its own, ``on_map(ReceivedMap)`` / ``on_refused(Refusal)`` for every message,
-    ``on_restart(message)`` when a child exited and another starts, and ``on_redelivered(map)`` for the latched
-    map a new child received again (not applied)."""
+    ``on_restart(message)`` when a child exited and another starts, and ``on_redelivered()`` for the latched
+    map a new child received again (not applied). The child holds at most one map the node has not asked for
+    (NewestMap): maps decoded while the node starts up or is busy are replaced by newer ones."""
 
     def __init__(
         self,
@@ -167,7 +230,7 @@ class MapReaderProcess:
         on_map: Callable[[ReceivedMap], None],
         on_refused: Callable[[Refusal], None],
         on_restart: Callable[[str], None],
-        on_redelivered: Callable[[ReceivedMap], None],
+        on_redelivered: Callable[[], None],
     ) -> None:
         self.topic, self.node_name, self.namespace = topic, node_name, namespace
         self._on_map, self._on_refused, self._on_restart = on_map, on_refused, on_restart
@@ -176,10 +239,9 @@ class MapReaderProcess:
         self._lock = threading.Lock()
         self._child: subprocess.Popen | None = None
         self._sock: socket.socket | None = None
-        self._last_key: tuple[int, int, str] | None = None
+        self._last_digest: str | None = None
         self._thread = threading.Thread(target=self._run, name="map_reader", daemon=True)
-        # The first child starts now: its start-up (~1 s of imports and discovery) overlaps the node's own,
-        # and its maps wait in the socket until start().
+        # The first child starts now: its start-up (~1 s of imports and discovery) overlaps the node's own.
         with contextlib.suppress(OSError):  # the thread tries again, and says why
             self._child, self._sock = self._spawn()
 
@@ -197,10 +259,12 @@ class MapReaderProcess:
         if self._thread.ident is not None:
             self._thread.join(timeout=STOP_WAIT_S + 1.0)
         with self._lock:
-            child = self._child
+            child, sock = self._child, self._sock
         if child is not None and child.poll() is None:
             child.kill()
             child.wait()
+        if sock is not None and self._thread.ident is None:  # never served: the thread did not close it
+            sock.close()
 
     def _spawn(self) -> tuple[subprocess.Popen, socket.socket]:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -217,7 +281,7 @@ class MapReaderProcess:
 
     def _run(self) -> None:
         delay = RESTART_DELAY_S[0]
-        redelivered = False
+        restarted = False
         while not self._stopping.is_set():
             with self._lock:
                 pair = (self._child, self._sock) if self._sock is not None else None
@@ -225,7 +289,7 @@ class MapReaderProcess:
                 try:
                     pair = self._spawn()
                 except OSError as exc:
-                    self._on_restart(f"cannot start the map reader ({exc}); trying again in {delay:g} s")
+                    self._report_restart(f"cannot start the map reader ({exc}); trying again in {delay:g} s")
                     self._stopping.wait(delay)
                     delay = min(2 * delay, RESTART_DELAY_S[1])
                     continue
@@ -236,7 +300,7 @@ class MapReaderProcess:
                     pair[1].shutdown(socket.SHUT_RDWR)
             child, sock = pair
             started = time.monotonic()
-            self._serve(sock, skip_key=self._last_key if redelivered else None)
+            self._serve(sock, skip=self._last_digest if restarted else None)
             with self._lock:
                 self._sock = None
             sock.close()
@@ -249,32 +313,48 @@ class MapReaderProcess:
                 return
             if time.monotonic() - started > 60.0:  # it had run a while: not a crash loop
                 delay = RESTART_DELAY_S[0]
-            self._on_restart(f"the map reader exited (code {child.returncode}); starting another in {delay:g} s")
-            redelivered = True
+            self._report_restart(f"the map reader exited (code {child.returncode}); starting another in {delay:g} s")
+            restarted = True
             self._stopping.wait(delay)
             delay = min(2 * delay, RESTART_DELAY_S[1])
 
-    def _serve(self, sock: socket.socket, skip_key: tuple[int, int, str] | None) -> None:
+    def _report_restart(self, message: str) -> None:
+        with contextlib.suppress(Exception):  # the node's callback must not end the hand-over either
+            self._on_restart(message)
+
+    def _serve(self, sock: socket.socket, skip: str | None) -> None:
+        """Receives until the child's end closes; ``skip``: the digest of the last map handed over, which a new
+        child receives again from the latched topic."""
+        try:
+            sock.send(_CREDIT)
+        except OSError:
+            return
         while True:
             try:
                 item = receive(sock)
             except ValueError as exc:
-                self._on_refused(Refusal(str(exc), bad_input=False))
-                continue
+                item = Refusal(str(exc), bad_input=False)
             except OSError:
                 return
             if item is None:
                 return
-            if isinstance(item, Refusal):
-                self._on_refused(item)
-                continue
-            if skip_key is not None and item.key == skip_key:
-                skip_key = None  # the latched map the previous child had handed over already
-                self._on_redelivered(item)
-                continue
-            skip_key = None
-            self._last_key = item.key
-            self._on_map(item)
+            try:
+                if isinstance(item, Refusal):
+                    self._on_refused(item)
+                    continue
+                sock.send(_CREDIT)  # the next map, as soon as there is one: this one goes to the worker's queue
+                if skip is not None and item.digest == skip:
+                    skip = None
+                    self._on_redelivered()
+                    continue
+                skip = None
+                self._last_digest = item.digest
+                self._on_map(item)
+            except OSError:
+                return
+            except Exception as exc:  # a bug in the node's callbacks costs one message, not the hand-over
+                with contextlib.suppress(Exception):
+                    self._on_refused(Refusal(_failure("handling", exc), bad_input=False))
 
 
 # ---------------------------------------------------------------------------------------------- child
@@ -292,16 +372,32 @@ def _child_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--node-name", required=True)
     parser.add_argument("--namespace", default="/")
     args = parser.parse_args(argv)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the node decides when its reader stops
+    # The node decides when its reader stops (closing the socket): a terminal's Ctrl-C or a SIGTERM to the
+    # whole process group would otherwise end the reader first and count as a crash.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     sock = socket.socket(fileno=args.fd)
+    newest = NewestMap()
 
-    def watch_node() -> None:  # the node closed its end (a stop, or it died): nothing is left to do
+    def listen_to_node() -> None:  # credits; the end of the socket is the end of the node: nothing left to do
         with contextlib.suppress(OSError):
-            while sock.recv(16):
-                pass
+            while data := sock.recv(16):
+                newest.credit(data.count(_CREDIT))
         os._exit(0)
 
-    threading.Thread(target=watch_node, name="node_watch", daemon=True).start()
+    def hand_over() -> None:
+        while True:
+            (gmap, stamp_ns, frame_id, decode_s), superseded = newest.take()
+            try:
+                send_map(sock, gmap, stamp_ns=stamp_ns, frame_id=frame_id, decode_s=decode_s, superseded=superseded)
+            except ConnectionError:  # the node is gone
+                os._exit(0)
+            except Exception as exc:  # no shared memory for it, most likely
+                with contextlib.suppress(OSError):
+                    send_refusal(sock, Refusal(_failure("handing over", exc), bad_input=False))
+
+    threading.Thread(target=listen_to_node, name="node", daemon=True).start()
+    threading.Thread(target=hand_over, name="hand_over", daemon=True).start()
 
     import rclpy
     from rclpy.signals import SignalHandlerOptions
@@ -315,29 +411,24 @@ def _child_main(argv: list[str] | None = None) -> int:
         # latched topic.
         start = time.perf_counter()
         try:
+            frame_id = str(msg.header.frame_id)
+            if len(frame_id) > _MAX_FRAME_ID:
+                raise ValueError(f"frame_id of {len(frame_id)} characters")
             gmap = ma.cloud_to_gaussian_map(msg)
+            newest.put((gmap, ma.header_stamp_ns(msg), frame_id, time.perf_counter() - start))
         except ValueError as exc:
-            send_refusal(sock, Refusal(f"Gaussian map ignored: {exc}", bad_input=True))
-            return
+            with contextlib.suppress(OSError):
+                send_refusal(sock, Refusal(f"Gaussian map ignored: {exc}", bad_input=True))
         except Exception as exc:
-            send_refusal(sock, Refusal(_failure("decoding", exc), bad_input=False))
-            return
-        try:
-            send_map(sock, gmap, stamp_ns=ma.header_stamp_ns(msg), frame_id=str(msg.header.frame_id),
-                     decode_s=time.perf_counter() - start)  # fmt: skip
-        except ConnectionError:  # the node is gone
-            raise
-        except Exception as exc:  # no shared memory for it, most likely
-            send_refusal(sock, Refusal(_failure("handing over", exc), bad_input=False))
+            with contextlib.suppress(OSError):
+                send_refusal(sock, Refusal(_failure("decoding", exc), bad_input=False))
 
-    # rclpy's handlers would end the child on a terminal's Ctrl-C, under the node's feet.
+    # rclpy's handlers would end the child on a signal, under the node's feet.
     rclpy.init(args=["--ros-args", "--disable-rosout-logs"], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(args.node_name, namespace=args.namespace)
     node.create_subscription(PointCloud2, args.topic, on_map, latched_qos())  # the node's own QoS for `gaussians`
-    try:
+    with contextlib.suppress(Exception):
         rclpy.spin(node)
-    except (OSError, rclpy.executors.ExternalShutdownException):  # the node's end closed mid-send
-        pass
     os._exit(0)
 
 

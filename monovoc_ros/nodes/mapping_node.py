@@ -57,10 +57,9 @@ from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import KeyframeListener
 from monovoc_ros.core.warm_up import kernels_cached, warm_up
 from monovoc_ros.ingest import KeyframeAssembler
-from monovoc_ros.nodes import map_reader
 from monovoc_ros.nodes.component import Component, MappingHost
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
-from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal
+from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal, supported
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.param_spec import ParameterError, declare
 from monovoc_ros.nodes.params import PARAMETERS, NodeParams
@@ -345,7 +344,7 @@ class MappingNode(Node):
         """The map topic's reader process (map_reader_process), or None: the map is taken in this process."""
         if not self.params.map_reader_process:
             return None
-        if not map_reader.supported():
+        if not supported():
             self.get_logger().warning("map_reader_process: not supported on this platform (Linux only)")
             return None
         return MapReaderProcess(
@@ -355,7 +354,7 @@ class MappingNode(Node):
             on_map=self._on_received_map,
             on_refused=self._on_reader_refusal,
             on_restart=self._map_reader_restarted,
-            on_redelivered=lambda _m: self.stats.add(maps_redelivered=1),
+            on_redelivered=lambda: self.stats.add(maps_redelivered=1),
         )
 
     def _create_subscriptions(self) -> None:
@@ -432,11 +431,7 @@ class MappingNode(Node):
                 keyframes, rejections = self.assembler.push(role, msg)
             except Exception as exc:  # a bug must cost one message, not the subscription, and show as a bug
                 keyframes, rejections = [], []
-                self.stats.add(ingest_errors=1)
-                self.get_logger().error(
-                    f"{role}: the keyframe assembler failed ({type(exc).__name__}: {exc}); message dropped\n"
-                    + "".join(traceback.format_exception(exc))
-                )
+                self._ingest_bug(f"{role}: the keyframe assembler failed", exc)
             for r in rejections:
                 self.stats.reject(r.reason)
                 self._reject_log(r.reason, f"{r.role} stamp {r.stamp_ns}: {r.detail}")
@@ -455,15 +450,19 @@ class MappingNode(Node):
             return
         self._accept_map(gaussians, ma.header_stamp_ns(msg), str(msg.header.frame_id), time.perf_counter() - start)
 
+    def _ingest_bug(self, what: str, exc: Exception) -> None:
+        """An input dropped by a bug, not by bad input: counted as ingest_errors and logged with its traceback."""
+        self.stats.add(ingest_errors=1)
+        self.get_logger().error(
+            f"{what} ({type(exc).__name__}: {exc}); message dropped\n" + "".join(traceback.format_exception(exc))
+        )
+
     def _on_received_map(self, received: ReceivedMap) -> None:
+        self.stats.add(maps_coalesced=received.superseded)  # replaced in the reader before the worker saw them
         try:
             self._accept_map(received.gaussians, received.stamp_ns, received.frame_id, received.decode_s)
         except Exception as exc:  # a bug must cost one map, not the map reader's thread, and show as a bug
-            self.stats.add(ingest_errors=1)
-            self.get_logger().error(
-                f"gaussians: handling a map failed ({type(exc).__name__}: {exc}); map dropped\n"
-                + "".join(traceback.format_exception(exc))
-            )
+            self._ingest_bug("gaussians: handling a map failed", exc)
 
     def _accept_map(self, gaussians: GaussianMap, stamp_ns: int, frame: str, decode_s: float) -> None:
         """A decoded map message (from the map callback or the map reader process) -> the worker."""
@@ -480,7 +479,7 @@ class MappingNode(Node):
     def _on_reader_refusal(self, refusal: Refusal) -> None:
         if refusal.bad_input:
             self._refuse_map(refusal.message)
-        else:
+        else:  # the reader's own failure, its traceback in the message
             self.stats.add(ingest_errors=1)
             self.get_logger().error(refusal.message)
 
