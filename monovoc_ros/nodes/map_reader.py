@@ -332,8 +332,10 @@ class MapReaderProcess:
         while True:
             try:
                 item = receive(sock)
-            except ValueError as exc:
+            except ValueError as exc:  # it may have been a map, which spent the child's credit: give another
                 item = Refusal(str(exc), bad_input=False)
+                with contextlib.suppress(OSError):
+                    sock.send(_CREDIT)
             except OSError:
                 return
             if item is None:
