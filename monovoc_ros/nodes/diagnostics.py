@@ -56,7 +56,6 @@ class MapperStats(SessionStats):
     map_decode_s: float = 0.0
     maps_decoded: int = 0
     map_reader_restarts: int = 0  # map reader processes that exited while the node ran (another was started)
-    maps_redelivered: int = 0  # latched maps a new map reader received again (not applied twice)
     map_prepare_s: float = 0.0  # preparing map updates (MappingSession.plan_map) on a thread beside the worker
 
 

@@ -18,8 +18,8 @@ has a backlog of maps waiting in the socket.
 Lifetime: the child ends when the node closes its end of the socket (a stop, or the node dying in any way)
 and ignores SIGINT and SIGTERM (a terminal's Ctrl-C or a signal to the process group reaches it too; the node
 decides when it stops). If the child dies while the node runs, the node logs it, counts it
-(``map_reader_restarts``) and starts another after a back-off; the latched map that the new child receives
-again (the same digest as the last one handed over) is not applied twice.
+(``map_reader_restarts``) and starts another after a back-off. The latched map that the new child receives
+again is the map in use: the session skips it as it skips any map sent again (``maps_unchanged``).
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import fcntl
-import hashlib
 import json
 import mmap
 import os
@@ -84,7 +83,6 @@ class ReceivedMap:
     stamp_ns: int
     frame_id: str
     decode_s: float  # the child's take-to-arrays time for this message
-    digest: str  # of the arrays' bytes: the same map delivered again (a latched map, to a new child) has it too
     superseded: int = 0  # maps the child decoded but replaced by this newer one before the node asked
 
 
@@ -97,7 +95,6 @@ def send_map(
     """Writes ``gmap``'s arrays into a new sealed memfd and sends it with its header over ``sock``
     (SOCK_SEQPACKET)."""
     layout, offset = [], 0
-    digest = hashlib.blake2b(digest_size=16)
     fd = os.memfd_create("monovoc_map", os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
     try:
         arrays = [(name, getattr(gmap, name)) for name in _DTYPES if getattr(gmap, name) is not None]
@@ -105,14 +102,12 @@ def send_map(
         os.ftruncate(fd, max(size, 1))
         for name, array in arrays:
             data = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
-            digest.update(data)
             _write_all(fd, memoryview(data), offset)
             layout.append({"name": name, "dtype": array.dtype.str, "shape": list(array.shape), "offset": offset})
             offset += -(-array.nbytes // _ALIGN) * _ALIGN
         fcntl.fcntl(fd, fcntl.F_ADD_SEALS, _SEALS)
         header = {"kind": "map", "stamp_ns": int(stamp_ns), "frame_id": str(frame_id), "decode_s": float(decode_s),
-                  "digest": digest.hexdigest(), "superseded": int(superseded), "size": size,
-                  "arrays": layout}  # fmt: skip
+                  "superseded": int(superseded), "size": size, "arrays": layout}  # fmt: skip
         socket.send_fds(sock, [json.dumps(header).encode()], [fd])
     finally:
         os.close(fd)  # the receiver holds its own descriptor from here
@@ -142,7 +137,6 @@ def receive(sock: socket.socket) -> ReceivedMap | Refusal | None:
             int(header["stamp_ns"]),
             str(header["frame_id"]),
             float(header["decode_s"]),
-            str(header["digest"]),
             int(header["superseded"]),
         )
     except Exception as exc:  # whatever the header holds, one clear error
@@ -216,10 +210,9 @@ class NewestMap:
 
 class MapReaderProcess:
     """Runs a child reading ``topic`` from construction on; from ``start()`` until ``stop()`` calls, on a
-    thread of its own, ``on_map(ReceivedMap)`` / ``on_refused(Refusal)`` for every message,
-    ``on_restart(message)`` when a child exited and another starts, and ``on_redelivered()`` for the latched
-    map a new child received again (not applied). The child holds at most one map the node has not asked for
-    (NewestMap): maps decoded while the node starts up or is busy are replaced by newer ones."""
+    thread of its own, ``on_map(ReceivedMap)`` / ``on_refused(Refusal)`` for every message, and
+    ``on_restart(message)`` when a child exited and another starts. The child holds at most one map the node
+    has not asked for (NewestMap): maps decoded while the node starts up or is busy are replaced by newer ones."""
 
     def __init__(
         self,
@@ -230,16 +223,13 @@ class MapReaderProcess:
         on_map: Callable[[ReceivedMap], None],
         on_refused: Callable[[Refusal], None],
         on_restart: Callable[[str], None],
-        on_redelivered: Callable[[], None],
     ) -> None:
         self.topic, self.node_name, self.namespace = topic, node_name, namespace
         self._on_map, self._on_refused, self._on_restart = on_map, on_refused, on_restart
-        self._on_redelivered = on_redelivered
         self._stopping = threading.Event()
         self._lock = threading.Lock()
         self._child: subprocess.Popen | None = None
         self._sock: socket.socket | None = None
-        self._last_digest: str | None = None
         self._thread = threading.Thread(target=self._run, name="map_reader", daemon=True)
         # The first child starts now: its start-up (~1 s of imports and discovery) overlaps the node's own.
         with contextlib.suppress(OSError):  # the thread tries again, and says why
@@ -281,7 +271,6 @@ class MapReaderProcess:
 
     def _run(self) -> None:
         delay = RESTART_DELAY_S[0]
-        restarted = False
         while not self._stopping.is_set():
             with self._lock:
                 pair = (self._child, self._sock) if self._sock is not None else None
@@ -300,7 +289,7 @@ class MapReaderProcess:
                     pair[1].shutdown(socket.SHUT_RDWR)
             child, sock = pair
             started = time.monotonic()
-            self._serve(sock, skip=self._last_digest if restarted else None)
+            self._serve(sock)
             with self._lock:
                 self._sock = None
             sock.close()
@@ -314,7 +303,6 @@ class MapReaderProcess:
             if time.monotonic() - started > 60.0:  # it had run a while: not a crash loop
                 delay = RESTART_DELAY_S[0]
             self._report_restart(f"the map reader exited (code {child.returncode}); starting another in {delay:g} s")
-            restarted = True
             self._stopping.wait(delay)
             delay = min(2 * delay, RESTART_DELAY_S[1])
 
@@ -322,9 +310,8 @@ class MapReaderProcess:
         with contextlib.suppress(Exception):  # the node's callback must not end the hand-over either
             self._on_restart(message)
 
-    def _serve(self, sock: socket.socket, skip: str | None) -> None:
-        """Receives until the child's end closes; ``skip``: the digest of the last map handed over, which a new
-        child receives again from the latched topic."""
+    def _serve(self, sock: socket.socket) -> None:
+        """Receives until the child's end closes."""
         try:
             sock.send(_CREDIT)
         except OSError:
@@ -345,12 +332,6 @@ class MapReaderProcess:
                     self._on_refused(item)
                     continue
                 sock.send(_CREDIT)  # the next map, as soon as there is one: this one goes to the worker's queue
-                if skip is not None and item.digest == skip:
-                    skip = None
-                    self._on_redelivered()
-                    continue
-                skip = None
-                self._last_digest = item.digest
                 self._on_map(item)
             except OSError:
                 return

@@ -354,7 +354,6 @@ class MappingNode(Node):
             on_map=self._on_received_map,
             on_refused=self._on_reader_refusal,
             on_restart=self._map_reader_restarted,
-            on_redelivered=lambda: self.stats.add(maps_redelivered=1),
         )
 
     def _create_subscriptions(self) -> None:
