@@ -98,13 +98,13 @@ def send_map(
     fd = os.memfd_create("monovoc_map", os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
     try:
         arrays = [(name, getattr(gmap, name)) for name in _DTYPES if getattr(gmap, name) is not None]
-        size = sum(-(-a.nbytes // _ALIGN) * _ALIGN for _, a in arrays)
+        size = sum(_padded(a.nbytes) for _, a in arrays)
         os.ftruncate(fd, max(size, 1))
         for name, array in arrays:
             data = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
             _write_all(fd, memoryview(data), offset)
             layout.append({"name": name, "dtype": array.dtype.str, "shape": list(array.shape), "offset": offset})
-            offset += -(-array.nbytes // _ALIGN) * _ALIGN
+            offset += _padded(array.nbytes)
         fcntl.fcntl(fd, fcntl.F_ADD_SEALS, _SEALS)
         header = {"kind": "map", "stamp_ns": int(stamp_ns), "frame_id": str(frame_id), "decode_s": float(decode_s),
                   "superseded": int(superseded), "size": size, "arrays": layout}  # fmt: skip
@@ -166,6 +166,10 @@ def _map_of(fd: int, header: dict[str, Any]) -> GaussianMap:
             raise ValueError(f"array {name!r} of shape {shape} at {offset} outside the {size} bytes")
         arrays[name] = np.frombuffer(memory, dtype, count, offset).reshape(shape)
     return GaussianMap(**arrays)
+
+
+def _padded(nbytes: int) -> int:
+    return -(-nbytes // _ALIGN) * _ALIGN
 
 
 def _write_all(fd: int, data: memoryview, offset: int) -> None:
