@@ -7,7 +7,8 @@ Replica office_0 (81 RGB keyframes, 204k Gaussians) is written as a camera-only 
 keyframe rate into the two nodes, wired as `ros2 launch ... segmenter:=true` wires them (the mapper with
 `mask_transport: raw`, `mask_ids: per_frame`, `use_segments: true`, `min_support` and `min_object_score`
 0.5, the semantic cloud published whenever its queue is empty). Per keyframe, the latency from the image's
-scheduled publication to the first semantic cloud that includes it (the cloud's stamp is the newest
+publication (the last of its keyframe's messages, as the replay sent it) to the first semantic cloud that
+includes it (the cloud's stamp is the newest
 integrated keyframe): p50 / p95 / max ms; keyframes segmented, dropped by the segmenter (newest wins),
 integrated and refused (all-void masks); the segmenter's mean ms.
 """
@@ -28,14 +29,16 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from monovoc_ros.bags import bag_info, iter_messages, replay, sequence_to_bag, topic_names  # noqa: E402
+from monovoc_ros.bags import iter_messages, replay, sequence_to_bag, topic_names  # noqa: E402
 from monovoc_ros.core.evaluation.datasets import open_sequence  # noqa: E402
 from monovoc_ros.ros_harness import (  # noqa: E402
     SEMANTIC_MAPPER,
     ClientNode,
     CloudMonitor,
     DiagnosticsMonitor,
+    KeyframePublishTimes,
     NodeProcess,
+    cloud_latencies_ms,
     loopback_environment,
     ros_args,
 )
@@ -56,7 +59,7 @@ MAPPER_PARAMS = {
 def run(bag: Path, work: Path, model: str, rate: float) -> dict:
     image_topic = topic_names()["image"]
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[image_topic])]
-    n, first_log = len(stamps), bag_info(bag).start_ns
+    n = len(stamps)
     with (
         NodeProcess.python(["-m", SEMANTIC_MAPPER, *ros_args({**MAPPER_PARAMS, "queue_size": n})],
                            name="semantic_mapper", output_path=work / "mapper.log") as mapper,
@@ -69,10 +72,8 @@ def run(bag: Path, work: Path, model: str, rate: float) -> dict:
         clouds = CloudMonitor(client.node)
         mapping.wait_for(lambda d: float(d.get("warm_up_ms", 0)) > 0, 300.0, what="warm-up", process=mapper)
         segmenting.wait_for(lambda d: "segmented" in d, 120.0, what="the segmenter", process=segmenter)
-        started: list[float] = []
-        replay(
-            bag, rate=rate, wait_subscribers=1, wait_timeout=60.0, on_started=lambda: started.append(time.monotonic())
-        )
+        published = KeyframePublishTimes()
+        replay(bag, rate=rate, wait_subscribers=1, wait_timeout=60.0, on_published=published)
         seg = segmenting.wait_for(
             lambda d: int(d["segmented"]) + int(d["dropped"]) + int(d["bad_images"]) == int(d["received"]) > 0,
             120.0,
@@ -83,13 +84,7 @@ def run(bag: Path, work: Path, model: str, rate: float) -> dict:
             lambda d: int(d["keyframes_processed"]) + int(d["rejected.void_mask"]) >= made, 300.0, process=mapper
         )
         time.sleep(1.0)  # the last cloud
-        latencies = []
-        for stamp in stamps:
-            scheduled = started[0] + (stamp - first_log) / 1e9 / rate
-            arrivals = [t for s, t in clouds.arrivals.items() if stamp <= s <= stamps[-1]]
-            if arrivals:
-                latencies.append(1e3 * (min(arrivals) - scheduled))
-        lat = np.array(latencies)
+        lat = np.array(cloud_latencies_ms(published.at, clouds.arrivals))
         return {
             "keyframes_sent": n,
             "keyframes_per_s": round(rate * (n - 1) / ((stamps[-1] - stamps[0]) / 1e9), 2),

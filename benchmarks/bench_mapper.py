@@ -10,8 +10,8 @@ runs, each on a fresh node, replaying once the node reports its kernels loaded (
 - ``fast``: the bag replayed as fast as possible (reliable, nothing lost): keyframes per second sustained
   from the first message to the last keyframe integrated, mean SCD ms per keyframe, keyframes dropped;
 - ``paced``: the bag at --rate times its recorded rate (10 Hz for the synthetic room): per keyframe, the latency
-  from its scheduled publication to the arrival of the first semantic cloud that includes it (the cloud's
-  stamp is the newest integrated keyframe), p50 / p95 / max ms.
+  from its publication (the last of its messages, as the replay sent it) to the arrival of the first semantic
+  cloud that includes it (the cloud's stamp is the newest integrated keyframe), p50 / p95 / max ms.
 """
 
 from __future__ import annotations
@@ -39,7 +39,9 @@ from monovoc_ros.ros_harness import (  # noqa: E402
     ClientNode,
     CloudMonitor,
     DiagnosticsMonitor,
+    KeyframePublishTimes,
     NodeProcess,
+    cloud_latencies_ms,
     keyframes_settled,
     loopback_environment,
     ros_args,
@@ -51,7 +53,6 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
     mask_topic = topic_names()["mask"]
     n = info.topics[mask_topic].count
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
-    first_log = info.start_ns
     params = {"publish_rate_hz": publish_rate, "diagnostics_period_s": 0.2, "queue_size": max(32, n)}
     log = work / f"node-{'fast' if fast else 'rate'}.log"
     with (
@@ -63,6 +64,7 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
         # As on a robot, where SLAM needs a while for its first keyframe: the node has loaded its kernels.
         warm = diagnostics.wait_for(lambda d: float(d.get("warm_up_ms", 0)) > 0, 300.0, what="warm-up", process=node)
         started: list[float] = []
+        published = KeyframePublishTimes()
         replay(
             bag,
             fast=fast,
@@ -70,6 +72,7 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
             wait_subscribers=1,
             wait_timeout=60.0,
             on_started=lambda: started.append(time.monotonic()),
+            on_published=published,
         )
         done = diagnostics.wait_for(lambda d: keyframes_settled(d, n), 600.0, what="all keyframes", process=node)
         finished = time.monotonic()
@@ -85,14 +88,7 @@ def _one_run(bag: Path, module: str, fast: bool, work: Path, publish_rate: float
             out["seconds"] = round(finished - started[0], 2)
             out["keyframes_per_second"] = round(n / (finished - started[0]), 2)
             return out
-        latencies = []
-        for stamp in stamps:
-            scheduled = started[0] + (stamp - first_log) / 1e9 / rate
-            # Clouds before the first keyframe carry the node's clock, not a bag stamp: not counted.
-            arrivals = [t for s, t in clouds.arrivals.items() if stamp <= s <= stamps[-1]]
-            if arrivals:
-                latencies.append(1e3 * (min(arrivals) - scheduled))
-        lat = np.array(latencies)
+        lat = np.array(cloud_latencies_ms(published.at, clouds.arrivals))
         if not len(lat):
             raise SystemExit(f"no cloud carried a keyframe stamp: {sorted(clouds.arrivals)[:5]} vs {stamps[:3]}")
         out.update(

@@ -13,8 +13,9 @@ stamps a new map: 2% of the Gaussians split, 1% pruned, every mean jittered 2 mm
 snapshots into a map directory) running as its own process. Runs per size:
 
 - ``robot``: keyframes at `--robot-rate` (2/s) with the semantic cloud published whenever the queue is empty
-  (`publish_rate_hz` 0): per keyframe the latency from its scheduled publication to the first semantic cloud
-  holding it (p50 / p95 / max); open-loop text queries at 5/s meanwhile (p99, lost);
+  (`publish_rate_hz` 0): per keyframe the latency from its publication (the last of its messages, when the
+  replay sent it: `KeyframePublishTimes`) to the first semantic cloud holding it (p50 / p95 / max); open-loop
+  text queries at 5/s meanwhile (p99, lost);
 - ``fast``: keyframes stamped at 10/s (the issue's target rate) replayed at `--fast-rate` times that rate
   (`publish_rate_hz` 1, the default): keyframes/s sustained from the first message to the last integrated, and
   keyframes dropped. (An as-fast-as-possible replay cannot hold the map updates: the map topic keeps the
@@ -47,7 +48,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_map_churn import REPLICA, tiled  # noqa: E402
 
-from monovoc_ros.bags import bag_info, iter_messages, replay, sequence_to_bag, topic_names  # noqa: E402
+from monovoc_ros.bags import iter_messages, replay, sequence_to_bag, topic_names  # noqa: E402
 from monovoc_ros.core.evaluation.datasets import Sequence, open_sequence  # noqa: E402
 from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb, unpack_rgb  # noqa: E402
 from monovoc_ros.core.keyframe import Keyframe  # noqa: E402
@@ -57,7 +58,9 @@ from monovoc_ros.ros_harness import (  # noqa: E402
     ClientNode,
     CloudMonitor,
     DiagnosticsMonitor,
+    KeyframePublishTimes,
     NodeProcess,
+    cloud_latencies_ms,
     loopback_environment,
     ros_args,
     wait_until,
@@ -133,7 +136,6 @@ def run(
     `node_params`: the node's parameters the command line chose (map_update_ahead, map_reader_process)."""
     mask_topic = topic_names()["mask"]
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
-    first_log = bag_info(bag).start_ns  # the first map, just before the first keyframe
     params = {
         "publish_rate_hz": 0.0 if kind == "robot" else 1.0,
         "diagnostics_period_s": 0.2,
@@ -170,7 +172,11 @@ def run(
             started.append(time.monotonic())
             start_file.touch()
 
-        replay(bag, rate=rate, wait_subscribers=1, wait_timeout=120.0, ack_timeout=300.0, on_started=on_started)
+        published = KeyframePublishTimes()
+        replay(
+            bag, rate=rate, wait_subscribers=1, wait_timeout=120.0, ack_timeout=300.0, on_started=on_started,
+            on_published=published,
+        )  # fmt: skip
         done = diagnostics.wait_for(
             lambda d: int(d["keyframes_processed"]) + int(d["keyframes_dropped"]) >= keyframes
             and d["queue_length"] == "0",
@@ -216,14 +222,7 @@ def run(
             ],
         }
         if kind == "robot":
-            latencies = []
-            for stamp in stamps:
-                scheduled = started[0] + (stamp - first_log) / 1e9 / rate
-                # Clouds stamped after the last keyframe are the node's own (at start, on a map alone).
-                arrivals = [t for s, t in clouds.arrivals.items() if stamp <= s <= stamps[-1]]
-                if arrivals:
-                    latencies.append(1e3 * (min(arrivals) - scheduled))
-            lat = np.array(latencies)
+            lat = np.array(cloud_latencies_ms(published.at, clouds.arrivals))
             out.update(
                 keyframes_with_cloud=len(lat),
                 latency_ms_p50=round(float(np.percentile(lat, 50)), 1) if len(lat) else None,

@@ -8,7 +8,8 @@ the benchmarks and the tests.
 * ``wait_until`` polls a condition with a timeout and fails early when a watched child exits; every wait
   here is on a condition, never on a log line or a fixed sleep.
 * ``DiagnosticsMonitor`` (the mapper's /diagnostics values), ``MessageCollector`` (every message of a topic),
-  ``CloudMonitor`` (the newest semantic cloud and when each keyframe stamp first arrived), ``call_service``
+  ``CloudMonitor`` (the newest semantic cloud and when each keyframe stamp first arrived; with
+  ``KeyframePublishTimes`` the keyframe -> cloud latencies of a replay), ``call_service``
   (with the resend of monovoc_ros.nodes.service_call), ``ros_args``.
 
     with NodeProcess.python(["-m", SEMANTIC_MAPPER, *ros_args(params)], name="mapper") as node, ClientNode() as c:
@@ -30,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from monovoc_ros.contract import DEFAULT_NAMESPACE as NAMESPACE
+from monovoc_ros.contract import KEYFRAME_ROLES, topic_names
 from monovoc_ros.nodes import service_call
 
 SEMANTIC_MAPPER = "monovoc_ros.nodes.semantic_mapper"  # mapping + object database + query service
@@ -378,6 +380,36 @@ def keyframes_settled(values: Mapping[str, str], masks_sent: int) -> bool:
         and int(values["queue_length"]) == 0
         and done >= int(values["keyframes_received"])
     )
+
+
+class KeyframePublishTimes:
+    """`replay(on_published=...)`: per log time (ns) when the last of a keyframe's messages (`KEYFRAME_ROLES`,
+    the segmenter's input included) was published, time.monotonic(): the keyframe -> cloud latency counts from
+    then, not from the bag's schedule, so a replay that falls behind (reading and publishing a 56 MB map
+    message) is not charged to the node."""
+
+    def __init__(self, namespace: str = NAMESPACE) -> None:
+        topics = topic_names(namespace)
+        self.topics = frozenset(topics[r] for r in KEYFRAME_ROLES)
+        self.at: dict[int, float] = {}
+
+    def __call__(self, topic: str, log_time_ns: int) -> None:
+        if topic in self.topics:
+            self.at[log_time_ns] = time.monotonic()
+
+
+def cloud_latencies_ms(published: Mapping[int, float], arrivals: Mapping[int, float]) -> list[float]:
+    """Per keyframe stamp of `published` (stamp ns -> when it was published: `KeyframePublishTimes.at`) the ms
+    until the first cloud holding it arrived (`CloudMonitor.arrivals`): one stamped with it or with a later
+    keyframe's stamp. Keyframes no cloud held are left out; so are clouds stamped after the last keyframe (the
+    node's own, on a map alone)."""
+    last = max(published, default=0)
+    out = []
+    for stamp, at in sorted(published.items()):
+        holding = [t for s, t in arrivals.items() if stamp <= s <= last]
+        if holding:
+            out.append(1e3 * (min(holding) - at))
+    return out
 
 
 class CloudMonitor:

@@ -20,7 +20,15 @@ from test_bags_convert import assert_same_map, moved, small_scene
 import msg_adapters as ma
 from monovoc_ros.bags import bag_info, iter_messages, record, replay, sequence_to_bag, topic_names
 from monovoc_ros.bags.schemas import canonical_cdr
-from monovoc_ros.ros_harness import ClientNode, HarnessError, MessageCollector, NodeProcess, wait_until
+from monovoc_ros.ros_harness import (
+    ClientNode,
+    HarnessError,
+    KeyframePublishTimes,
+    MessageCollector,
+    NodeProcess,
+    cloud_latencies_ms,
+    wait_until,
+)
 from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
@@ -191,9 +199,24 @@ def test_record_a_replay_gives_the_same_bag(bag: Path, tmp_path: Path, monkeypat
     args = ["-m", "monovoc_ros.cli", "record", "-o", str(out), *bag_info(bag).topics]
     with NodeProcess.python([*args, "--count", str(total), "--log-time", "header"], env, name="record") as rec:
         rec.wait_for_output("monovoc record: recording", timeout=30.0)
-        summary = replay(bag, fast=True, wait_subscribers=1, wait_timeout=30.0)
+        sent: list[tuple[str, int, float]] = []
+        keyframes = KeyframePublishTimes()
+
+        def published(topic: str, log_time_ns: int) -> None:
+            sent.append((topic, log_time_ns, time.monotonic()))
+            keyframes(topic, log_time_ns)
+
+        summary = replay(bag, fast=True, wait_subscribers=1, wait_timeout=30.0, on_published=published)
         assert sum(summary.messages.values()) == total and not summary.unacked
         recorded = finish(rec, timeout=30.0)
+    # on_published heard every message once, in the bag's order; a keyframe's time is its last message's.
+    assert [(t, ns) for t, ns, _ in sent] == [(m.topic, m.log_time_ns) for m in iter_messages(bag)]
+    masks = [m.log_time_ns for m in iter_messages(bag, [TOPICS["mask"]])]
+    assert sorted(keyframes.at) == masks
+    for stamp, at in keyframes.at.items():
+        mine = [t for topic, ns, t in sent if ns == stamp and topic in keyframes.topics]
+        later = [t for _, ns, t in sent if ns > stamp]
+        assert len(mine) == 4 and max(mine) <= at <= min(later, default=at)
     assert recorded["total"] == total and not recorded["missing"]
     source, copy = bag_info(bag), bag_info(out)
     assert {t.name: (t.type_name, t.count) for t in copy.topics.values()} == {
@@ -208,6 +231,14 @@ def test_record_a_replay_gives_the_same_bag(bag: Path, tmp_path: Path, monkeypat
         assert reader.message_count == total
         for connection, _, raw in reader.messages(connections=reader.connections[:1]):
             reader.deserialize(raw, connection.msgtype)
+
+
+def test_cloud_latencies_count_from_each_keyframes_publication() -> None:
+    published = {100: 10.0, 200: 10.5, 300: 11.0, 400: 11.5}
+    # Stamp 100 arrives alone, 200 is first held by the cloud of 300, 400 by no cloud; 900 is the node's own.
+    arrivals = {100: 10.08, 300: 11.2, 900: 10.9}
+    assert np.allclose(cloud_latencies_ms(published, arrivals), [80.0, 700.0, 200.0])
+    assert cloud_latencies_ms({}, arrivals) == [] and cloud_latencies_ms(published, {}) == []
 
 
 def test_record_stops_on_ctrl_c_and_on_duration(tmp_path: Path, monkeypatch) -> None:

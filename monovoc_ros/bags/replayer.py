@@ -179,6 +179,7 @@ def replay(
     node: Any = None,
     on_started: Callable[[], None] | None = None,
     on_done: Callable[[ReplaySummary], None] | None = None,
+    on_published: Callable[[str, int], None] | None = None,
 ) -> ReplaySummary:
     """Publishes the bag's messages (see the module docstring); returns what was published.
 
@@ -188,7 +189,8 @@ def replay(
     ``hold``: seconds to keep the publishers (and the latched map) alive after the last message.
     ``stop_event``: set it to stop early (Ctrl-C in the main thread does the same). ``node``: publish
     from this node instead of an own one in a new context.
-    ``on_started()``: called when publishing starts; ``on_done(summary)``: when it ends, before ``hold``.
+    ``on_started()``: called when publishing starts; ``on_done(summary)``: when it ends, before ``hold``;
+    ``on_published(topic, log_time_ns)``: after each message was published (bag topic; a latency's origin).
     """
     if not fast and not rate > 0:
         raise ValueError(f"rate must be > 0, got {rate}")
@@ -215,7 +217,9 @@ def replay(
             start = time.monotonic()
             try:
                 while not stop.is_set():
-                    late = _play_once(Path(path), selected, pubs, clock_pub, counts, fast, rate, clock_hz, stop)
+                    late = _play_once(
+                        Path(path), selected, pubs, clock_pub, counts, fast, rate, clock_hz, stop, on_published
+                    )
                     summary.max_late_ms = max(summary.max_late_ms, late)
                     summary.loops += 1
                     if not loop:
@@ -271,6 +275,7 @@ def _play_once(
     rate: float,
     clock_hz: float,
     stop: threading.Event,
+    on_published: Callable[[str, int], None] | None = None,
 ) -> float:
     """One pass over the bag; returns the worst lateness behind the schedule in ms."""
     first_ns: int | None = None
@@ -295,6 +300,8 @@ def _play_once(
         if not counts[topic] and pubs.pubs[topic].get_subscription_count() == 0:
             pubs.unmatched.add(topic)
         pubs.pubs[topic].publish(message.data)
+        if on_published is not None:
+            on_published(topic, message.log_time_ns)
         counts[topic] += 1
         since_ack[topic] += 1
         if fast and since_ack[topic] >= pubs.depth[topic]:
