@@ -179,19 +179,23 @@ def _search(
             lo_x, hi_x = qx - cx * cell - _MARGIN, (cx + 1) * cell - qx - _MARGIN
             lo_y, hi_y = qy - cy * cell - _MARGIN, (cy + 1) * cell - qy - _MARGIN
             lo_z, hi_z = qz - cz * cell - _MARGIN, (cz + 1) * cell - qz - _MARGIN
-            k = -1
-            for dx in range(-1, 2):
-                gx = _face_gap(dx, lo_x, hi_x)
-                for dy in range(-1, 2):
-                    gy = _face_gap(dy, lo_y, hi_y)
-                    for dz in range(-1, 2):
-                        k += 1
-                        if k == 13 or near[k] < 0:
-                            continue
-                        gz = _face_gap(dz, lo_z, hi_z)
-                        if gx * gx + gy * gy + gz * gz > best:  # every point of that cell is farther
-                            continue
-                        best, best_i = _scan(sorted_points, order, cell_starts, near[k], qx, qy, qz, best, best_i)
+            # Nearer to the best so far (or its radius) than to any face of its own cell: no neighbour cell holds a
+            # nearer point (each is at least that face away). Most queries of a map update end here.
+            face = min(lo_x, hi_x, lo_y, hi_y, lo_z, hi_z)
+            if face <= 0.0 or face * face <= best:
+                k = -1
+                for dx in range(-1, 2):
+                    gx = _face_gap(dx, lo_x, hi_x)
+                    for dy in range(-1, 2):
+                        gy = _face_gap(dy, lo_y, hi_y)
+                        for dz in range(-1, 2):
+                            k += 1
+                            if k == 13 or near[k] < 0:
+                                continue
+                            gz = _face_gap(dz, lo_z, hi_z)
+                            if gx * gx + gy * gy + gz * gz > best:  # every point of that cell is farther
+                                continue
+                            best, best_i = _scan(sorted_points, order, cell_starts, near[k], qx, qy, qz, best, best_i)
             # Farther rings only when the radius reaches past them and nothing nearer than a cell was found:
             # a point of ring m is at least (m - 1) cells away.
             reach = int(np.ceil(r / cell))
