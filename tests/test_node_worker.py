@@ -266,7 +266,7 @@ def test_listener_errors_are_logged_not_fatal():
     worker, _, log = make_worker()
     worker.add_keyframe_listener(lambda kf, m: 1 / 0)
     results = []
-    worker.add_result_listener(lambda publication: results.append(publication.result.object_ids.copy()))
+    worker.add_result_listener(lambda mapper, result: results.append(result.object_ids.copy()))
     worker.submit_map(plane_map())
     worker.submit_keyframe(keyframe(1))
     worker.submit_keyframe(keyframe(2))

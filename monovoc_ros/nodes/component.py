@@ -20,8 +20,8 @@ from typing import Any, Protocol
 from monovoc_ros.core.map_store import SnapshotInfo
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import KeyframeListener, LoadCheck
-from monovoc_ros.nodes.output_thread import ResultListener
 from monovoc_ros.nodes.outputs import LabelProvider
+from monovoc_ros.nodes.worker import ResultListener
 
 SaveListener = Callable[[str, SnapshotInfo, SemanticMapper], None]
 
@@ -61,7 +61,7 @@ class MappingHost:
     mapper: Callable[[], SemanticMapper | None]
     busy: Callable[[], bool]  # keyframes wait for the worker (components defer heavy work)
     add_keyframe_listener: Callable[[KeyframeListener], None]  # fn(keyframe, mapper) after each keyframe
-    add_result_listener: Callable[[ResultListener], None]  # fn(publication) after each publication (output thread)
+    add_result_listener: Callable[[ResultListener], None]  # fn(mapper, result) before each publication
     add_reset_listener: Callable[[Callable[[], None]], None]  # fn() after a reset
     add_save_listener: Callable[[SaveListener], None]  # see MapWorker.add_save_listener
     add_load_check: Callable[[LoadCheck], None]  # see MapWorker.add_load_check

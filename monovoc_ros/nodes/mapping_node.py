@@ -60,7 +60,6 @@ from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.component import Component, MappingHost
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
 from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal, supported
-from monovoc_ros.nodes.output_thread import ResultListener
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.param_spec import ParameterError, declare
 from monovoc_ros.nodes.params import PARAMETERS, NodeParams
@@ -68,7 +67,7 @@ from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latch
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.startup import StartupAborted, check_stop, compile_kernels
-from monovoc_ros.nodes.worker import MapWorker, WorkerSettings, WorkerStopped
+from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
 # One per callback group (4 or 5 inputs, map, diagnostics) plus services, which may block waiting for the worker.
@@ -216,7 +215,7 @@ class MappingNode(Node):
         self.worker.add_keyframe_listener(fn)
 
     def add_result_listener(self, fn: ResultListener) -> None:
-        """fn(publication) on the output thread after each publication of the semantic result."""
+        """fn(mapper, result) on the worker thread each time the semantic result is recomputed (before publishing)."""
         self.worker.add_result_listener(fn)
 
     def add_diagnostics_source(self, fn: Callable[[], dict[str, Any]]) -> None:

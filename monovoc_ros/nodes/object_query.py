@@ -51,7 +51,6 @@ from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
 from monovoc_ros.nodes.navigation import NavigationSettings
 from monovoc_ros.nodes.object_query_params import PARAMETERS
-from monovoc_ros.nodes.output_thread import Publication
 from monovoc_ros.nodes.outputs import semantic_objects
 from monovoc_ros.nodes.param_spec import declare
 from monovoc_ros.nodes.qos import SERVICE_QOS
@@ -254,11 +253,10 @@ class ObjectQueryComponent:
     def _on_keyframe(self, keyframe: Any, mapper: Any) -> None:
         self.index.keyframe_listener(keyframe, mapper)
 
-    def _on_result(self, publication: Publication) -> None:
-        # Immutable snapshots (the output thread computed their objects' geometry): safe to hand to another thread.
-        p = publication
-        self._pending = (p.gaussians, p.result, p.segment_labels, p.label_confidence)
-        self._labelled = (p.gaussians, p.result.object_ids)
+    def _on_result(self, mapper: Any, result: Any) -> None:
+        # Gaussian maps and results are immutable snapshots: safe to hand to another thread.
+        self._pending = (mapper.gaussians, result, mapper.object_labels(), mapper.object_label_confidence())
+        self._labelled = (mapper.gaussians, result.object_ids)
         self._wake.set()
 
     def labelled_map(self, index: ObjectIndex | None = None) -> tuple[Any, Any]:

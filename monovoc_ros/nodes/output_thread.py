@@ -36,24 +36,11 @@ class Publication:
     stamp_ns: int | None  # the newest integrated keyframe's stamp (None: none integrated yet)
     keyframes: int  # integrated keyframes
     segment_labels: dict[int, str]  # object id -> its segments' leading class name (SemanticMapper.object_labels)
-    label_confidence: dict[int, float]  # object id -> how sure that name is (SemanticMapper.object_label_confidence)
 
     @classmethod
     def of(cls, mapper: SemanticMapper, result: SemanticResult) -> Publication:
         stamp = int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else None
-        return cls(
-            mapper.gaussians,
-            result,
-            stamp,
-            mapper.n_keyframes,
-            mapper.object_labels(),
-            mapper.object_label_confidence(),
-        )
-
-
-# fn(publication) on the output thread after each publication went out (the object index: its geometry is the
-# one the outputs computed, never computed first by a listener's thread of lower priority).
-ResultListener = Callable[[Publication], None]
+        return cls(mapper.gaussians, result, stamp, mapper.n_keyframes, mapper.object_labels())
 
 
 class OutputSink(Protocol):
@@ -65,18 +52,11 @@ class OutputSink(Protocol):
 
 
 class OutputThread:
-    """One thread that publishes `Publication`s, newest first (module docstring), tells the result listeners, and
-    runs calls that read the sink's state (`call`) in order with them."""
+    """One thread that publishes `Publication`s, newest first (module docstring), and runs calls that read the
+    sink's state (`call`) in order with them."""
 
-    def __init__(
-        self,
-        sink: OutputSink | None,
-        stats: MapperStats,
-        log: Logger,
-        on_listener_error: Callable[[Callable[..., Any], Exception], None],
-    ) -> None:
+    def __init__(self, sink: OutputSink | None, stats: MapperStats, log: Logger) -> None:
         self.sink = sink
-        self.on_listener_error = on_listener_error
         self.stats = stats
         self.log = log
         self.seconds = 0.0  # the last publication's time (the worker's publication rate follows it)
@@ -85,12 +65,6 @@ class OutputThread:
         self._pending: tuple[Publication | None] | None = None  # the waiting publication (a tuple: None is one)
         self._queued: Future | None = None  # the task that will publish it
         self._current: Future | None = None  # the task running or queued last (stop waits for it)
-        self._listeners: list[ResultListener] = []
-
-    def add_result_listener(self, fn: ResultListener) -> None:
-        """fn(publication) after each publication of a map (not of the empty one before any map); set before the
-        worker starts."""
-        self._listeners.append(fn)
 
     def publish(self, publication: Publication | None) -> Future:
         """Queues `publication`, replacing one still waiting; the Future gives the number of objects published
@@ -146,10 +120,4 @@ class OutputThread:
         observed = int(result.observed.sum()) if result is not None else 0
         self.stats.update(objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * self.seconds)
         self.stats.add(publishes=1, output_s_objects=geometry_s, output_s_messages=self.seconds - geometry_s)
-        if publication is not None:
-            for fn in self._listeners:
-                try:
-                    fn(publication)
-                except Exception as exc:  # a component's failure must not stop the next publication
-                    self.on_listener_error(fn, exc)
         return objects

@@ -30,10 +30,10 @@ snapshots of new evidence.
 The rasterizer's numba kernels release the GIL, so ROS callbacks keep running while a keyframe is
 integrated. Nothing here imports ROS: the node wires it to topics (monovoc_ros.nodes.mapping_node).
 
-Hooks for other components (object database, text queries): `add_keyframe_listener(fn(keyframe, mapper))` after
-each integrated keyframe and `submit(fn(mapper))` to read or change the mapper in order with everything else,
-both on the worker thread, and `add_result_listener(fn(publication))` after each publication, on the output
-thread.
+Hooks for other components (object database, text queries), all run on the worker thread:
+`add_keyframe_listener(fn(keyframe, mapper))` after each integrated keyframe, `add_result_listener(fn(mapper,
+result))` after the semantic result was recomputed (before it is published), and `submit(fn(mapper))` to
+read or change the mapper in order with everything else.
 """
 
 from __future__ import annotations
@@ -63,7 +63,9 @@ from monovoc_ros.core.session import (
     SaveListener,
 )
 from monovoc_ros.nodes.diagnostics import MapperStats
-from monovoc_ros.nodes.output_thread import OutputSink, OutputThread, Publication, ResultListener
+from monovoc_ros.nodes.output_thread import OutputSink, OutputThread, Publication
+
+ResultListener = Callable[[SemanticMapper, SemanticResult], None]
 
 
 @dataclass(frozen=True)
@@ -269,7 +271,7 @@ class MapWorker:
         self.stats = stats or MapperStats()
         self.log: Logger = log or _PrintLogger()
         # Publications are built and sent here, beside the worker (nodes/output_thread.py).
-        self.outputs = OutputThread(sink, self.stats, self.log, self._listener_failed)
+        self.outputs = OutputThread(sink, self.stats, self.log)
         self.queue = TaskQueue(settings.queue_size)
         self.session = MappingSession(
             config,
@@ -280,6 +282,7 @@ class MapWorker:
             mapper=mapper,
             on_listener_error=self._listener_failed,
         )
+        self._result_listeners: list[ResultListener] = []
         self._thread: threading.Thread | None = None
         # Map updates are prepared here, beside the worker (numba kernels and numpy release the interpreter).
         self._planner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-map-plan")
@@ -314,8 +317,7 @@ class MapWorker:
         self.session.add_keyframe_listener(fn)
 
     def add_result_listener(self, fn: ResultListener) -> None:
-        """fn(publication) on the output thread after each publication (OutputThread.add_result_listener)."""
-        self.outputs.add_result_listener(fn)
+        self._result_listeners.append(fn)
 
     def add_reset_listener(self, fn: Callable[[], None]) -> None:
         """fn() runs on the worker thread after a reset (the node clears its keyframe assembler)."""
@@ -716,6 +718,12 @@ class MapWorker:
         mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
         published = self.outputs.publish(None if mapper is None or result is None else Publication.of(mapper, result))
+        if mapper is not None and result is not None:
+            for fn in self._result_listeners:
+                try:
+                    fn(mapper, result)
+                except Exception as exc:
+                    self._listener_failed(fn, exc)
         self.stats.add(worker_s_labels=time.perf_counter() - start)
         return result, published
 
