@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import pytest
 from test_node_worker import keyframe, plane_map
 
-from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.mapping import MapperConfig
 from monovoc_ros.nodes.diagnostics import MapperStats
 from monovoc_ros.nodes.output_thread import OutputThread
 from monovoc_ros.nodes.worker import MapWorker, WorkerSettings
@@ -110,13 +110,3 @@ def test_the_worker_integrates_keyframes_while_a_publication_is_built():
         worker.stop()
     # The first, then the newest: the publications of keyframes 1 and 2 were replaced while they waited.
     assert [p.keyframes for p in sink.published] == [0, 3] and worker.stats.publications_replaced == 2
-
-
-def test_a_result_tells_other_threads_when_its_object_geometry_is_computed():
-    """The object index waits for it (nodes/object_query.py) rather than computing it on its low-priority thread."""
-    mapper = SemanticMapper(plane_map())
-    mapper.integrate(keyframe(1))
-    result = mapper.result()
-    assert not result.wait_objects(0.0)
-    threading.Timer(0.05, lambda: result.objects(mapper.gaussians)).start()
-    assert result.wait_objects(5.0) and result.objects_seconds is not None

@@ -191,7 +191,6 @@ class SemanticResult:
     quantization: Quantization | None = None  # SCD mode only
     _objects: tuple[GaussianMap, ObjectGeometry] | None = field(default=None, init=False, repr=False, compare=False)
     _objects_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
-    _objects_ready: threading.Event = field(default_factory=threading.Event, init=False, repr=False, compare=False)
     # The result this one follows (``follows``): its geometry, once computed, is where ours starts.
     _before: SemanticResult | None = field(default=None, init=False, repr=False, compare=False)
     objects_seconds: float | None = field(default=None, init=False, repr=False, compare=False)  # once computed
@@ -219,12 +218,7 @@ class SemanticResult:
                 geometry = object_geometry(gaussians, self.object_ids, self.confidence, previous=previous)
                 self.objects_seconds = time.perf_counter() - start
                 self._objects, self._before = (gaussians, geometry), None
-                self._objects_ready.set()
             return self._objects[1]
-
-    def wait_objects(self, timeout: float) -> bool:
-        """Waits up to `timeout` s until another thread has computed ``objects``; True once it has."""
-        return self._objects_ready.wait(timeout)
 
     def object_rgb(self) -> np.ndarray:
         """(N, 3) uint8 object color per Gaussian; unobserved Gaussians are grey."""

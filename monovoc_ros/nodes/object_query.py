@@ -68,7 +68,6 @@ from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
 
 REFRESH_DEFER_S = 5.0  # longest time embedding waits while keyframes are queued for the worker
-GEOMETRY_WAIT_S = 2.0  # longest time the index waits for the outputs to compute a result's object geometry
 # Added to the nice value of the indexing thread (and its encoder threads) and of the objects.db writer.
 BACKGROUND_NICENESS = 10
 
@@ -286,28 +285,12 @@ class ObjectQueryComponent:
             if self._yield_to_mapping():
                 continue
             pending, self._pending = self._pending, None
-            if pending is not None and not self._outputs_computed(pending[1]):
-                continue  # a newer result came (it goes next) or the node stops
             try:
                 self._refresh(pending)
             except ModelMissingError as exc:
                 self._backend_failed(exc)
             except Exception as exc:  # one bad refresh must not end the indexing thread
                 self.log.error(f"object index refresh failed: {type(exc).__name__}: {exc}")
-
-    def _outputs_computed(self, result: Any) -> bool:
-        """Waits until the node's outputs have computed `result`'s object geometry (on the output thread, at the
-        node's priority; computed here first, on this lower-priority thread, it held up the objects' publication
-        and, preempted while holding the interpreter, the queries: 1M robot runs had query outliers of 150-270
-        ms). False when a newer result came meanwhile (the outputs may never compute this one: replaced) or the
-        node stops; True after GEOMETRY_WAIT_S anyway (a publication that failed: computed here then)."""
-        deadline = time.monotonic() + GEOMETRY_WAIT_S
-        while not result.wait_objects(0.05):
-            if self._pending is not None or self._stopping.is_set():
-                return False
-            if time.monotonic() > deadline:
-                return True
-        return True
 
     def _refresh(self, pending: tuple[Any, Any, Any, Any] | None) -> None:
         index = self.index
