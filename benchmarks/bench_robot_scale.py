@@ -22,9 +22,8 @@ snapshots into a map directory) running as its own process. Runs per size:
   newest map only, as a SLAM's does, so DDS replaces maps published faster than ~50 MB messages travel.)
 
 Both report the worker thread's share of the wall time by activity (diagnostics `worker_s_*`: keyframes, map
-updates, re-integration, labels, snapshots, calls), the map messages' decoding, the map updates' plans and the
-publications' object geometry and messages (all beside the worker), map updates applied and prepared, and the
-node's peak RSS.
+updates, re-integration, labels, object geometry, publication, snapshots, calls), the map messages' decoding
+and the map updates' plans (both beside the worker), map updates applied and prepared, and the node's peak RSS.
 """
 
 from __future__ import annotations
@@ -68,7 +67,7 @@ from monovoc_ros.ros_harness import (  # noqa: E402
 )
 from monovoc_ros.synthetic import churn  # noqa: E402
 
-ACTIVITIES = ("keyframes", "map_updates", "reintegration", "labels", "snapshots", "calls")
+ACTIVITIES = ("keyframes", "map_updates", "reintegration", "labels", "objects", "publish", "snapshots", "calls")
 TILE_COLORS = 4096  # object colors per tile: tile t's copy of color j is 1 + t * TILE_COLORS + j
 
 
@@ -126,8 +125,6 @@ def worker_shares(values: dict[str, str], wall_s: float) -> dict:
     shares["total"] = round(sum(shares.values()), 3)
     shares["map_decoding_beside_the_worker"] = round(float(values["map_decode_s"]) / wall_s, 3)
     shares["map_update_plans_beside_the_worker"] = round(float(values["map_prepare_s"]) / wall_s, 3)
-    shares["objects_beside_the_worker"] = round(float(values["output_s_objects"]) / wall_s, 3)
-    shares["publication_beside_the_worker"] = round(float(values["output_s_messages"]) / wall_s, 3)
     return shares
 
 

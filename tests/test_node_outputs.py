@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 
 from monovoc_ros.core.mapping import SemanticMapper
-from monovoc_ros.nodes.output_thread import Publication
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.ros_harness import ClientNode
 from tests.node_scene import assemble, scene_messages, small_scene
@@ -27,9 +26,9 @@ def test_a_publication_builds_messages_only_for_changed_objects(tmp_path: Path) 
         mapper.integrate(kf)
     with ClientNode(ros_environment(tmp_path)) as client:
         outputs = SemanticOutputs(client.node, frame_id="map", labels={}, up=(0.0, 0.0, 1.0))
-        n = outputs.publish(Publication.of(mapper, mapper.result()))
+        n = outputs.publish(mapper, mapper.result())
         assert n > 3 and outputs.marker_cache.built == n and outputs.object_cache.built == n
-        outputs.publish(Publication.of(mapper, mapper.result()))  # nothing changed: nothing built
+        outputs.publish(mapper, mapper.result())  # nothing changed: nothing built
         assert outputs.marker_cache.built == n and outputs.object_cache.built == n
 
         before = _geometry(mapper)
@@ -37,7 +36,7 @@ def test_a_publication_builds_messages_only_for_changed_objects(tmp_path: Path) 
         after = _geometry(mapper)
         moved = sum(1 for oid, values in after.items() if before.get(oid) != values)
         assert 0 < moved < len(after)  # the keyframe changed some objects, not all
-        outputs.publish(Publication.of(mapper, mapper.result()))
+        outputs.publish(mapper, mapper.result())
         assert outputs.marker_cache.built == n + moved
         # A SemanticObject also carries the object's observation count: rebuilt for every object seen again.
         assert n + moved <= outputs.object_cache.built <= n + len(after)

@@ -68,8 +68,8 @@ class MappingHost:
     add_diagnostics_source: Callable[[Callable[[], dict[str, Any]]], None]  # fn() -> pairs for /diagnostics
     # Object labels (core.segments.object_labels): set_label_provider(fn), fn() -> {object id: ObjectLabel}, gives the
     # objects topic and its markers the labels a component knows (after labels_file and segment labels; one
-    # provider; fn runs on the output thread beside the worker, so it returns a ready mapping). republish_objects()
-    # asks for the last objects and markers again with the current labels (queued on the output thread; when a
+    # provider; fn runs on the worker thread, so it returns a ready mapping). republish_objects() asks for
+    # the last objects and markers again with the current labels (queued on the worker thread; when a
     # component's labels changed; requests queued meanwhile are coalesced).
     set_label_provider: Callable[[LabelProvider], None]
     republish_objects: Callable[[], None]

@@ -30,7 +30,7 @@ class MapperStats(SessionStats):
 
     keyframes_received: int = 0  # keyframes completed by the KeyframeAssembler
     queue_length: int = 0  # keyframes waiting for the worker
-    publish_ms_last: float = 0.0  # the last publication's messages (objects' geometry included), beside the worker
+    publish_ms_last: float = 0.0  # result + outputs
     warm_up_ms: float = 0.0  # loading the mapping kernels at start (0 until done)
     kernel_compile_ms: float = 0.0  # compiling them first, when numba's cache was empty (0: it was not)
     objects: int = 0
@@ -39,7 +39,6 @@ class MapperStats(SessionStats):
     map_updates_ahead: int = 0  # map updates whose later keyframes went ahead into the map in use (map_update_ahead)
     snapshot_errors: int = 0
     publishes: int = 0
-    publications_replaced: int = 0  # publications replaced by a newer one before the output thread took them
     worker_errors: int = 0  # tasks, listeners or background calls that raised (logged with a traceback)
     ingest_errors: int = 0  # messages the keyframe assembler raised on (a bug, not bad input: logged with a traceback)
     service_errors: int = 0  # service callbacks that failed unexpectedly (answered success=false)
@@ -49,17 +48,15 @@ class MapperStats(SessionStats):
     worker_s_map_updates: float = 0.0  # checks, registration and evidence transfer of new SLAM maps
     worker_s_reintegration: float = 0.0  # re-integration steps after a map update that bent the map
     reintegration_steps: int = 0  # logged keyframes integrated again (one per step)
-    worker_s_labels: float = 0.0  # the semantic result (labels of every Gaussian) for a publication, its listeners
+    worker_s_labels: float = 0.0  # the semantic result (labels of every Gaussian) for a publication
+    worker_s_objects: float = 0.0  # the object geometry of a publication
+    worker_s_publish: float = 0.0  # the cloud, objects and markers messages and the result listeners
     worker_s_snapshots: float = 0.0  # periodic snapshots into map_directory
     worker_s_calls: float = 0.0  # services and other calls run on the worker (save, load, queries of it)
     map_decode_s: float = 0.0
     maps_decoded: int = 0
     map_reader_restarts: int = 0  # map reader processes that exited while the node ran (another was started)
     map_prepare_s: float = 0.0  # preparing map updates (MappingSession.plan_map) on a thread beside the worker
-    # Publications on the output thread beside the worker (nodes/output_thread.py): the objects' geometry, and
-    # the cloud, objects and markers messages.
-    output_s_objects: float = 0.0
-    output_s_messages: float = 0.0
 
 
 def diagnostic_status(stats: dict[str, Any], *, name: str, hardware_id: str, extra: dict[str, Any] | None = None):

@@ -223,8 +223,8 @@ class MappingNode(Node):
         self._diagnostics_sources.append(fn)
 
     def republish_objects(self) -> None:
-        """Queues a republication of the objects and markers with the current labels on the output thread, in
-        order with the publications (without the cloud); one request at a time, later ones coalesce."""
+        """Queues a republication of the objects and markers with the current labels on the worker thread
+        (the `publish` service's path, without the cloud); one request at a time, later ones coalesce."""
         with self._republish_lock:
             if self._republish_queued:
                 return
@@ -235,7 +235,7 @@ class MappingNode(Node):
                 self._republish_queued = False  # labels changing from here on need another pass
             return self.outputs.republish_objects()
 
-        self.worker.outputs.call(republish).add_done_callback(self._report_failure)
+        self.worker.call(republish, "republish_objects").add_done_callback(self._report_failure)
 
     def _report_failure(self, future: concurrent.futures.Future) -> None:
         """Done-callback of the worker tasks nobody waits for: a failure is logged with its traceback and counted

@@ -22,10 +22,9 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
   `load` reads and checks everything (the snapshot, then each load check such as objects.db) before it
   swaps anything in, so a failed load changes nothing.
 
-Between tasks the worker computes the semantic result and hands it to the output thread, which builds and sends
-the messages while the worker goes on (nodes/output_thread.py; at most every `publish_period_s` while something
+Between tasks the worker publishes the semantic result (at most every `publish_period_s` while something
 changed; period 0 = as soon as nothing runnable is queued, and every BUSY_PUBLISH_PERIOD_S while something
-is, or less often when a publication takes more than BUSY_PUBLISH_SHARE of that time), and saves periodic
+is, or less often when publishing would take more than BUSY_PUBLISH_SHARE of the worker) and saves periodic
 snapshots of new evidence.
 The rasterizer's numba kernels release the GIL, so ROS callbacks keep running while a keyframe is
 integrated. Nothing here imports ROS: the node wires it to topics (monovoc_ros.nodes.mapping_node).
@@ -46,7 +45,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.follow.map_updater import MapUpdatePlan, PoseMover, pose_mover, unmoved_pose
@@ -63,7 +62,6 @@ from monovoc_ros.core.session import (
     SaveListener,
 )
 from monovoc_ros.nodes.diagnostics import MapperStats
-from monovoc_ros.nodes.output_thread import OutputSink, OutputThread, Publication
 
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
 
@@ -109,6 +107,14 @@ SAVE_S_MARGIN = 1.5
 
 # The MapperStats field that a task's worker time is added to.
 _ACTIVITY = {"keyframe": "worker_s_keyframes", "map": "worker_s_map_updates", "call": "worker_s_calls"}
+
+
+class OutputSink(Protocol):
+    """Where results go (the node's publishers); called on the worker thread."""
+
+    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
+        """Publishes the semantic map (None: no map, publish an empty one); returns the number of objects."""
+        ...
 
 
 class WorkerStopped(RuntimeError):
@@ -269,9 +275,8 @@ class MapWorker:
     ) -> None:
         self.settings = settings
         self.stats = stats or MapperStats()
+        self.sink = sink
         self.log: Logger = log or _PrintLogger()
-        # Publications are built and sent here, beside the worker (nodes/output_thread.py).
-        self.outputs = OutputThread(sink, self.stats, self.log)
         self.queue = TaskQueue(settings.queue_size)
         self.session = MappingSession(
             config,
@@ -292,6 +297,7 @@ class MapWorker:
         self._output_dirty = True  # publish once at start (the map, or an empty one)
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
+        self._publish_s = 0.0  # the last publication's time
         self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
         self._ahead: _Ahead | None = None  # a map update applied once its plan is ready (map_update_ahead)
         self._last_save = time.monotonic()
@@ -426,13 +432,12 @@ class MapWorker:
         self.queue.close()
         if self._thread is not None:
             self._thread.join(max(within_s, 0.0) + STOP_GRACE_S)  # a task in progress cannot be cut short
-        self.outputs.stop(STOP_GRACE_S)  # the newest state goes out; nothing is published after it
-        if self._thread is not None and self._thread.is_alive():
-            self.log.error(
-                f"shutdown: the worker is still busy after {time.monotonic() - start:.1f} s; no final snapshot "
-                f"({self.keyframes_waiting} keyframes not integrated since the last one)"
-            )
-            return None
+            if self._thread.is_alive():
+                self.log.error(
+                    f"shutdown: the worker is still busy after {time.monotonic() - start:.1f} s; no final snapshot "
+                    f"({self.keyframes_waiting} keyframes not integrated since the last one)"
+                )
+                return None
         drained, deferred = self._drain(deadline)
         self._planner.shutdown(wait=False, cancel_futures=True)
         self._collect_snapshot(wait=True)
@@ -557,9 +562,8 @@ class MapWorker:
         self._changed(unsaved=self.session.mapper is not None)
 
     def publish_now(self) -> tuple[SemanticResult | None, int]:
-        """Recomputes and publishes the result now; returns it and the number of objects once published."""
-        result, published = self._publish()
-        return result, published.result()
+        """Recomputes and publishes the result now; returns it and the number of objects."""
+        return self._publish()
 
     def objects_now(self) -> int:
         mapper = self.session.mapper
@@ -703,29 +707,42 @@ class MapWorker:
         period = self.settings.publish_period_s
         if period == 0:
             busy = self.session.keyframes_ready or len(self.queue)
-            wait = max(BUSY_PUBLISH_PERIOD_S, self.outputs.seconds / BUSY_PUBLISH_SHARE)
+            wait = max(BUSY_PUBLISH_PERIOD_S, self._publish_s / BUSY_PUBLISH_SHARE)
             if busy and time.monotonic() < self._last_publish + wait:
                 return
         elif time.monotonic() < self._last_publish + period:
             return
         self._publish()
 
-    def _publish(self) -> tuple[SemanticResult | None, Future]:
-        """Captures the result and hands it to the output thread; returns it and the Future of its objects."""
+    def _publish(self) -> tuple[SemanticResult | None, int]:
         start = time.perf_counter()
         self._output_dirty = False
         self._last_publish = time.monotonic()
         mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
-        published = self.outputs.publish(None if mapper is None or result is None else Publication.of(mapper, result))
+        labelled = time.perf_counter()
+        computed = result is None or result.objects_seconds is not None
+        # Outputs first: the worker computes (and caches on the result) the object geometry before a
+        # listener's thread, possibly of lower priority, asks the result for it and holds its lock.
+        objects = self.sink.publish(mapper, result) if self.sink is not None else 0
+        geometry_s = 0.0 if computed else (result.objects_seconds or 0.0)
         if mapper is not None and result is not None:
             for fn in self._result_listeners:
                 try:
                     fn(mapper, result)
                 except Exception as exc:
                     self._listener_failed(fn, exc)
-        self.stats.add(worker_s_labels=time.perf_counter() - start)
-        return result, published
+        observed = int(result.observed.sum()) if result is not None else 0
+        end = time.perf_counter()
+        self._publish_s = end - start
+        self.stats.update(objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
+        self.stats.add(
+            publishes=1,
+            worker_s_labels=labelled - start,
+            worker_s_objects=geometry_s,
+            worker_s_publish=end - labelled - geometry_s,
+        )
+        return result, objects
 
     def _save_enabled(self) -> bool:
         return bool(self.settings.map_directory) and self.settings.save_period_s > 0
