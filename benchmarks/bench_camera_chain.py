@@ -8,9 +8,8 @@ keyframe rate into the two nodes, wired as `ros2 launch ... segmenter:=true` wir
 `mask_transport: raw`, `mask_ids: per_frame`, `use_segments: true`, `min_support` and `min_object_score`
 0.5, the semantic cloud published whenever its queue is empty). Per keyframe, the latency from the image's
 publication (the last of its keyframe's messages, as the replay sent it) to the first semantic cloud that
-includes it (the cloud's stamp is the newest
-integrated keyframe): p50 / p95 / max ms; keyframes segmented, dropped by the segmenter (newest wins),
-integrated and refused (all-void masks); the segmenter's mean ms.
+includes it (the cloud's stamp is the newest integrated keyframe): p50 / p95 / max ms; keyframes segmented,
+dropped by the segmenter (newest wins), integrated and refused (all-void masks); the segmenter's mean ms.
 """
 
 from __future__ import annotations

@@ -60,6 +60,7 @@ _SEALS = (
 )
 _CREDIT = b"+"  # the node asks for one map (the newest the child holds)
 RESTART_DELAY_S = (1.0, 30.0)  # first and longest back-off before starting a child again
+HEALTHY_RUN_S = 60.0  # a child that ran this long before it exited was no crash loop: the back-off starts over
 STOP_WAIT_S = 0.5  # how long a stop waits for the child to exit on its own (it exits at once) before killing it
 
 
@@ -304,7 +305,7 @@ class MapReaderProcess:
                 child.wait()
             if self._stopping.is_set():
                 return
-            if time.monotonic() - started > 60.0:  # it had run a while: not a crash loop
+            if time.monotonic() - started > HEALTHY_RUN_S:
                 delay = RESTART_DELAY_S[0]
             self._report_restart(f"the map reader exited (code {child.returncode}); starting another in {delay:g} s")
             self._stopping.wait(delay)

@@ -451,10 +451,13 @@ class MappingNode(Node):
 
     def _ingest_bug(self, what: str, exc: Exception) -> None:
         """An input dropped by a bug, not by bad input: counted as ingest_errors and logged with its traceback."""
-        self.stats.add(ingest_errors=1)
-        self.get_logger().error(
+        self._ingest_error(
             f"{what} ({type(exc).__name__}: {exc}); message dropped\n" + "".join(traceback.format_exception(exc))
         )
+
+    def _ingest_error(self, message: str) -> None:
+        self.stats.add(ingest_errors=1)
+        self.get_logger().error(message)
 
     def _on_received_map(self, received: ReceivedMap) -> None:
         self.stats.add(maps_coalesced=received.superseded)  # replaced in the reader before the worker saw them
@@ -479,8 +482,7 @@ class MappingNode(Node):
         if refusal.bad_input:
             self._refuse_map(refusal.message)
         else:  # the reader's own failure, its traceback in the message
-            self.stats.add(ingest_errors=1)
-            self.get_logger().error(refusal.message)
+            self._ingest_error(refusal.message)
 
     def _map_reader_restarted(self, message: str) -> None:
         self.stats.add(map_reader_restarts=1)
