@@ -10,6 +10,7 @@ from monovoc_ros.embed.attributes import (
     DARK_HUE_MIN_CHROMA,
     clean_class_name,
     color_names,
+    color_names_reference,
     combine,
     describe,
     dominant_color_name,
@@ -37,6 +38,18 @@ KNOWN_COLORS = {
 def test_known_colors_get_their_basic_name(name):
     pixels = np.array(KNOWN_COLORS[name], dtype=np.uint8)
     assert color_names(pixels) == [name] * len(pixels)
+
+
+def test_color_names_equal_their_plain_twin():
+    """The numba CIEDE2000 search names every pixel as colour-science's full distance matrix does."""
+    rng = np.random.default_rng(5)
+    pixels = np.concatenate([
+        rng.integers(0, 256, (20000, 3)),
+        rng.integers(0, 40, (2000, 3)),  # dark: the achromatic and always-black rules
+        np.array([c for cs in KNOWN_COLORS.values() for c in cs]),
+    ]).astype(np.uint8)  # fmt: skip
+    assert color_names(pixels) == color_names_reference(pixels)
+    assert color_names(np.zeros((0, 3), np.uint8)) == color_names_reference(np.zeros((0, 3), np.uint8)) == []
 
 
 def test_dominant_color_votes_over_pixels_rather_than_averaging():
