@@ -20,6 +20,8 @@ snapshots into a map directory) running as its own process. Runs per size:
   (`publish_rate_hz` 1, the default): keyframes/s sustained from the first message to the last integrated, and
   keyframes dropped. (An as-fast-as-possible replay cannot hold the map updates: the map topic keeps the
   newest map only, as a SLAM's does, so DDS replaces maps published faster than ~50 MB messages travel.)
+  A viewer subscribes to the semantic cloud as in the robot run, unless `--fast-without-viewer` (the node then
+  builds no cloud: a robot mapping with no RViz open).
 
 Both report the worker thread's share of the wall time by activity (diagnostics `worker_s_*`: keyframes, map
 updates, re-integration, labels, object geometry, publication, snapshots, calls), the map messages' decoding
@@ -130,10 +132,11 @@ def worker_shares(values: dict[str, str], wall_s: float) -> dict:
 
 def run(
     bag: Path, work: Path, kind: str, keyframes: int, maps: int, rate: float, node_params: dict,
-    query_rate_hz: float = 5.0,
+    query_rate_hz: float = 5.0, viewer: bool = True,
 ) -> dict:  # fmt: skip
     """One run of the node on `bag` (`keyframes` keyframes, `maps` map messages, the first included);
-    `node_params`: the node's parameters the command line chose (map_update_ahead, map_reader_process)."""
+    `node_params`: the node's parameters the command line chose (map_update_ahead, map_reader_process);
+    `viewer`: whether the fast run subscribes to the semantic cloud."""
     mask_topic = topic_names()["mask"]
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
     params = {
@@ -164,7 +167,9 @@ def run(
                 NodeProcess.python(load_args, name="query_load", output_path=work / f"query_load_{kind}.log")
             )
         diagnostics = DiagnosticsMonitor(client.node, "semantic mapping")
-        clouds = CloudMonitor(client.node)
+        # A viewer of the semantic cloud (the node builds it only while something subscribes): the robot run's
+        # latency needs it; the fast run has one unless --fast-without-viewer.
+        clouds = CloudMonitor(client.node) if kind == "robot" or viewer else None
         diagnostics.wait_for(lambda d: float(d.get("warm_up_ms", 0)) > 0, 300.0, what="warm-up", process=node)
         started: list[float] = []
 
@@ -213,6 +218,8 @@ def run(
             "map_update_ms_last": round(float(values["ms_map_update_last"]), 1),
             "map_decode_ms_mean": round(1e3 * float(values["map_decode_s"]) / max(1, int(values["maps_decoded"])), 1),
             "snapshots": int(values["snapshots_saved"]),
+            "cloud_viewer": clouds is not None,
+            "clouds_skipped": int(values.get("clouds_skipped", 0)),
             "worker_share": worker_shares(values, wall),
             "node_peak_rss_mb": round(peak_rss_mb(node.pid)),
             "map_reader_peak_rss_mb": [
@@ -246,6 +253,7 @@ def main() -> int:
     parser.add_argument("--update-period-s", type=float, default=2.0)
     parser.add_argument("--map-update-ahead", action="store_true", help="the node's map_update_ahead")
     parser.add_argument("--map-in-node", action="store_true", help="map_reader_process false: the node takes the map")
+    parser.add_argument("--fast-without-viewer", action="store_true", help="nothing subscribes to the fast run's cloud")
     args = parser.parse_args()
     node_params = {"map_update_ahead": args.map_update_ahead, "map_reader_process": not args.map_in_node}
     if not (REPLICA / "traj.txt").exists():
@@ -272,7 +280,10 @@ def main() -> int:
                 "bag_build_s": round(built),
             }
             replay_rate = 1.0 if kind == "robot" else args.fast_rate
-            row.update(run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, node_params))
+            row.update(
+                run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, node_params,
+                    viewer=not args.fast_without_viewer)
+            )  # fmt: skip
             seq.updates.clear()
             bag.unlink()
             report["rows"].append(row)

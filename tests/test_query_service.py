@@ -272,6 +272,7 @@ def test_client_without_a_node_exits_2(tmp_path):
 
 
 def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
+    from sensor_msgs.msg import PointCloud2
     from visualization_msgs.msg import MarkerArray
 
     from monovoc_interfaces.msg import SemanticObjectArray
@@ -336,6 +337,16 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
         print(f"query latency while mapping: median {median:.1f} ms, max {worst:.1f} ms")
         assert np.median(latencies) < 0.5 and max(latencies) < 5.0
 
+        # Nothing subscribed to the semantic cloud: the publications left it out. A viewer that subscribes now
+        # gets the current cloud (its matched event asks the worker for a publication), not the empty one of the
+        # node's start that the transient-local history held.
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        diagnostics.wait_for(lambda v: int(v.get("clouds_skipped", "0")) > 0, 30.0, process=node)
+        clouds = MessageCollector()
+        client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())
+        wait_until(lambda: any(c.width > 1000 for c in clouds.messages), 30.0, "the current cloud", process=node)
+        assert max(c.width for c in clouds.messages) <= len(scene.gaussians)
+
         save = client.node.create_client(SaveMap, "/monovoc/save_map")
         wait_for_service(save, process=node)
         saved = call_service(save, SaveMap.Request(), 60.0, process=node)
@@ -357,7 +368,6 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
         # the node go on.
         broken = tmp_path / "broken"
         (broken / DB_NAME).mkdir(parents=True)
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         saved = call_service(save, SaveMap.Request(directory=str(broken)), 60.0, process=node)
         assert saved.success, saved.message
         diagnostics.wait_for(lambda v: v.get("objects.save_errors") == "1", 30.0, process=node)

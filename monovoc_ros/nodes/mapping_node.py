@@ -67,7 +67,7 @@ from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latch
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.startup import StartupAborted, check_stop, compile_kernels
-from monovoc_ros.nodes.worker import MapWorker, ResultListener, WorkerSettings, WorkerStopped
+from monovoc_ros.nodes.worker import CoalescedCall, MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
 # One per callback group (4 or 5 inputs, map, diagnostics) plus services, which may block waiting for the worker.
@@ -107,8 +107,6 @@ class MappingNode(Node):
         self._warned_frame: set[str] = set()
         self._map_reader: MapReaderProcess | None = None
         self._diagnostics_sources: list[Callable[[], dict[str, Any]]] = []
-        self._republish_lock = threading.Lock()
-        self._republish_queued = False
         # Named so that plugins can put their own callbacks beside ours.
         # One group per input topic: each topic's messages are handled one at a time, in order (what the
         # assembler needs), while the topics progress side by side. In one shared mutually exclusive group
@@ -121,7 +119,11 @@ class MappingNode(Node):
             "timers": MutuallyExclusiveCallbackGroup(),
         }
         self.outputs = SemanticOutputs(
-            self, frame_id=self.params.frame_id, labels=self.params.labels, up=self.params.marker_up
+            self,
+            frame_id=self.params.frame_id,
+            labels=self.params.labels,
+            up=self.params.marker_up,
+            on_cloud_subscriber=lambda: self._publish_for_subscriber(),
         )
         p = self.params
         settings = WorkerSettings(
@@ -141,6 +143,11 @@ class MappingNode(Node):
             mapper=self._initial_mapper(),
         )
         self.worker.add_reset_listener(self._reset_ingest)
+        self._republish = CoalescedCall(self.worker, self.outputs.republish_objects, "republish_objects",
+                                        self._report_failure)  # fmt: skip
+        self._publish_for_subscriber = CoalescedCall(self.worker, self.worker.publish_now, "publish_cloud",
+                                                     self._report_failure)  # fmt: skip
+        self.add_diagnostics_source(lambda: {"clouds_skipped": self.outputs.clouds_skipped})
         try:
             check_stop(stop, "loading the map")
             self._queue_deferred()
@@ -225,17 +232,7 @@ class MappingNode(Node):
     def republish_objects(self) -> None:
         """Queues a republication of the objects and markers with the current labels on the worker thread
         (the `publish` service's path, without the cloud); one request at a time, later ones coalesce."""
-        with self._republish_lock:
-            if self._republish_queued:
-                return
-            self._republish_queued = True
-
-        def republish() -> int:
-            with self._republish_lock:
-                self._republish_queued = False  # labels changing from here on need another pass
-            return self.outputs.republish_objects()
-
-        self.worker.call(republish, "republish_objects").add_done_callback(self._report_failure)
+        self._republish()
 
     def _report_failure(self, future: concurrent.futures.Future) -> None:
         """Done-callback of the worker tasks nobody waits for: a failure is logged with its traceback and counted

@@ -818,6 +818,31 @@ class MapWorker:
         self.log.error(f"listener {getattr(fn, '__qualname__', fn)} failed: {type(exc).__name__}: {exc}")
 
 
+class CoalescedCall:
+    """`fn()` queued on a worker's thread by any thread, at most once at a time: a request made while one is
+    queued joins it (it has not run yet, so it will see what changed). `on_done(future)`: each run's outcome."""
+
+    def __init__(self, worker: MapWorker, fn: Callable[[], Any], name: str, on_done: Callable[[Future], None]):
+        self._worker = worker
+        self._fn = fn
+        self._name = name
+        self._on_done = on_done
+        self._lock = threading.Lock()
+        self._queued = False
+
+    def __call__(self) -> None:
+        with self._lock:
+            if self._queued:
+                return
+            self._queued = True
+        self._worker.call(self._run, self._name).add_done_callback(self._on_done)
+
+    def _run(self) -> Any:
+        with self._lock:
+            self._queued = False  # requests from here on need another run
+        return self._fn()
+
+
 def _megabytes(keyframe: Keyframe) -> float:
     return (keyframe.mask.nbytes + (0 if keyframe.rgb is None else keyframe.rgb.nbytes)) / 1e6
 
