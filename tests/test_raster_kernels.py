@@ -8,7 +8,15 @@ from numba import njit
 from test_raster import random_quats, random_scene
 
 from monovoc_ros.core.map.camera import Intrinsics, pose_from_translation_quat
-from monovoc_ros.core.map.gaussians import MAP_CHUNK, GaussianMap, chunk_bounds_reference
+from monovoc_ros.core.map.gaussians import (
+    MAP_CHUNK,
+    GaussianMap,
+    chunk_bounds_reference,
+    group_by_chunk,
+    morton_keys,
+    morton_keys_reference,
+)
+from monovoc_ros.core.map.sorting import argsort_keys
 from monovoc_ros.core.raster import accumulate
 from monovoc_ros.core.raster import numba_impl as ni
 from monovoc_ros.core.raster import numba_kernels as nk
@@ -40,13 +48,21 @@ def test_radix_depth_sort_is_a_stable_argsort():
     rect = np.zeros((depth.size, 4), np.int32)
     visible = rng.random(depth.size) < 0.8
     rect[visible] = (0, 1, 0, 1)
-    got = nk.visible_by_depth(depth.astype(np.float32), rect, np.ones(2, np.bool_))
+    identity = np.arange(depth.size, dtype=np.int32)
+    got = nk.visible_by_depth(depth.astype(np.float32), rect, identity, np.ones(2, np.bool_))
     idx = np.flatnonzero(visible)
     np.testing.assert_array_equal(got, idx[np.argsort(depth[idx], kind="stable")])
     # A chunk the view culled is skipped whatever its rows hold.
-    got = nk.visible_by_depth(depth.astype(np.float32), rect, np.array([False, True]))
-    idx = idx[idx >= MAP_CHUNK]
-    np.testing.assert_array_equal(got, idx[np.argsort(depth[idx], kind="stable")])
+    got = nk.visible_by_depth(depth.astype(np.float32), rect, identity, np.array([False, True]))
+    kept = idx[idx >= MAP_CHUNK]
+    np.testing.assert_array_equal(got, kept[np.argsort(depth[kept], kind="stable")])
+    # Places of Gaussians in another order (GaussianMap.placed): ties keep the order of their map indices.
+    members = rng.permutation(depth.size).astype(np.int32)
+    got = nk.visible_by_depth(depth.astype(np.float32), rect, members, np.ones(2, np.bool_))
+    by_map = members[idx][np.argsort(members[idx])]  # the visible Gaussians' map indices, ascending
+    place_of = np.argsort(members)
+    want = by_map[np.argsort(depth[place_of[by_map]], kind="stable")]
+    np.testing.assert_array_equal(members[got], want)
 
 
 def _chunked_scene(seed: int, chunks: int = 24):
@@ -76,37 +92,73 @@ def _chunked_scene(seed: int, chunks: int = 24):
 
 def test_chunk_cull_keeps_every_chunk_a_visible_gaussian_is_in():
     """`live_chunks` drops a chunk only when the reference projection keeps none of its Gaussians, and the
-    numba path then sees exactly the reference's visible Gaussians in depth order."""
-    culled = 0
-    for seed in range(4):
-        gmap, k, pose = _chunked_scene(seed)
-        for far in (np.inf, 6.0):
-            view = check_view(gmap, k, pose, far)
-            live = ni.live_chunks(gmap, view)
-            visible = project_map(gmap, view).visible
-            holds = visible.reshape(-1, MAP_CHUNK).any(axis=1)
-            assert not np.any(holds & ~live), (seed, far, np.flatnonzero(holds & ~live))
-            culled += int(np.count_nonzero(~live))
-            b = ni.bin_view(gmap, view, None, numba.get_num_threads())
-            np.testing.assert_array_equal(np.sort(b.order), np.flatnonzero(visible))
-    assert culled >= 40  # of 200 chunks: the cull does its job on chunks far off the view
+    numba path then sees exactly the reference's visible Gaussians in depth order, whatever the map's order
+    (chunks are made by place: a shuffled map, as densification leaves a SLAM's, culls as well)."""
+    for shuffled in (False, True):
+        culled = 0
+        for seed in range(4):
+            gmap, k, pose = _chunked_scene(seed)
+            if shuffled:
+                gmap = gmap.subset(np.random.default_rng(seed).permutation(len(gmap)))
+            for far in (np.inf, 6.0):
+                view = check_view(gmap, k, pose, far)
+                live = ni.live_chunks(gmap, view)
+                visible = project_map(gmap, view).visible
+                holds = np.bincount(np.argsort(gmap.chunk_members)[visible] // MAP_CHUNK, minlength=len(live)) > 0
+                assert not np.any(holds & ~live), (seed, far, np.flatnonzero(holds & ~live))
+                culled += int(np.count_nonzero(~live))
+                b = ni.bin_view(gmap, view, None, numba.get_num_threads())
+                np.testing.assert_array_equal(np.sort(b.order), np.flatnonzero(visible))
+        assert culled >= 30, shuffled  # of 200 chunks: the cull does its job on chunks far off the view
 
 
 def test_chunk_bounds_equal_their_plain_twin():
     gmap, _, _ = _chunked_scene(5, chunks=3)
-    part = gmap.subset(np.arange(2 * MAP_CHUNK + 100))  # a last chunk of 100
-    for got, want in zip(part.chunk_bounds, chunk_bounds_reference(part.means, part.scales, MAP_CHUNK), strict=True):
-        np.testing.assert_array_equal(got, want)
+    part = gmap.subset(np.random.default_rng(5).permutation(len(gmap))[: 2 * MAP_CHUNK + 100])  # a last chunk of 100
+    members = part.chunk_members
+    # A permutation, ascending inside each chunk, each chunk's Gaussians of one place (the scene's clusters).
+    np.testing.assert_array_equal(np.sort(members), np.arange(len(part)))
+    chunks = [members[c : c + MAP_CHUNK] for c in range(0, len(part), MAP_CHUNK)]
+    assert all(np.all(np.diff(c) > 0) for c in chunks)
+    placed = part.placed
+    np.testing.assert_array_equal(placed.members, members)
+    np.testing.assert_array_equal(placed.means, part.means[members])
+    np.testing.assert_array_equal(placed.covariances, part.covariances[members])
+    np.testing.assert_array_equal(placed.opacities, part.opacities[members])
+    want = chunk_bounds_reference(part.means, part.scales, members, MAP_CHUNK)
+    for got, w in zip(part.chunk_bounds, want, strict=True):
+        np.testing.assert_array_equal(got, w)
     lower, upper, reach = part.chunk_bounds
     assert lower.shape == upper.shape == (3, 3) and reach.shape == (3,)
-    np.testing.assert_array_equal(lower[2], part.means[2 * MAP_CHUNK :].min(axis=0))
+    np.testing.assert_array_equal(lower[2], part.means[chunks[2]].min(axis=0))
+    # The Z-order keys and the grouping against their plain twins (NaN and out-of-box means included).
+    rng = np.random.default_rng(8)
+    means = rng.uniform(-3.0, 7.0, (20000, 3)).astype(np.float32)
+    means[::997] = np.nan
+    low, scale = np.full(3, -2.0), np.full(3, ((1 << 21) - 1) / 8.0)  # a box smaller than the points: clamped
+    np.testing.assert_array_equal(morton_keys(means, low, scale), morton_keys_reference(means, low, scale))
+    order = rng.permutation(20000)
+    grouped = group_by_chunk(order, 4096)
+    for c in range(0, 20000, 4096):
+        np.testing.assert_array_equal(grouped[c : c + 4096], np.sort(order[c : c + 4096]))
+    # By place, not by the map's order: 8 chunks of a uniform cube are (about) its 8 octants.
+    cube = np.random.default_rng(6).uniform(0.0, 1.0, (8 * MAP_CHUNK, 3))
+    cube_map = GaussianMap(cube, np.full_like(cube, 0.01), random_quats(np.random.default_rng(6), len(cube)),
+                           np.full(len(cube), 0.5))  # fmt: skip
+    spans = []  # the 5-95th percentile extent: the octants hold 4096 points give or take a few dozen
+    for c in range(0, len(cube), MAP_CHUNK):
+        points = cube[cube_map.chunk_members[c : c + MAP_CHUNK]]
+        spans.append((np.percentile(points, 95, axis=0) - np.percentile(points, 5, axis=0)).max())
+    assert max(spans) < 0.5
     bad = GaussianMap(np.where(np.arange(len(part))[:, None] == 5, np.nan, part.means), part.scales, part.quats,
                       part.opacities)  # fmt: skip
-    assert np.isnan(bad.chunk_bounds[0][0]).all() and not np.isnan(bad.chunk_bounds[0][1:]).any()
-    for got, want in zip(bad.chunk_bounds, chunk_bounds_reference(bad.means, bad.scales, MAP_CHUNK), strict=True):
-        np.testing.assert_array_equal(got, want)
+    assert 5 in bad.chunk_members[-100:]  # a non-finite mean goes last, into the last chunk
+    assert np.isnan(bad.chunk_bounds[0][-1]).all() and not np.isnan(bad.chunk_bounds[0][:-1]).any()
+    want = chunk_bounds_reference(bad.means, bad.scales, bad.chunk_members, MAP_CHUNK)
+    for got, w in zip(bad.chunk_bounds, want, strict=True):
+        np.testing.assert_array_equal(got, w)
     view = check_view(part, Intrinsics(80.0, 75.0, 47.0, 41.0, 96, 80), np.eye(4))
-    assert ni.live_chunks(bad, view)[0]  # a chunk with a non-finite mean is never dropped
+    assert ni.live_chunks(bad, view)[-1]  # a chunk with a non-finite mean is never dropped
 
 
 def test_argsort_keys_equals_numpys_stable_argsort():
@@ -120,7 +172,7 @@ def test_argsort_keys_equals_numpys_stable_argsort():
     ]
     for keys in cases:
         keys = np.asarray(keys, np.int64)
-        np.testing.assert_array_equal(nk.argsort_keys(keys), np.argsort(keys, kind="stable"))
+        np.testing.assert_array_equal(argsort_keys(keys), np.argsort(keys, kind="stable"))
 
 
 def test_ranks_by_index_is_the_argsort_of_the_depth_order():

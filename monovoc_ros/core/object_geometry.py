@@ -54,9 +54,9 @@ from scipy.sparse.csgraph import connected_components
 
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, unpack_rgb
 from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.sorting import argsort_keys
 from monovoc_ros.core.object_geometry_kernels import main_voxel_clusters
 from monovoc_ros.core.object_geometry_kernels import percentile_boxes as percentile_boxes_kernel
-from monovoc_ros.core.raster.numba_kernels import argsort_keys
 
 MIN_CONFIDENCE = 0.3
 CLUSTER_VOXEL = 0.25  # metres; 0 keeps every Gaussian of the object (no cluster filter)

@@ -33,7 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from monovoc_ros.core.raster.numba_kernels import argsort_keys
+from monovoc_ros.core.map.sorting import argsort_keys
 from monovoc_ros.core.segments.object_labels import stored_source
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, backend_identity, lazy_backend, model_name
 from monovoc_ros.objects.records import ObjectRecord

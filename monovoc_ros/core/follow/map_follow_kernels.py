@@ -18,7 +18,7 @@ import numba
 import numpy as np
 
 from monovoc_ros.core.map.gaussians import gather_rows
-from monovoc_ros.core.raster.numba_kernels import argsort_keys
+from monovoc_ros.core.map.sorting import argsort_keys
 
 # Grid keys pack three 21-bit cell coordinates (2M cells per axis: 40 km at 2 cm).
 _BITS = 21

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.gaussians import GaussianMap, gather_rows
 from monovoc_ros.core.raster import numba_kernels as nk
 from monovoc_ros.core.raster.constants import NEAR_PLANE, TILE
 from monovoc_ros.core.raster.inputs import View
@@ -139,17 +139,20 @@ def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: 
     rect = ws.get("rect", (n, 4), np.int32)
     lims = np.array(jacobian_limits(view), dtype=np.float64)
     live = live_chunks(gmap, view)
+    placed = gmap.placed  # the Gaussians in chunk order: u, v, conic, depth and rect are by place too
     nk.project(
-        gmap.means, gmap.covariances, view.world_to_cam, float(k.fx), float(k.fy), float(k.cx), float(k.cy),
+        placed.means, placed.covariances, view.world_to_cam, float(k.fx), float(k.fy), float(k.cx), float(k.cy),
         lims, float(view.far), k.width, k.height, u, v, conic, depth, rect, live, workers,
     )  # fmt: skip
-    order = nk.visible_by_depth(depth, rect, live)
-    rows = ws.get("rows", (len(order), nk.ROW_WIDTH), np.float32)
-    rects = ws.get("rects", (len(order), 4), np.int32)
+    by_depth = nk.visible_by_depth(depth, rect, placed.members, live)
+    rows = ws.get("rows", (len(by_depth), nk.ROW_WIDTH), np.float32)
+    rects = ws.get("rects", (len(by_depth), 4), np.int32)
     nk.pack_rows(
-        order, u, v, conic, depth, gmap.opacities, _NO_COLORS if colors is None else colors, colors is not None,
+        by_depth, u, v, conic, depth, placed.opacities,
+        _NO_COLORS if colors is None else gather_rows(np.ascontiguousarray(colors), placed.members), colors is not None,
         rows, rects, rect, workers,
     )  # fmt: skip
+    order = placed.members[by_depth]
     tile_start, tile_list, tile_slot, gauss_start = nk.bin_tiles(
         rows, rects, gx * gy, gx, workers, ws.whole("tile_list", np.int32), ws.whole("tile_slot", np.int64)
     )

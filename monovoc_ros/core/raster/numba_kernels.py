@@ -28,6 +28,7 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from monovoc_ros.core.map.gaussians import MAP_CHUNK
+from monovoc_ros.core.map.sorting import radix_argsort
 from monovoc_ros.core.raster.constants import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -193,7 +194,8 @@ def project(
     """EWA projection in float64 (see projection.py); rect = (0, 0, 0, 0) marks a culled Gaussian (before the
     near plane, beyond `far`, or touching no tile) and
     conic holds the factored form (A, R, S) of the inverse 2D covariance (see _project_one). Only the chunks of
-    MAP_CHUNK Gaussians that `live` (n_chunks,) keeps are projected: the others' outputs are left as they were."""
+    MAP_CHUNK consecutive Gaussians that `live` (n_chunks,) keeps are projected: the others' outputs are left as
+    they were. The map's arrays come in the order of its chunks (GaussianMap.placed)."""
     n = means.shape[0]
     gx = (width + TILE - 1) // TILE
     gy = (height + TILE - 1) // TILE
@@ -214,9 +216,11 @@ def project(
 
 
 @njit(cache=True, nogil=True)
-def visible_by_depth(depth, rect, live):
-    """Indices of visible Gaussians of the `live` chunks (see `project`) sorted by depth, stable (ties keep map
-    order): LSD radix sort on the float32 bit patterns, which order like the values for positive floats."""
+def visible_by_depth(depth, rect, members, live):
+    """Place indices (into the map's arrays in chunk order, see `project`) of the visible Gaussians of the `live`
+    chunks, sorted by depth, ties in map order (`members`: each place's map index, GaussianMap.chunk_members):
+    LSD radix sorts, first on the map index, then, stable, on the float32 depth's bit pattern (which orders like
+    the value for positive floats)."""
     n = depth.shape[0]
     count = 0
     for c in range(live.shape[0]):
@@ -225,59 +229,24 @@ def visible_by_depth(depth, rect, live):
                 if rect[i, 1] > rect[i, 0]:
                     count += 1
     idx = np.empty(count, np.int32)
-    keys = np.empty(count, np.uint32)
-    bits = depth.view(np.uint32)
+    keys = np.empty(count, np.int64)
     m = 0
     for c in range(live.shape[0]):
         if live[c]:
             for i in range(c * MAP_CHUNK, min(n, (c + 1) * MAP_CHUNK)):
                 if rect[i, 1] > rect[i, 0]:
                     idx[m] = i
-                    keys[m] = bits[i]
+                    keys[m] = members[i]
                     m += 1
-    return radix_argsort(keys, idx, 11, 32)
-
-
-def argsort_keys(keys: np.ndarray) -> np.ndarray:
-    """(N,) int64 stable argsort of non-negative int64 keys (grid cells, voxels of objects: 63 bits, the high
-    ones mostly shared): `radix_argsort` on 16-bit digits; twin numpy's `argsort(kind="stable")`. 1M keys:
-    ~15 ms; numpy's quicksort 160 ms."""
-    return radix_argsort(np.array(keys, np.int64), np.arange(len(keys), dtype=np.int64), 16, 64)
-
-
-@njit(cache=True, nogil=True)
-def radix_argsort(keys, idx, digit_bits, key_bits):
-    """`idx` ordered by the non-negative integer `keys` (the same length), stable: LSD radix sort on
-    `digit_bits`-bit digits of the low `key_bits` bits, skipping a digit every key shares. Both arrays are
-    used as scratch; returns the sorted `idx`."""
-    n = keys.shape[0]
-    if n < 2:
-        return idx
-    keys2 = np.empty_like(keys)
-    idx2 = np.empty_like(idx)
-    radix = 1 << digit_bits
-    digit_mask = radix - 1
-    hist = np.empty(radix, np.int64)
-    for shift in range(0, key_bits, digit_bits):
-        hist[:] = 0
-        for m in range(n):
-            hist[(keys[m] >> shift) & digit_mask] += 1
-        if hist[(keys[0] >> shift) & digit_mask] == n:
-            continue
-        total = 0
-        for b in range(radix):
-            c = hist[b]
-            hist[b] = total
-            total += c
-        for m in range(n):
-            b = (keys[m] >> shift) & digit_mask
-            p = hist[b]
-            hist[b] = p + 1
-            keys2[p] = keys[m]
-            idx2[p] = idx[m]
-        keys, keys2 = keys2, keys
-        idx, idx2 = idx2, idx
-    return idx
+    index_bits = 1
+    while (1 << index_bits) < n:
+        index_bits += 1
+    idx = radix_argsort(keys, idx, (index_bits + 1) // 2, index_bits)  # 2 passes
+    bits = depth.view(np.uint32)
+    depth_keys = np.empty(count, np.uint32)
+    for m in range(count):
+        depth_keys[m] = bits[idx[m]]
+    return radix_argsort(depth_keys, idx, 11, 32)
 
 
 @njit(cache=True, nogil=True, inline="always")
