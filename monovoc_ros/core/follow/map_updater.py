@@ -194,9 +194,9 @@ def plan_map_update(
     if not refusal:
         follow_positions(follow, new, config)
         # The rasterizer's per-map values, cached with the map: here, beside a live worker, and not in its first
-        # keyframe after the update (1M Gaussians: the covariances ~50-90 ms, the chunks and the arrays in their
-        # order ~50 ms).
-        _ = (new.covariances, new.chunk_bounds, new.placed)
+        # keyframe after the update (1M Gaussians: the chunks, and the covariances and other arrays in their
+        # order, ~0.1-0.2 s).
+        _ = (new.chunk_bounds, new.placed)
     return MapUpdatePlan(old, new, config, follow, refusal)
 
 

@@ -122,13 +122,20 @@ class GaussianMap:
         """What the rasterizer reads of each Gaussian, in the order of `chunk_members`: a view's live chunks are
         then contiguous memory. A SLAM map's own order may be anything (a map update may re-order it all): on
         office_0 tiled to 1M and shuffled, a view's projection and binning took 24 ms reading the Gaussians where
-        they were, 9 ms in this order (11 ms in the order office_0's map was built). ~45 MB at 1M Gaussians,
-        gathered once per map (a live map update does it beside the worker)."""
+        they were, 9 ms in this order (11 ms in the order office_0's map was built). 44 bytes a Gaussian (the
+        covariances are computed here, in this order), once per map (a live map update does it beside the
+        worker)."""
         members = self.chunk_members
+        # The covariances computed in this order, never in the map's (the torch path's `covariances` only).
+        covariances = (
+            covariances_kernel(gather_rows(self.quats, members), gather_rows(self.scales, members))
+            if len(self)
+            else np.zeros((0, 6), np.float32)
+        )
         return PlacedArrays(
             members,
             _read_only(gather_rows(self.means, members)),
-            _read_only(gather_rows(self.covariances, members)),
+            _read_only(covariances),
             _read_only(self.opacities[members]),
         )
 
