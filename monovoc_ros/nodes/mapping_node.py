@@ -123,7 +123,7 @@ class MappingNode(Node):
             frame_id=self.params.frame_id,
             labels=self.params.labels,
             up=self.params.marker_up,
-            on_cloud_subscriber=lambda: self._publish_for_subscriber(),
+            on_cloud_subscriber=lambda: self._publish_for_subscriber(),  # set once the worker exists, below
         )
         p = self.params
         settings = WorkerSettings(

@@ -145,14 +145,14 @@ def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: 
         lims, float(view.far), k.width, k.height, u, v, conic, depth, rect, live, workers,
     )  # fmt: skip
     by_depth = nk.visible_by_depth(depth, rect, placed.members, live)
+    order = placed.members[by_depth]
     rows = ws.get("rows", (len(by_depth), nk.ROW_WIDTH), np.float32)
     rects = ws.get("rects", (len(by_depth), 4), np.int32)
+    # The colors of the visible Gaussians only, in depth order (not all N of them in chunk order).
+    visible_colors = _NO_COLORS if colors is None else gather_rows(np.ascontiguousarray(colors), order)
     nk.pack_rows(
-        by_depth, u, v, conic, depth, placed.opacities,
-        _NO_COLORS if colors is None else gather_rows(np.ascontiguousarray(colors), placed.members), colors is not None,
-        rows, rects, rect, workers,
-    )  # fmt: skip
-    order = placed.members[by_depth]
+        by_depth, u, v, conic, depth, placed.opacities, visible_colors, colors is not None, rows, rects, rect, workers
+    )
     tile_start, tile_list, tile_slot, gauss_start = nk.bin_tiles(
         rows, rects, gx * gy, gx, workers, ws.whole("tile_list", np.int32), ws.whole("tile_slot", np.int64)
     )

@@ -272,9 +272,9 @@ def _pack_one(r, i, u, v, conic, depth, opacities, colors, has_colors, rows, rec
     rows[r, ROW_EY] = ey
     rows[r, ROW_DYR] = -B * ex / C  # dy of the ellipse's rightmost point
     rows[r, ROW_Z] = depth[i]
-    rows[r, ROW_RED] = colors[i, 0] if has_colors else 0.0
-    rows[r, ROW_GREEN] = colors[i, 1] if has_colors else 0.0
-    rows[r, ROW_BLUE] = colors[i, 2] if has_colors else 0.0
+    rows[r, ROW_RED] = colors[r, 0] if has_colors else 0.0
+    rows[r, ROW_GREEN] = colors[r, 1] if has_colors else 0.0
+    rows[r, ROW_BLUE] = colors[r, 2] if has_colors else 0.0
     rows[r, 13] = 0.0
     rows[r, 14] = 0.0
     rows[r, 15] = 0.0
@@ -284,7 +284,8 @@ def _pack_one(r, i, u, v, conic, depth, opacities, colors, has_colors, rows, rec
 
 @njit(cache=True, nogil=True, parallel=True)
 def pack_rows(order, u, v, conic, depth, opacities, colors, has_colors, rows, rects, rect, n_workers):
-    """Visible Gaussians' parameters in depth order, one 64-byte row each."""
+    """Visible Gaussians' parameters in depth order, one 64-byte row each; `colors` (if any) are already in that
+    order, one per row."""
     n = order.shape[0]
     n_chunks = (n + _CHUNK - 1) // _CHUNK
     counter = np.zeros(1, np.int64)
