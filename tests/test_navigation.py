@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from monovoc_ros.embed import default_model_dir
-from monovoc_ros.ros_harness import ClientNode, NodeProcess, ros_args, wait_for_service, wait_until
+from monovoc_ros.nodes import service_call
+from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, ros_args, wait_for_service, wait_until
 from tests.object_room import copy_directory, room_directory, room_id
 from tests.rosutil import ros_environment
 
@@ -26,7 +27,7 @@ class FakeNav2:
     """navigate_to_pose served by an rclpy node of its own (multi-threaded: a goal may wait for its cancel)."""
 
     def __init__(self, env: dict, finish: bool) -> None:
-        self.env, self.finish = env, finish
+        self.env, self.finish = env, finish  # finish: succeed each goal, else drive until canceled
         self.goals: list = []
         self.canceled = threading.Event()
 
@@ -84,19 +85,41 @@ def node_params(directory, mode: str) -> dict:
     }
 
 
-def send(client, action, goal, feedback: list):
-    """Sends a GoTo goal; returns its goal handle once accepted."""
+class Requests:
+    """Requests of an action client (``send()`` makes one) as service_call.call_service sends them: again when
+    unanswered, since Fast DDS may drop a fresh client's request or its answer (monovoc_ros.nodes.service_call).
+    Only for requests that may run twice."""
+
+    def __init__(self, send, name: str) -> None:
+        self.send, self.srv_name = send, name
+
+    def call_async(self, _request):
+        return self.send()
+
+    def remove_pending_request(self, _future) -> None:
+        pass  # the action client forgets a request once answered; an unanswered one stays with it
+
+
+def answered(send, name: str, timeout: float = 30.0, process=None):
+    return call_service(Requests(send, name), None, timeout, process=process, resend_s=service_call.RESEND_S)
+
+
+def send(action, goal, feedback: list, process=None):
+    """Sends a GoTo goal; returns its goal handle once accepted. A goal must not run twice, so a blank one
+    (which the node rejects) goes first, again until answered: then the goal's requests and answers flow."""
+    from monovoc_interfaces.action import GoTo
+
+    blank = answered(lambda: action.send_goal_async(GoTo.Goal(text=" ")), "a blank go_to goal", process=process)
+    assert not blank.accepted
     future = action.send_goal_async(goal, feedback_callback=lambda msg: feedback.append(msg.feedback))
-    wait_until(future.done, 30.0, "the go_to goal to be accepted")
+    wait_until(future.done, 30.0, "the go_to goal to be accepted", process=process)
     handle = future.result()
     assert handle.accepted
     return handle
 
 
 def result_of(handle, timeout: float = 30.0):
-    future = handle.get_result_async()
-    wait_until(future.done, timeout, "the go_to result")
-    return future.result()
+    return answered(handle.get_result_async, "the go_to result", timeout)
 
 
 def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
@@ -108,19 +131,20 @@ def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
     env = ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
     sofa = room_id("sofa")
     with NodeProcess.python([*NODE, *ros_args(node_params(directory, "nav2"))], env, name="go_to_nav2") as node:
-        finishing = FakeNav2(env, finish=True)
-        with finishing.running(), ClientNode(env) as client:
+        # One Nav2 for both goals: the node's navigate_to_pose client meets a fresh server only once.
+        nav2 = FakeNav2(env, finish=True)
+        with nav2.running(), ClientNode(env) as client:
             action = ActionClient(client.node, GoTo, "/monovoc/go_to")
             wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 60.0, "the go_to action", process=node)
             feedback: list = []
-            handle = send(client, action, GoTo.Goal(text="the sofa", standoff=0.0), feedback)
+            handle = send(action, GoTo.Goal(text="the sofa", standoff=0.0), feedback, node)
             done = result_of(handle)
             result = done.result
             assert result.success and result.object_id == sofa, result.message
             assert "Nav2 reached the pose" in result.message
             # Nav2 got exactly the approach pose go_to answered with, in the map frame.
-            wait_until(lambda: finishing.goals, 5.0, "Nav2's goal")
-            sent = finishing.goals[0]
+            wait_until(lambda: nav2.goals, 5.0, "Nav2's goal")
+            sent = nav2.goals[0]
             assert sent.header.frame_id == "map" == result.pose.header.frame_id
             np.testing.assert_allclose(
                 [sent.pose.position.x, sent.pose.position.y], [result.pose.pose.position.x, result.pose.pose.position.y]
@@ -130,23 +154,19 @@ def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
             assert [f.distance_remaining for f in feedback if f.state == "navigating"][:2] == [1.5, 0.5]
             assert all(f.object_id == sofa for f in feedback)
 
-        waiting = FakeNav2(env, finish=False)
-        with waiting.running(), ClientNode(env) as client:
-            action = ActionClient(client.node, GoTo, "/monovoc/go_to")
-            wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)
-            feedback = []
-            handle = send(client, action, GoTo.Goal(text="the table"), feedback)
-            wait_until(lambda: waiting.goals, 20.0, "Nav2's goal", process=node)
-            cancel = handle.cancel_goal_async()
-            wait_until(cancel.done, 20.0, "the cancel answer", process=node)
-            assert waiting.canceled.wait(20.0)  # the cancel reached Nav2
+            nav2.finish = False  # Nav2 now drives until canceled
+            nav2.goals.clear()
+            handle = send(action, GoTo.Goal(text="the table"), [], node)
+            wait_until(lambda: nav2.goals, 20.0, "Nav2's goal", process=node)
+            answered(handle.cancel_goal_async, "the cancel answer", 20.0, process=node)
+            assert nav2.canceled.wait(20.0)  # the cancel reached Nav2
             done = result_of(handle)
             assert not done.result.success and "Nav2's goal canceled too" in done.result.message
 
         with ClientNode(env) as client:  # no Nav2 at all: a clear failure, not a hang
             action = ActionClient(client.node, GoTo, "/monovoc/go_to")
             wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)
-            done = result_of(send(client, action, GoTo.Goal(text="the sofa"), []), timeout=60.0)
+            done = result_of(send(action, GoTo.Goal(text="the sofa"), [], node), timeout=60.0)
             assert not done.result.success and "navigate_to_pose is not available" in done.result.message
         node.check_running()
 
@@ -157,7 +177,7 @@ def test_go_to_publishes_on_the_goal_topic_and_approach_pose_answers(tmp_path):
 
     from monovoc_interfaces.action import GoTo
     from monovoc_interfaces.srv import ApproachPose
-    from monovoc_ros.ros_harness import MessageCollector, call_service
+    from monovoc_ros.ros_harness import MessageCollector
 
     directory = copy_directory(room_directory(), tmp_path / "map")
     env = ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
@@ -175,7 +195,7 @@ def test_go_to_publishes_on_the_goal_topic_and_approach_pose_answers(tmp_path):
         action = ActionClient(client.node, GoTo, "/monovoc/go_to")
         wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)
         wait_until(lambda: client.node.count_publishers("/goal_pose") >= 1, 20.0, "the goal publisher", process=node)
-        done = result_of(send(client, action, GoTo.Goal(text="the sofa", standoff=0.8), []))
+        done = result_of(send(action, GoTo.Goal(text="the sofa", standoff=0.8), [], node))
         assert done.result.success and "published on /goal_pose" in done.result.message
         wait_until(lambda: poses.messages, 10.0, "the goal pose", process=node)
         got = poses.messages[-1].pose.position

@@ -189,12 +189,18 @@ class NavigationComponent:
 
     # ------------------------------------------------------------------ the action
 
-    def _on_goal(self, _request: Any) -> Any:
+    def _on_goal(self, request: Any) -> Any:
         from rclpy.action import GoalResponse
 
-        if self._stopping.is_set() or self._active.locked():
+        # Busy: cancel the goal in progress first. A blank text names nothing: no goal to accept.
+        why = "a go_to goal is in progress" if self._active.locked() else None
+        if not request.text.strip():
+            why = "its text is blank"
+        if self._stopping.is_set() or why is not None:
             self.goals["rejected"] += 1
-            return GoalResponse.REJECT  # cancel the goal in progress first
+            if why is not None:
+                self.log.warning(f"go_to goal rejected: {why}", throttle_duration_sec=5.0)
+            return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
     def _on_cancel(self, _goal_handle: Any) -> Any:

@@ -18,7 +18,9 @@ from typing import Any
 
 RESEND_S = 2.0
 # Request classes (rclpy's "<Service>_Request") that may run any number of times: read-only and cheap.
-RESENT_REQUESTS = frozenset({"TextQuery_Request", "GetParameters_Request", "DescribeParameters_Request"})
+RESENT_REQUESTS = frozenset(
+    {"TextQuery_Request", "Ask_Request", "ApproachPose_Request", "GetParameters_Request", "DescribeParameters_Request"}
+)
 
 
 def default_resend(request: Any) -> float | None:
