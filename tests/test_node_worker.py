@@ -19,6 +19,7 @@ from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import current_snapshot, load_deferred, load_snapshot
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.object_geometry import object_geometry
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import (
@@ -250,6 +251,37 @@ def test_a_plan_is_used_only_for_the_maps_it_was_made_of():
     assert session.stats.map_updates_prepared == 0
     session.add_map(first, plan=session.plan_map(None, first))
     assert session.stats.map_updates == 2 and session.stats.map_updates_prepared == 1
+
+
+def test_a_planned_update_seeds_the_next_geometry_with_the_labels_it_carries():
+    first = plane_map(400, ids=False)
+    second = _without_ids_moved(first, 0.01, seed=1)
+    session = MappingSession(MapperConfig())
+    session.add_map(first)
+    for stamp in (1, 2):
+        session.add_keyframe(keyframe(stamp, shift=stamp))
+        session.integrate_next()
+    assert session.plan_map(None, second).seed is None  # no labelling of the map in use yet: nothing to carry
+    before = session.mapper.result()
+    assert len(before.objects(first).objects) == 2
+    plan = session.plan_map(None, second)
+    seed = plan.seed.result(10)
+    session.add_map(second, plan=plan)
+    mapper = session.mapper
+    after = mapper.result()
+    # The transfer's prediction is the labelling the mapper computes from the carried evidence, so the first
+    # geometry after the update is the seed's, taken over without computing any object again.
+    np.testing.assert_array_equal(after.object_ids, seed.object_ids)
+    assert after.objects(second).objects is seed.objects(second).objects
+    session.add_keyframe(keyframe(3, shift=-4))
+    session.integrate_next()
+    later = mapper.result()
+    incremental = later.objects(second)
+    scratch = object_geometry(second, later.object_ids, later.confidence)
+    assert [(s.id, s.num_gaussians) for s in incremental.objects] == [(s.id, s.num_gaussians) for s in scratch.objects]
+    for a, b in zip(incremental.objects, scratch.objects, strict=True):
+        np.testing.assert_allclose([a.bbox_min, a.bbox_max, a.centroid], [b.bbox_min, b.bbox_max, b.centroid])
+    np.testing.assert_array_equal(incremental.shape_ids, scratch.shape_ids)
 
 
 def test_same_geometry():

@@ -282,7 +282,8 @@ class MappingSession:
         base = base if base is not None else (mapper.gaussians if mapper is not None else None)
         if base is None or len(gaussians) == 0 or same_geometry(base, gaussians):
             return None
-        return plan_map_update(base, gaussians, self.config.follow(), on_motion)
+        labelling = mapper.labelling() if mapper is not None else None
+        return plan_map_update(base, gaussians, self.config.follow(), on_motion, labelling)
 
     @property
     def poses_corrected(self) -> bool:
