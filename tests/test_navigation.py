@@ -12,8 +12,10 @@ import time
 import numpy as np
 import pytest
 
+from monovoc_ros.contract import DEFAULT_NAMESPACE
 from monovoc_ros.embed import default_model_dir
 from monovoc_ros.nodes import service_call
+from monovoc_ros.nodes.mapping_node import NODE_NAME
 from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, ros_args, wait_for_service, wait_until
 from tests.object_room import copy_directory, room_directory, room_id
 from tests.rosutil import ros_environment
@@ -66,12 +68,25 @@ class FakeNav2:
             executor.add_node(node)
             thread = threading.Thread(target=executor.spin, daemon=True)
             thread.start()
+            self.node = node
             try:
                 yield self
             finally:
                 executor.shutdown(timeout_sec=5.0)
                 server.destroy()
                 node.destroy_node()
+
+    def wait_for_mapper(self, process) -> None:
+        """Until this server's node sees the mapping node's navigate_to_pose client (its goal and result services):
+        a server's answer to a client it has not matched yet is dropped (monovoc_ros.nodes.service_call), and the
+        node sends each of its requests to Nav2 once."""
+        wanted = {"/navigate_to_pose/_action/send_goal", "/navigate_to_pose/_action/get_result"}
+
+        def seen() -> bool:
+            clients = self.node.get_client_names_and_types_by_node(NODE_NAME, DEFAULT_NAMESPACE)
+            return wanted <= {name for name, _ in clients}
+
+        wait_until(seen, 30.0, "the mapping node's navigate_to_pose client", process=process)
 
 
 def node_params(directory, mode: str) -> dict:
@@ -136,6 +151,7 @@ def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
         with nav2.running(), ClientNode(env) as client:
             action = ActionClient(client.node, GoTo, "/monovoc/go_to")
             wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 60.0, "the go_to action", process=node)
+            nav2.wait_for_mapper(node)
             feedback: list = []
             handle = send(action, GoTo.Goal(text="the sofa", standoff=0.0), feedback, node)
             done = result_of(handle)

@@ -253,7 +253,7 @@ def test_a_plan_is_used_only_for_the_maps_it_was_made_of():
     assert session.stats.map_updates == 2 and session.stats.map_updates_prepared == 1
 
 
-def test_a_planned_update_seeds_the_next_geometry_with_the_labels_it_carries():
+def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scratch():
     first = plane_map(400, ids=False)
     second = _without_ids_moved(first, 0.01, seed=1)
     session = MappingSession(MapperConfig())
@@ -261,27 +261,25 @@ def test_a_planned_update_seeds_the_next_geometry_with_the_labels_it_carries():
     for stamp in (1, 2):
         session.add_keyframe(keyframe(stamp, shift=stamp))
         session.integrate_next()
-    assert session.plan_map(None, second).seed is None  # no labelling of the map in use yet: nothing to carry
     before = session.mapper.result()
     assert len(before.objects(first).objects) == 2
     plan = session.plan_map(None, second)
-    seed = plan.seed.result(10)
     session.add_map(second, plan=plan)
     mapper = session.mapper
     after = mapper.result()
-    # The transfer's prediction is the labelling the mapper computes from the carried evidence, so the first
-    # geometry after the update is the seed's, taken over without computing any object again.
-    np.testing.assert_array_equal(after.object_ids, seed.object_ids)
-    assert after.objects(second).objects is seed.objects(second).objects
+    # The transfer's prediction is the labelling the mapper computes from the carried evidence: the update's
+    # seed (SemanticResult.carried) leaves no object to compute again.
+    carried = before.carried(plan.follow.sources, second)
+    np.testing.assert_array_equal(after.object_ids, carried.object_ids)
     session.add_keyframe(keyframe(3, shift=-4))
     session.integrate_next()
-    later = mapper.result()
-    incremental = later.objects(second)
-    scratch = object_geometry(second, later.object_ids, later.confidence)
-    assert [(s.id, s.num_gaussians) for s in incremental.objects] == [(s.id, s.num_gaussians) for s in scratch.objects]
-    for a, b in zip(incremental.objects, scratch.objects, strict=True):
-        np.testing.assert_allclose([a.bbox_min, a.bbox_max, a.centroid], [b.bbox_min, b.bbox_max, b.centroid])
-    np.testing.assert_array_equal(incremental.shape_ids, scratch.shape_ids)
+    for result in (after, mapper.result()):
+        geometry = result.objects(second)
+        scratch = object_geometry(second, result.object_ids, result.confidence)
+        assert [(s.id, s.num_gaussians) for s in geometry.objects] == [(s.id, s.num_gaussians) for s in scratch.objects]
+        for a, b in zip(geometry.objects, scratch.objects, strict=True):
+            np.testing.assert_allclose([a.bbox_min, a.bbox_max, a.centroid], [b.bbox_min, b.bbox_max, b.centroid])
+        np.testing.assert_array_equal(geometry.shape_ids, scratch.shape_ids)
 
 
 def test_same_geometry():

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from concurrent.futures import Future
+from concurrent.futures import CancelledError, Future
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -197,7 +197,8 @@ class SemanticResult:
     objects_seconds: float | None = field(default=None, init=False, repr=False, compare=False)  # once computed
 
     def follows(self, previous: SemanticResult | None) -> None:
-        """Lets ``objects`` start from ``previous``'s geometry (the result of the keyframe before): only the
+        """Lets ``objects`` start from ``previous``'s geometry (the result of the keyframe before, or the labels a
+        map update carried over: ``carried``): only the
         objects whose Gaussians changed are computed again. A result whose geometry was never computed is
         skipped over, so no chain of results is kept alive."""
         if previous is not None and previous._objects is None:
@@ -223,10 +224,10 @@ class SemanticResult:
 
     def carried(self, sources: np.ndarray, gaussians: GaussianMap) -> SemanticResult:
         """The labels of a new map whose Gaussian j takes the evidence of this result's row sources[j] (-1: none),
-        as a map update's transfer predicts them, with their geometry in `gaussians` computed. A live map update
-        computes it beside the worker (core.follow.map_updater), and the first result after the update starts its
-        geometry there (`SemanticMapper.take_map`): only the objects whose labels differ are computed again,
-        instead of every object from scratch on the worker (1M Gaussians: ~130-250 ms)."""
+        as a map update's transfer predicts them, with their geometry in `gaussians` computed. A map update
+        computes it beside the mapper (core.follow.map_updater.update_map), and the first result after the update
+        starts its geometry there (`SemanticMapper.take_map`): only the objects whose labels differ are computed
+        again, instead of every object from scratch (1M Gaussians: ~130-250 ms on a live worker)."""
         taken = sources >= 0  # (M,) bool
         rows = sources[taken]
         ids = np.full(len(sources), UNOBSERVED_ID, np.uint32)
@@ -418,6 +419,7 @@ class SemanticMapper:
     def result(self) -> SemanticResult:
         """Labels for every Gaussian (cached until the next keyframe or map update)."""
         if self._result is None:
+            previous = self._previous_result()
             palette = self.palette_builder.build()
             if self.config.semantic_mode == "scd":
                 self._result = label_gaussians(self.state, palette, self.config.metric)
@@ -431,16 +433,21 @@ class SemanticMapper:
                     dropped = np.isin(ids, np.asarray(fragments, np.uint32))
                     ids[dropped], conf[dropped] = UNOBSERVED_ID, 0.0
                 self._result = SemanticResult(palette, ids, conf, ids != UNOBSERVED_ID)
-            previous = self._last_result[1] if self._last_result is not None else None
-            if self._seed is not None:
-                seed, self._seed = self._seed, None
-                try:
-                    previous = seed.result()
-                except Exception:  # cancelled or failed: the geometry is computed from scratch, as without it
-                    previous = None
             self._result.follows(previous)
             self._last_result = (self.gaussians, self._result)
         return self._result
+
+    def _previous_result(self) -> SemanticResult | None:
+        """Where the next result's geometry starts: the newest result, or after a map update its seed (waited
+        for: it is computed beside the update's end and the next keyframe). A seed that failed is raised here,
+        once; the geometry is then computed from scratch."""
+        if self._seed is None:
+            return self._last_result[1] if self._last_result is not None else None
+        seed, self._seed = self._seed, None
+        try:
+            return seed.result()
+        except CancelledError:
+            return None
 
     def labelling(self) -> tuple[GaussianMap, SemanticResult] | None:
         """The newest result and the map it labels, None before the first `result` of this map: read in one

@@ -282,8 +282,7 @@ class MappingSession:
         base = base if base is not None else (mapper.gaussians if mapper is not None else None)
         if base is None or len(gaussians) == 0 or same_geometry(base, gaussians):
             return None
-        labelling = mapper.labelling() if mapper is not None else None
-        return plan_map_update(base, gaussians, self.config.follow(), on_motion, labelling)
+        return plan_map_update(base, gaussians, self.config.follow(), on_motion)
 
     @property
     def poses_corrected(self) -> bool:

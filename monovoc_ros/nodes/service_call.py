@@ -17,7 +17,9 @@ from collections.abc import Callable
 from typing import Any
 
 RESEND_S = 2.0
-# Request classes (rclpy's "<Service>_Request") that may run any number of times: read-only and cheap.
+# Request classes (rclpy's "<Service>_Request") that may run any number of times: read-only (ApproachPose draws
+# its arrow again) and cheap (a resent ApproachPose that came while the first builds the free-space grid of a
+# new map waits for that grid, holding an executor thread meanwhile; resends come at 2, 6, 14 s).
 RESENT_REQUESTS = frozenset(
     {"TextQuery_Request", "Ask_Request", "ApproachPose_Request", "GetParameters_Request", "DescribeParameters_Request"}
 )

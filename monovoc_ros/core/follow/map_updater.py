@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -53,9 +53,10 @@ _POSE_SUPPORT_M = 4.0
 _POSE_MOVE_MIN_M = 0.01
 # Corrected keyframe poses moving any keyframe farther than this (metres) are refused.
 MAX_POSE_CORRECTION_M = 10.0
-# Work of a map update's plan beside it (`plan_map_update`): the new map's arrays, then the seed. Two threads kept
-# for the process: threads started per plan raised the 1M robot run's peak RSS from 1.5-1.7 to 1.8-2.2 GB (glibc
-# gives a new thread's allocations an arena of its own), these two 1.65-1.73 GB.
+# Work beside a map update: the new map's arrays during its plan (`plan_map_update`), its labels' geometry once it
+# is applied (`update_map`). Threads kept for the process: threads started per plan raised the 1M robot run's
+# peak RSS from 1.5-1.7 to 1.8-2.2 GB (glibc gives a new thread's allocations an arena of its own), these
+# 1.65-1.73 GB. Nothing on them waits for anything on them.
 _BESIDE = ThreadPoolExecutor(2, thread_name_prefix="monovoc-map-beside")
 
 
@@ -74,6 +75,8 @@ class Mapper(Protocol):
     def integrate(self, keyframe: Keyframe, logged: LoggedKeyframe | None = None) -> Any: ...
 
     def rebuilt(self) -> Mapper: ...
+
+    def labelling(self) -> tuple[GaussianMap, Any] | None: ...  # (map, SemanticResult): its newest labels
 
     def take_map(self, gaussians: GaussianMap, sources: np.ndarray, seed: Future | None = None) -> tuple[int, int]: ...
 
@@ -178,9 +181,6 @@ class MapUpdatePlan:
     config: FollowConfig
     follow: FollowResult
     refusal: str  # motion_refusal ("" when the motion is believable; step 2 of the follow only then)
-    # The old map's newest labels carried to the new map (SemanticResult.carried), computed on a thread of its own
-    # after the transfer; None without a labelling of `old` (offline mapping's updates have none).
-    seed: Future | None = None
 
     def applies_to(self, old: GaussianMap, new: GaussianMap, config: FollowConfig) -> bool:
         return self.old is old and self.new is new and self.config == config
@@ -191,32 +191,30 @@ def plan_map_update(
     new: GaussianMap,
     config: FollowConfig,
     on_motion: Callable[[MapMotion | None], None] | None = None,
-    labelling: tuple[GaussianMap, Any] | None = None,
 ) -> MapUpdatePlan:
     """The map update of `old` to `new` up to the evidence transfer (see MapUpdatePlan); reads nothing else,
     so any thread may compute it. `on_motion` hears the map's motion (None: refused) as soon as it is known,
-    before the transfer (a live worker may integrate keyframes meanwhile: nodes/worker.py). `labelling`: the
-    mapper's newest (map, SemanticResult) (SemanticMapper.labelling); when of `old`, the plan's `seed`."""
+    before the transfer (a live worker may integrate keyframes meanwhile: nodes/worker.py)."""
     # The rasterizer's per-map values, cached with the map: here, beside a live worker, and not in its first
     # keyframe after the update (1M Gaussians: the chunks, and the covariances and other arrays in their order,
-    # ~0.1-0.2 s). They read the new map only, so a thread of their own computes them during the registration
-    # and the transfer, whose serial Python leaves a core idle (1M in process: the plan 520-590 -> 440-490 ms).
+    # ~0.1-0.2 s). They read the new map only, so the `_BESIDE` pool computes them during the registration and
+    # the transfer, whose serial Python leaves a core idle (1M in process: the plan 600-660 -> 490-510 ms).
     arrays = _BESIDE.submit(lambda: (new.chunk_bounds, new.placed))
     try:
         follow = follow_ids(old, new, config)
         refusal = motion_refusal(follow, config)
         if on_motion is not None:
             on_motion(None if refusal else follow.motion)
-        seed = None
         if not refusal:
             follow_positions(follow, new, config)
-            if labelling is not None and labelling[0] is old:
-                seed = _BESIDE.submit(labelling[1].carried, follow.sources, new)
-    finally:
-        wait([arrays])
-    if not refusal:
-        arrays.result()  # a refused map is never rasterized: its arrays' failure is no failure
-    return MapUpdatePlan(old, new, config, follow, refusal, seed)
+    except BaseException:
+        arrays.cancel()
+        raise
+    if refusal:  # taken only by a mapper without evidence, whose first keyframe computes them if need be
+        arrays.cancel()
+    else:
+        arrays.result()
+    return MapUpdatePlan(old, new, config, follow, refusal)
 
 
 def update_map(mapper: Mapper, gaussians: GaussianMap, plan: MapUpdatePlan | None = None) -> MapUpdateReport:
@@ -234,7 +232,13 @@ def update_map(mapper: Mapper, gaussians: GaussianMap, plan: MapUpdatePlan | Non
     if plan.refusal and mapper.state.observed.any():  # nothing to protect: any new map is taken
         raise MapMotionError(plan.refusal)
     move_logged_poses(mapper.keyframe_log, old.means, follow.motion)
-    carried, labelled = mapper.take_map(gaussians, follow.sources, plan.seed)
+    # The newest labels carried to the new map, their geometry computed beside the mapper's next steps (the
+    # update's end, a keyframe): the first result after the update starts its geometry there.
+    labelling = mapper.labelling()
+    seed = None
+    if labelling is not None and labelling[0] is old:
+        seed = _BESIDE.submit(labelling[1].carried, follow.sources, gaussians)
+    carried, labelled = mapper.take_map(gaussians, follow.sources, seed)
     return MapUpdateReport(
         carried=carried,
         dropped=labelled - carried,
