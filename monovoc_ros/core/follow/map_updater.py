@@ -55,8 +55,8 @@ _POSE_MOVE_MIN_M = 0.01
 MAX_POSE_CORRECTION_M = 10.0
 # Work beside a map update: the new map's arrays during its plan (`plan_map_update`), its labels' geometry once it
 # is applied (`update_map`). Threads kept for the process: threads started per plan raised the 1M robot run's
-# peak RSS from 1.5-1.7 to 1.8-2.2 GB (glibc gives a new thread's allocations an arena of its own), these
-# 1.65-1.73 GB. Nothing on them waits for anything on them.
+# peak RSS from 1.5-1.7 to 1.8-2.2 GB (glibc gives a new thread's allocations an arena of its own). Nothing on
+# them waits for anything on them.
 _BESIDE = ThreadPoolExecutor(2, thread_name_prefix="monovoc-map-beside")
 
 
@@ -197,16 +197,15 @@ def plan_map_update(
     before the transfer (a live worker may integrate keyframes meanwhile: nodes/worker.py)."""
     # The rasterizer's per-map values, cached with the map: here, beside a live worker, and not in its first
     # keyframe after the update (1M Gaussians: the chunks, and the covariances and other arrays in their order,
-    # ~0.1-0.2 s). They read the new map only, so the `_BESIDE` pool computes them during the registration and
-    # the transfer, whose serial Python leaves a core idle (1M in process: the plan 600-660 -> 490-510 ms).
+    # ~0.1-0.2 s). They read the new map only, so the `_BESIDE` pool computes them during the registration, whose
+    # serial Python leaves a core idle (1M in process: the plan 600-660 -> 520-570 ms; during the transfer too,
+    # 490-510 ms, but its memory on top of theirs raised the 2M node's peak RSS by 0.45 GB).
     arrays = _BESIDE.submit(lambda: (new.chunk_bounds, new.placed))
     try:
         follow = follow_ids(old, new, config)
         refusal = motion_refusal(follow, config)
         if on_motion is not None:
             on_motion(None if refusal else follow.motion)
-        if not refusal:
-            follow_positions(follow, new, config)
     except BaseException:
         arrays.cancel()
         raise
@@ -214,6 +213,7 @@ def plan_map_update(
         arrays.cancel()
     else:
         arrays.result()
+        follow_positions(follow, new, config)
     return MapUpdatePlan(old, new, config, follow, refusal)
 
 
