@@ -32,6 +32,7 @@ from monovoc_ros.nodes.worker import (
 )
 from monovoc_ros.ros_harness import wait_until
 from tests.evidence import assert_same_evidence
+from tests.geometry import assert_same_geometry
 from tests.node_scene import RecordingLog
 
 CAM = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
@@ -274,12 +275,8 @@ def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scra
     session.add_keyframe(keyframe(3, shift=-4))
     session.integrate_next()
     for result in (after, mapper.result()):
-        geometry = result.objects(second)
         scratch = object_geometry(second, result.object_ids, result.confidence)
-        assert [(s.id, s.num_gaussians) for s in geometry.objects] == [(s.id, s.num_gaussians) for s in scratch.objects]
-        for a, b in zip(geometry.objects, scratch.objects, strict=True):
-            np.testing.assert_allclose([a.bbox_min, a.bbox_max, a.centroid], [b.bbox_min, b.bbox_max, b.centroid])
-        np.testing.assert_array_equal(geometry.shape_ids, scratch.shape_ids)
+        assert_same_geometry(result.objects(second), scratch)
 
 
 def test_same_geometry():

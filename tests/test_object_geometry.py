@@ -17,6 +17,7 @@ from monovoc_ros.core.object_geometry import (
     percentile_boxes,
     percentile_boxes_reference,
 )
+from tests.geometry import assert_same_geometry
 
 
 def _map(means: np.ndarray, rng: np.random.Generator) -> GaussianMap:
@@ -40,17 +41,6 @@ def _room(rng: np.random.Generator, n: int = 6000, objects: int = 12) -> tuple[G
     return _map(means, rng), ids, rng.random(n).astype(np.float32)
 
 
-def _assert_same(got: ObjectGeometry, want: ObjectGeometry) -> None:
-    np.testing.assert_array_equal(got.shape_ids, want.shape_ids)
-    assert [(s.id, s.rgb, s.num_gaussians) for s in got.objects] == [
-        (s.id, s.rgb, s.num_gaussians) for s in want.objects
-    ]
-    for a, b in zip(got.objects, want.objects, strict=True):  # the same rows in the same order: bit for bit
-        np.testing.assert_array_equal(a.bbox_min, b.bbox_min)
-        np.testing.assert_array_equal(a.bbox_max, b.bbox_max)
-        np.testing.assert_array_equal(a.centroid, b.centroid)
-
-
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize(
     "options", [{}, {"voxel": 0.1}, {"voxel": 0.5, "min_confidence": 0.6}, {"voxel": 0}, {"min_confidence": 0}]
@@ -58,7 +48,7 @@ def _assert_same(got: ObjectGeometry, want: ObjectGeometry) -> None:
 def test_the_full_computation_equals_the_reference(seed, options):
     gaussians, ids, confidence = _room(np.random.default_rng(seed))
     for conf in (confidence, None):
-        _assert_same(
+        assert_same_geometry(
             object_geometry(gaussians, ids, conf, **options), object_geometry_reference(gaussians, ids, conf, **options)
         )
 
@@ -71,7 +61,7 @@ def test_main_cluster_ids_and_percentile_boxes_equal_the_reference(min_share):
         main_cluster_ids_reference(gaussians.means, ids, confidence, min_share=min_share),
     )
     got, want = percentile_boxes(gaussians, ids), percentile_boxes_reference(gaussians, ids)
-    _assert_same(ObjectGeometry(tuple(got), ids), ObjectGeometry(tuple(want), ids))
+    assert_same_geometry(ObjectGeometry(tuple(got), ids), ObjectGeometry(tuple(want), ids))
 
 
 def _changes(rng: np.random.Generator, ids: np.ndarray, confidence: np.ndarray):
@@ -111,7 +101,7 @@ def test_updates_after_label_changes_equal_the_full_computation(seed, options):
     unsure = np.unique(ids[ids < VOID_ID])[1]
     for name, labels, conf, changed in _changes(rng, ids, confidence):
         updated = object_geometry(gaussians, labels, conf, previous=geometry, **options)
-        _assert_same(updated, object_geometry_reference(gaussians, labels, conf, **options))
+        assert_same_geometry(updated, object_geometry_reference(gaussians, labels, conf, **options))
         if name == "nothing changed":
             assert updated.objects is geometry.objects
         elif name == "unconfident object":
@@ -127,19 +117,19 @@ def test_an_update_takes_over_only_the_same_map_and_settings():
     gaussians, ids, confidence = _room(rng)
     geometry = object_geometry(gaussians, ids, confidence)
     moved = _map(gaussians.means + 0.3, rng)  # a map update: a new map object, everything again
-    _assert_same(
+    assert_same_geometry(
         object_geometry(moved, ids, confidence, previous=geometry), object_geometry_reference(moved, ids, confidence)
     )
     coarse = object_geometry(gaussians, ids, confidence, voxel=0.5, previous=geometry)
-    _assert_same(coarse, object_geometry_reference(gaussians, ids, confidence, voxel=0.5))
-    _assert_same(
+    assert_same_geometry(coarse, object_geometry_reference(gaussians, ids, confidence, voxel=0.5))
+    assert_same_geometry(
         object_geometry(gaussians, ids, None, previous=geometry), object_geometry_reference(gaussians, ids, None)
     )
     ids2 = ids.copy()
     ids2[:50] = ids[60]
     again = object_geometry(gaussians, ids2, confidence, previous=geometry)
     ids2[:] = UNOBSERVED_ID  # the caller's array may change afterwards: the geometry holds its own labels
-    _assert_same(
+    assert_same_geometry(
         object_geometry(gaussians, ids, confidence, previous=again),
         object_geometry_reference(gaussians, ids, confidence),
     )
@@ -153,7 +143,7 @@ def test_too_large_a_map_is_refused_as_before():
     far = _map(means, rng)
     confidence[0] = 0.1  # not confident: not among the keys, which fit
     geometry = object_geometry(far, ids, confidence)
-    _assert_same(geometry, object_geometry_reference(far, ids, confidence))
+    assert_same_geometry(geometry, object_geometry_reference(far, ids, confidence))
     ids[0], confidence[0] = ids[1] if ids[1] < VOID_ID else 0x0A0B0C, 0.9  # now it is
     for compute in (
         lambda: object_geometry(far, ids, confidence, previous=geometry),
@@ -177,7 +167,7 @@ def test_a_result_starts_from_the_geometry_of_the_one_it_follows():
         result.follows(previous)
         assert result._before is not None and result._before._objects is not None  # never one never computed
         if k % 2 == 0:  # every other result is never asked for its objects
-            _assert_same(result.objects(gaussians), object_geometry_reference(gaussians, labels, conf))
+            assert_same_geometry(result.objects(gaussians), object_geometry_reference(gaussians, labels, conf))
             assert result._before is None  # the previous result is let go
         previous = result
 

@@ -59,8 +59,9 @@ def _prototypes() -> tuple[np.ndarray, np.ndarray]:
     if "lab" not in _PROTOTYPE_CACHE:
         rgb = np.array([c for cs in _CHROMATIC_PROTOTYPES.values() for c in cs], dtype=np.uint8)
         _PROTOTYPE_CACHE["lab"] = srgb_to_lab(rgb)
-    codes = np.array([BASIC_COLORS.index(name) for name, cs in _CHROMATIC_PROTOTYPES.items() for _ in cs])
-    return codes, _PROTOTYPE_CACHE["lab"]
+        names = [name for name, cs in _CHROMATIC_PROTOTYPES.items() for _ in cs]
+        _PROTOTYPE_CACHE["codes"] = np.array([BASIC_COLORS.index(name) for name in names], np.int64)
+    return _PROTOTYPE_CACHE["codes"], _PROTOTYPE_CACHE["lab"]
 
 
 def color_names(pixels: np.ndarray) -> list[str]:
