@@ -235,6 +235,7 @@ def run(
                 latency_ms_p50=round(float(np.percentile(lat, 50)), 1) if len(lat) else None,
                 latency_ms_p95=round(float(np.percentile(lat, 95)), 1) if len(lat) else None,
                 latency_ms_max=round(float(lat.max()), 1) if len(lat) else None,
+                latency_ms_by_keyframe=[round(float(x)) for x in lat],
                 queries={
                     k: queries.get(k) for k in ("sent", "answered", "lost", "p50_ms", "p99_ms", "max_ms", "slowest")
                 },

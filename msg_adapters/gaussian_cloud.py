@@ -27,6 +27,7 @@ from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map.ply import SH_C0
 from msg_adapters.errors import AdapterError
 from msg_adapters.point_cloud import FLOATS, INTEGERS, make_cloud, read_fields
+from msg_adapters.stamps import header_stamp_ns
 
 POSITION_FIELDS = ("x", "y", "z")
 SCALE_FIELDS = ("scale_0", "scale_1", "scale_2")
@@ -111,13 +112,19 @@ def cloud_to_gaussian_map(msg: Any) -> GaussianMap:
     if "id" in columns:
         ids = np.asarray(columns["id"], dtype=np.int64)
     try:
-        return GaussianMap(means, scales, quats, opacities, colors=colors, ids=ids)
+        return GaussianMap(means, scales, quats, opacities, colors=colors, ids=ids, stamp_ns=_stamp_ns(msg))
     except ValueError as e:
         raise AdapterError(f"GaussianCloud: {e}") from None
 
 
-def gaussian_map_to_cloud(gmap: GaussianMap, *, frame_id: str = MAP_FRAME, stamp: Any = 0, include_ids: bool = True):
-    """A ``sensor_msgs.msg.PointCloud2`` of ``gmap`` (f_dc when it has colors, id when it has ids)."""
+def _stamp_ns(msg: Any) -> int:
+    """The map's stamp (GaussianMap.stamp_ns): the header's, 0 (unknown) when it has none or a negative one."""
+    return max(0, header_stamp_ns(msg)) if hasattr(msg, "header") else 0
+
+
+def gaussian_map_to_cloud(gmap: GaussianMap, *, frame_id: str = MAP_FRAME, stamp: Any = None, include_ids: bool = True):
+    """A ``sensor_msgs.msg.PointCloud2`` of ``gmap`` (f_dc when it has colors, id when it has ids), stamped
+    ``stamp`` (None: the map's own, ``gmap.stamp_ns``)."""
     columns: list[tuple[str, np.ndarray]] = []
     for names, values in ((POSITION_FIELDS, gmap.means), (SCALE_FIELDS, gmap.scales), (ROTATION_FIELDS, gmap.quats)):
         columns += [(name, values[:, i]) for i, name in enumerate(names)]
@@ -131,4 +138,4 @@ def gaussian_map_to_cloud(gmap: GaussianMap, *, frame_id: str = MAP_FRAME, stamp
         columns.append(("id", gmap.ids.astype(np.uint32)))
     if not np.all(np.isfinite(gmap.means)):
         raise AdapterError("GaussianCloud: map has NaN/inf positions")
-    return make_cloud(columns, frame_id=frame_id, stamp=stamp)
+    return make_cloud(columns, frame_id=frame_id, stamp=gmap.stamp_ns if stamp is None else stamp)

@@ -60,6 +60,7 @@ def test_a_map_crosses_the_socket_bit_for_bit_and_read_only(kind):
     assert _maps_open() == 1  # the mapping's own descriptor (Python's mmap keeps a duplicate): no other
     assert isinstance(got, map_reader.ReceivedMap)
     assert (got.stamp_ns, got.frame_id, got.decode_s, got.superseded) == (17, "map", 0.25, 3)
+    assert got.gaussians.stamp_ns == 17
     for name in ("means", "scales", "quats", "opacities", "colors", "ids"):
         sent, received = getattr(gmap, name), getattr(got.gaussians, name)
         if sent is None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import array
+import dataclasses
 import time
 
 import numpy as np
@@ -92,6 +93,9 @@ def test_gaussian_cloud_round_trip_with_the_documented_schema() -> None:
     back = _wire(msg)
     assert back.header.frame_id == "map" and time_to_ns(back.header.stamp) == 123
     _assert_maps_equal(gmap, cloud_to_gaussian_map(back))
+    assert cloud_to_gaussian_map(back).stamp_ns == 123  # the map's stamp: keyframes at or after it are in its frame
+    stamped = dataclasses.replace(gmap, stamp_ns=456)
+    assert cloud_to_gaussian_map(_wire(gaussian_map_to_cloud(stamped))).stamp_ns == 456
     # f_dc holds raw SH coefficients, as in the PLY.
     row = np.frombuffer(bytes(msg.data), np.float32, count=15)
     np.testing.assert_allclose(row[11:14], (gmap.colors[0] - 0.5) / SH_C0, rtol=1e-5)

@@ -6,6 +6,8 @@ ones are gone; and the node's state must equal an offline mapper given the same 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -13,7 +15,7 @@ import msg_adapters as ma
 from monovoc_ros.core.follow.map_updater import update_map
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map_store import load_snapshot
-from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
+from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.ros_harness import (
     ClientNode,
     DiagnosticsMonitor,
@@ -122,3 +124,46 @@ def test_map_update_carries_evidence_by_id(tmp_path, ahead, reader_process):
     final = load_snapshot(tmp_path / "final")
     assert_same_evidence(final.state, reference.state, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(final.result().object_ids, reference.result().object_ids)
+
+
+def test_a_keyframe_stamped_after_a_map_update_that_reaches_the_node_first_keeps_its_logged_pose(tmp_path):
+    """The SLAM moved its map 5 cm and posed keyframe 8 in the moved map, but the map (read by the map reader
+    process) comes after it: the update moves the logged poses of keyframes 0-7 with the map and leaves keyframe
+    8's, already in the new map's frame (core.follow.map_frames; it moved twice before the map's stamp was used)."""
+    from monovoc_interfaces.srv import SaveMap
+
+    scene, messages = small_scene(), scene_messages()
+    keyframes = assemble(messages)
+    shift = np.float32([0.0, 0.0, 0.05])
+    g = scene.gaussians
+    moved_map = GaussianMap(g.means + shift, g.scales, g.quats, g.opacities, g.colors, ids=g.ids,
+                            stamp_ns=keyframes[8].stamp_ns - 1)  # fmt: skip
+    sent = scene.keyframe(8).cam_to_world.copy()
+    sent[:3, 3] += shift
+    env = ros_environment(tmp_path)
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "reintegrate_below": 0.0}
+    with (
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
+    ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        publisher = KeyframePublisher(client.node)
+        save = client.node.create_client(SaveMap, "/monovoc/save_map")
+        for pub in publisher.all_publishers():
+            wait_for_subscribers(pub, timeout=20.0, process=node)
+        wait_for_service(save, process=node)
+        publisher.publish_map(scene.gaussians, stamp_ns=keyframes[0].stamp_ns)
+        for msgs in messages[:8]:
+            publisher.publish_messages(msgs)
+        publisher.publish_messages(keyframe_messages(replace(scene.keyframe(8), cam_to_world=sent)))
+        diagnostics.wait_for(lambda v: v["keyframes_processed"] == "9", 20.0, process=node)
+        publisher.publish_map(moved_map)
+        done = diagnostics.wait_for(lambda v: v["map_updates"] == "1", 20.0, process=node)
+        assert done["keyframes_before_their_map"] == "1" and done["keyframes_moved_into_map"] == "0"
+        assert call_service(save, SaveMap.Request(directory=str(tmp_path / "m")), process=node).success
+    logged = {e.stamp_ns: e.cam_to_world for e in load_snapshot(tmp_path / "m").keyframe_log.entries}
+    for k in range(8):
+        expected = scene.keyframe(k).cam_to_world.copy()
+        expected[:3, 3] += shift
+        np.testing.assert_allclose(logged[keyframes[k].stamp_ns], expected, atol=1e-4)
+    np.testing.assert_allclose(logged[keyframes[8].stamp_ns], sent, atol=1e-4)

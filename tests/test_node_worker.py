@@ -758,6 +758,40 @@ def test_keyframes_after_a_map_update_go_ahead_into_the_map_in_use_only_when_ask
     assert worker.stats.map_updates_ahead == int(ahead) and worker.stats.map_updates == 1
 
 
+def test_ahead_a_keyframe_stamped_before_the_map_update_is_not_taken_back():
+    """With stamps: a keyframe stamped before the map update that it comes after is posed in the map in use (core.
+    follow.map_frames): it goes ahead as sent, and the update moves its logged pose with the map; the keyframes
+    stamped after the map are taken back and their logged poses end where they were sent."""
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=True)
+    worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
+    first = replace(plane_map(), stamp_ns=10)
+    second, shift = moved_map(first)
+    second = replace(second, stamp_ns=20)
+    seen: dict[int, np.ndarray] = {}
+    worker.add_keyframe_listener(lambda kf, m: seen.setdefault(kf.stamp_ns, kf.cam_to_world))
+    worker.start()
+    try:
+        worker.submit_map(first)
+        worker.submit_keyframe(keyframe(11))
+        drain(worker)
+        worker.submit_map(second)
+        worker.submit_keyframe(keyframe(15))  # stamped before the second map: posed in the first
+        for stamp in (21, 22):
+            worker.submit_keyframe(replace(keyframe(stamp), cam_to_world=shift))
+        wait_until(lambda: len(seen) == 4, 10.0, "the keyframes after the map", process=None)
+        assert worker.session.mapper.gaussians is first
+        worker.release.set()
+        drain(worker)
+        logged = {e.stamp_ns: e.cam_to_world for e in worker.session.mapper.keyframe_log.entries}
+    finally:
+        worker.stop(final_snapshot=False)
+    assert worker.session.mapper.gaussians is second and worker.stats.map_updates_ahead == 1
+    for stamp in (15, 21, 22):
+        np.testing.assert_allclose(seen[stamp], np.eye(4), atol=1e-6)  # integrated into the first map
+        np.testing.assert_allclose(logged[stamp], shift, atol=1e-6)  # in the second map's frame
+    assert worker.stats.keyframes_before_their_map == 0 and worker.stats.keyframes_moved_into_map == 0
+
+
 def test_a_stop_applies_the_map_update_applied_ahead_before_the_final_snapshot(tmp_path):
     settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=True,
                               map_directory=str(tmp_path / "m"))  # fmt: skip

@@ -93,6 +93,11 @@ class SessionStats:
     map_version: int = 0
     map_updates: int = 0  # map updates applied (core.follow.map_updater)
     map_updates_prepared: int = 0  # of them, applied with a plan prepared beforehand (`plan_map`)
+    # Keyframes integrated before the map they were posed in (stamped at or before them) reached the mapper: that
+    # map's update left their logged poses; and keyframes posed in a map older than the one in use, moved into it
+    # before they were integrated (core.follow.map_frames).
+    keyframes_before_their_map: int = 0
+    keyframes_moved_into_map: int = 0
     maps_unchanged: int = 0  # maps identical to the current one (skipped)
     map_update_carried_share: float = 1.0  # last map update: share of labelled Gaussians whose evidence was carried
     ms_map_update_last: float = 0.0  # the last map update's time (registration, transfer; when prepared: the rest)
@@ -241,8 +246,13 @@ class MappingSession:
         mapper, keyframe = self._mapper, self._waiting.popleft()
         assert mapper is not None
         corrected = self._pending_poses.pop(keyframe.stamp_ns, None)
-        if corrected is not None:
+        if corrected is not None:  # in the newest map's frame
             keyframe = replace(keyframe, cam_to_world=corrected)
+        else:
+            moved = self._updates.frames.into_map(mapper.gaussians, keyframe)
+            if moved is not None:  # posed in a map older than the one in use
+                keyframe = moved
+                self.stats.add(keyframes_moved_into_map=1)
         try:
             report = mapper.integrate(keyframe)
         except DuplicateKeyframeError:
@@ -296,9 +306,17 @@ class MappingSession:
         many removed); None when it may take them."""
         return self._updates.refusal(self._mapper, gaussians)
 
-    def add_map(self, gaussians: GaussianMap, name: str = "", plan: MapUpdatePlan | None = None) -> bool:
+    def add_map(
+        self,
+        gaussians: GaussianMap,
+        name: str = "",
+        plan: MapUpdatePlan | None = None,
+        taken_back: frozenset[int] = frozenset(),
+    ) -> bool:
         """The first map or a map update; returns whether the map changed (False: refused or unchanged).
-        `plan`: the update prepared by `plan_map`, used when it is of the map in use and this one."""
+        `plan`: the update prepared by `plan_map`, used when it is of the map in use and this one. `taken_back`:
+        stamps of keyframes posed in this map whose poses were taken back into the map in use before they were
+        integrated (the live worker's map_update_ahead): their logged poses move with the update."""
         refusal = self.map_refusal(gaussians)
         if refusal is not None:
             reason, detail = refusal
@@ -307,6 +325,7 @@ class MappingSession:
             return False
         if self._mapper is None:
             self._mapper = SemanticMapper(gaussians, self.config)
+            self._updates.frames.started(gaussians)
             self._warned_dropping = False
             self.log.info(
                 f"Gaussian map {name}: {len(gaussians)} Gaussians" + (" with ids" if gaussians.ids is not None else "")
@@ -316,7 +335,7 @@ class MappingSession:
             return False
         else:
             try:
-                self._updates.update(self._mapper, gaussians, name, plan)
+                self._updates.update(self._mapper, gaussians, name, plan, taken_back)
             except MapMotionError as exc:
                 self.stats.reject("map_motion")
                 self.log.warning(f"Gaussian map {name} refused: {exc} (the map in use is kept)")

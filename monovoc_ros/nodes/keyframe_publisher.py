@@ -82,7 +82,8 @@ class KeyframePublisher:
             if role in msgs:
                 self.publishers[role].publish(msgs[role])
 
-    def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int = 0, frame_id: str = MAP_FRAME) -> Any:
+    def publish_map(self, gaussians: GaussianMap, *, stamp_ns: int | None = None, frame_id: str = MAP_FRAME) -> Any:
+        """Publishes `gaussians` stamped `stamp_ns` (None: the map's own stamp)."""
         msg = ma.gaussian_map_to_cloud(gaussians, frame_id=frame_id, stamp=stamp_ns)
         self.gaussians.publish(msg)
         return msg

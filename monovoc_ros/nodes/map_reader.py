@@ -166,7 +166,7 @@ def _map_of(fd: int, header: dict[str, Any]) -> GaussianMap:
         if not 1 <= len(shape) <= 2 or min(shape) < 0 or offset < 0 or offset + count * dtype.itemsize > size:
             raise ValueError(f"array {name!r} of shape {shape} at {offset} outside the {size} bytes")
         arrays[name] = np.frombuffer(memory, dtype, count, offset).reshape(shape)
-    return GaussianMap(**arrays)
+    return GaussianMap(**arrays, stamp_ns=max(0, int(header["stamp_ns"])))
 
 
 def _padded(nbytes: int) -> int:

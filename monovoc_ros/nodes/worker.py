@@ -14,8 +14,9 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
   (else the session computes the update itself: the same function, the same result). With `map_update_ahead`
   the keyframes after a map whose plan is not ready do not wait for it: once the registration has the map's
   motion (about half of the plan), they go into the map in use with their poses taken back by that motion
-  (`unmoved_pose`), and the update, applied when its plan is ready or before any other task, carries their
-  evidence with the rest and moves their logged poses back to where they were sent. The session
+  (`unmoved_pose`; not those stamped before the map, posed in the map in use: core.follow.map_frames), and the
+  update, applied when its plan is ready or before any other task, carries their evidence with the rest and
+  moves their logged poses back to where they were sent. The session
   skips unchanged maps and refuses (and counts) a map without Gaussians or one removing more than
   `map_update_max_shrink` of them: one empty cloud must not wipe the map.
 * calls (services, plugins): never dropped; run in arrival order with the rest, results via a Future.
@@ -43,12 +44,13 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ThreadPoolExecutor, wait
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
-from monovoc_ros.core.follow.map_updater import MapUpdatePlan, PoseMover, pose_mover, unmoved_pose
+from monovoc_ros.core.follow.map_frames import PoseMover, posed_before
+from monovoc_ros.core.follow.map_updater import MapUpdatePlan, pose_mover, unmoved_pose
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import SnapshotInfo, write_snapshot
@@ -152,6 +154,7 @@ class _Ahead:
 
     task: _Task
     mover: PoseMover | None  # how the update moves poses (None: they stay)
+    taken_back: set[int] = field(default_factory=set)  # stamps of the keyframes whose poses it took back
 
 
 class TaskQueue:
@@ -621,9 +624,11 @@ class MapWorker:
 
     def _execute(self, task: _Task) -> None:
         if task.kind == "keyframe":
-            keyframe = task.payload
-            if self._ahead is not None and self._ahead.mover is not None:  # posed in the map not applied yet
-                keyframe = replace(keyframe, cam_to_world=unmoved_pose(self._ahead.mover, keyframe.cam_to_world))
+            keyframe, ahead = task.payload, self._ahead
+            # Posed in the map not applied yet, unless stamped before it.
+            if ahead is not None and ahead.mover is not None and not posed_before(ahead.task.payload, keyframe):
+                keyframe = replace(keyframe, cam_to_world=unmoved_pose(ahead.mover, keyframe.cam_to_world))
+                ahead.taken_back.add(keyframe.stamp_ns)
             self.session.add_keyframe(keyframe)
         elif task.kind == "map":
             if not self._start_ahead(task):
@@ -637,9 +642,9 @@ class MapWorker:
             except Exception as exc:
                 task.future.set_exception(exc)
 
-    def _apply_map(self, task: _Task) -> None:
+    def _apply_map(self, task: _Task, taken_back: frozenset[int] = frozenset()) -> None:
         self._collect_snapshot(wait=True)  # its save listeners see the map it was captured from
-        if self.session.add_map(task.payload, task.name, self._plan_of(task)):
+        if self.session.add_map(task.payload, task.name, self._plan_of(task), taken_back):
             self._changed()
 
     def _start_ahead(self, task: _Task) -> bool:
@@ -677,7 +682,7 @@ class MapWorker:
             return
         start = time.perf_counter()
         try:
-            self._apply_map(ahead.task)
+            self._apply_map(ahead.task, frozenset(ahead.taken_back))
         except Exception as exc:
             self.stats.add(worker_errors=1)
             self.log.error(f"map {ahead.task.name}: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")

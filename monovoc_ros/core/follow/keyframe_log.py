@@ -140,13 +140,15 @@ class KeyframeLog:
             self.entries[k] = replace(entry, cam_to_world=np.array(T, np.float64))
         return changed
 
-    def move_poses(self, move) -> None:
-        """Every pose moved by `move`, which takes them all at once ((P, 4, 4) -> (P, 4, 4) float64)."""
-        if not self.entries:
+    def move_poses(self, move, keep=None) -> None:
+        """Every pose moved by `move`, which takes them all at once ((P, 4, 4) -> (P, 4, 4) float64), but those
+        of the stamps `keep(stamp_ns)` is true for."""
+        rows = [k for k, entry in enumerate(self.entries) if keep is None or not keep(entry.stamp_ns)]
+        if not rows:
             return
-        moved = move(np.stack([entry.cam_to_world for entry in self.entries]))
-        for k, entry in enumerate(self.entries):
-            self.entries[k] = replace(entry, cam_to_world=moved[k])
+        moved = move(np.stack([self.entries[k].cam_to_world for k in rows]))
+        for k, pose in zip(rows, moved, strict=True):
+            self.entries[k] = replace(self.entries[k], cam_to_world=pose)
 
     def follow_poses(self, other: KeyframeLog) -> None:
         """Each entry takes the pose of `other`'s entry of the same stamp (a rebuild's log, when a map update

@@ -8,7 +8,9 @@ SLAM front-end do to the mapper a MappingSession (core.session) holds.
   yet (nothing to protect: any new map is taken). Corrected poses that are not finite rigid transforms or
   move a logged keyframe farther than MAX_POSE_CORRECTION_M are refused (`checked_poses`).
 * The update (`update_map`): which old Gaussian's evidence each new one takes (core.follow.map_follow),
-  handed to the mapper (`take_map`), and the logged keyframe poses moved with the map.
+  handed to the mapper (`take_map`), and the logged keyframe poses moved with the map, but for those of
+  keyframes stamped after it that reached the mapper first: they are in its frame already
+  (core.follow.map_frames, which also moves keyframes that come after a newer map).
 * The log's pose state (`KeyframeLog.poses_given`, written here only): corrected poses the SLAM gave since
   the last map update are in the frame of its next map already, so that update does not move them again.
 * Re-integration: whether a map update or corrected poses re-integrate the keyframe log
@@ -36,6 +38,7 @@ import numpy as np
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, LoggedKeyframe
 from monovoc_ros.core.follow.map_follow import FollowConfig, FollowResult, follow_ids, follow_positions
+from monovoc_ros.core.follow.map_frames import MapFrames, PoseMover, in_new_frame
 from monovoc_ros.core.follow.map_motion import MapMotion
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import validate_pose
@@ -100,6 +103,8 @@ class MapUpdateReport:
     seconds: float = 0.0  # in update_map (live: the worker's part, when the update was prepared beside it)
     sources: np.ndarray | None = None  # (N_new,) int64 old row whose evidence each new Gaussian took, -1: none
     prepared: bool = False  # its MapUpdatePlan was prepared beforehand (live: beside the worker)
+    mover: PoseMover | None = None  # how it moved camera poses (None: they stay)
+    poses_kept: int = 0  # logged keyframes stamped at or after the map (in its frame already): not moved
 
     @property
     def carried_share(self) -> float:
@@ -217,11 +222,14 @@ def plan_map_update(
     return MapUpdatePlan(old, new, config, follow, refusal)
 
 
-def update_map(mapper: Mapper, gaussians: GaussianMap, plan: MapUpdatePlan | None = None) -> MapUpdateReport:
+def update_map(
+    mapper: Mapper, gaussians: GaussianMap, plan: MapUpdatePlan | None = None, taken_back: frozenset[int] = frozenset()
+) -> MapUpdateReport:
     """Swaps a new map from the SLAM front-end into `mapper`, carrying its evidence over (core.follow.map_follow:
-    by id where the maps share ids, else by the map's estimated motion) and moving the logged poses with it.
-    `plan`: the update prepared beforehand (`plan_map_update`), used when it is of these maps. Raises
-    MapMotionError, with nothing changed, when the motion is not believable and there is evidence."""
+    by id where the maps share ids, else by the map's estimated motion) and moving the logged poses with it
+    (`move_logged_poses`; `taken_back`: see there). `plan`: the update prepared beforehand (`plan_map_update`),
+    used when it is of these maps. Raises MapMotionError, with nothing changed, when the motion is not
+    believable and there is evidence."""
     start = time.perf_counter()
     old = mapper.gaussians
     config = mapper.config.follow()
@@ -231,7 +239,8 @@ def update_map(mapper: Mapper, gaussians: GaussianMap, plan: MapUpdatePlan | Non
     follow = plan.follow
     if plan.refusal and mapper.state.observed.any():  # nothing to protect: any new map is taken
         raise MapMotionError(plan.refusal)
-    move_logged_poses(mapper.keyframe_log, old.means, follow.motion)
+    mover = pose_mover(old.means, follow.motion)
+    kept = move_logged_poses(mapper.keyframe_log, mover, gaussians.stamp_ns, taken_back)
     # The newest labels carried to the new map, their geometry computed beside the mapper's next steps (the
     # update's end, a keyframe): the first result after the update starts its geometry there.
     labelling = mapper.labelling()
@@ -249,21 +258,30 @@ def update_map(mapper: Mapper, gaussians: GaussianMap, plan: MapUpdatePlan | Non
         seconds=time.perf_counter() - start,
         sources=follow.sources,
         prepared=prepared,
+        mover=mover,
+        poses_kept=kept,
     )
 
 
-def move_logged_poses(log: KeyframeLog, means: np.ndarray, motion: MapMotion) -> None:
-    """A map update: the logged poses moved with the map whose old centres are `means` (each by the motion's
-    rigid fit around its camera), unless the SLAM gave corrected poses since the last update."""
+def move_logged_poses(
+    log: KeyframeLog, mover: PoseMover | None, stamp_ns: int, taken_back: frozenset[int] = frozenset()
+) -> int:
+    """A map update stamped `stamp_ns` (0: unknown): the logged poses moved by `mover` (`pose_mover`; None: they
+    stay), unless the SLAM gave corrected poses since the last update, but for the keyframes stamped at or after
+    the map (core.follow.map_frames.in_new_frame): they are in its frame already. `taken_back`: stamps of
+    keyframes stamped after it whose poses were taken back into the map before it (a live worker's
+    map_update_ahead): they move. Returns how many poses stayed for their stamps."""
     if log.poses_given:  # in the frame of this map already
         log.poses_given = False
-        return
-    mover = pose_mover(means, motion)
+        return 0
+
+    def keep(stamp: int) -> bool:
+        return in_new_frame(stamp_ns, stamp) and stamp not in taken_back
+
+    kept = sum(keep(entry.stamp_ns) for entry in log.entries)
     if mover is not None:
-        log.move_poses(mover)
-
-
-PoseMover = Callable[[np.ndarray], np.ndarray]  # (P, 4, 4) cam_to_world in the old map -> the same in the new
+        log.move_poses(mover, keep)
+    return kept
 
 
 def pose_mover(means: np.ndarray, motion: MapMotion) -> PoseMover | None:
@@ -372,22 +390,32 @@ class MapUpdater:
         self.max_shrink = max_shrink
         self.reintegrate_below = reintegrate_below
         self.job: Reintegration | None = None
+        self.frames = MapFrames()  # the newest updates, for keyframes that come after a newer map
 
     def refusal(self, mapper: Mapper | None, gaussians: GaussianMap) -> tuple[str, str] | None:
         """(reason, detail) when `gaussians` must not become the map (`map_update_refusal`); None when it may."""
         return map_update_refusal(mapper.gaussians if mapper is not None else None, gaussians, self.max_shrink)
 
     def update(
-        self, mapper: Mapper, gaussians: GaussianMap, name: str = "", plan: MapUpdatePlan | None = None
+        self,
+        mapper: Mapper,
+        gaussians: GaussianMap,
+        name: str = "",
+        plan: MapUpdatePlan | None = None,
+        taken_back: frozenset[int] = frozenset(),
     ) -> MapUpdateReport:
-        """A map update (`update_map` with `plan` if any, raising MapMotionError), counted, then the
+        """A map update (`update_map` with `plan` and `taken_back`, raising MapMotionError), counted, then the
         re-integration it needs: a rebuild in progress starts over on the new map, or is carried over to it
         when map updates keep restarting it (module docstring)."""
         old = mapper.gaussians
-        report = update_map(mapper, gaussians, plan)
-        self.stats.add(map_updates=1, map_updates_prepared=int(report.prepared))
+        report = update_map(mapper, gaussians, plan, taken_back)
+        self.frames.updated(gaussians, report.mover)
+        self.stats.add(
+            map_updates=1, map_updates_prepared=int(report.prepared), keyframes_before_their_map=report.poses_kept
+        )
         self.stats.update(map_update_carried_share=report.carried_share, ms_map_update_last=1e3 * report.seconds)
-        self.log.info(f"map update {name}: {report.describe()}")
+        early = f"; {report.poses_kept} keyframes stamped after it came first (poses kept)" if report.poses_kept else ""
+        self.log.info(f"map update {name}: {report.describe()}{early}")
         reason = self.reintegration_reason(report) if mapper.n_keyframes else ""
         job = self.job
         if (

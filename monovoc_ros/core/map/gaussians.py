@@ -45,6 +45,9 @@ class GaussianMap:
     ids: np.ndarray | None = None  # (N,) int64 stable per-Gaussian ids from the SLAM front-end
     semantics: np.ndarray | None = None  # (N, 3) float32, optional `semantics_*` PLY fields
     extra: dict = field(default_factory=dict)  # other named per-Gaussian arrays (e.g. f_rest)
+    # The SLAM's stamp of this map (its message's header, ns); 0: unknown. Keyframes stamped at or after it are
+    # posed in its frame (core.follow.map_frames).
+    stamp_ns: int = 0
 
     def __post_init__(self) -> None:
         means = _frozen(self.means, np.float32, (3,), "means", None)
