@@ -23,12 +23,15 @@ from monovoc_ros.core.object_geometry import object_geometry
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import (
+    AHEAD_KEYFRAMES_WHEN_READY,
     KEYFRAMES_PER_REINTEGRATION_STEP,
     MapWorker,
     Preparation,
     TaskQueue,
     WorkerSettings,
     WorkerStopped,
+    _Ahead,
+    _Task,
 )
 from monovoc_ros.ros_harness import wait_until
 from tests.evidence import assert_same_evidence
@@ -790,6 +793,66 @@ def test_ahead_a_keyframe_stamped_before_the_map_update_is_not_taken_back():
         np.testing.assert_allclose(seen[stamp], np.eye(4), atol=1e-6)  # integrated into the first map
         np.testing.assert_allclose(logged[stamp], shift, atol=1e-6)  # in the second map's frame
     assert worker.stats.keyframes_before_their_map == 0 and worker.stats.keyframes_moved_into_map == 0
+
+
+class MapSink:
+    """Records, per publication, the map published and how many keyframes it holds."""
+
+    def __init__(self):
+        self.published: list[tuple[GaussianMap, int]] = []
+
+    def publish(self, mapper, result):
+        if mapper is not None:
+            self.published.append((mapper.gaussians, mapper.n_keyframes))
+        return 0
+
+
+@pytest.mark.parametrize("ahead", [False, True])
+def test_what_changed_is_published_while_the_worker_waits_for_a_map_updates_plan(ahead):
+    """A keyframe integrated right before a map whose plan is not ready gets its cloud while the worker waits for
+    that plan (or, ahead, for its motion), not after the update; ahead, the update is applied once the keyframes
+    integrated ahead of it are published."""
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=ahead)
+    sink = MapSink()
+    worker = HeldPlans(MapperConfig(), settings, sink=sink, log=RecordingLog())
+    first = plane_map()
+    second, shift = moved_map(first)
+    worker.start()
+    try:
+        worker.submit_map(first)
+        worker.submit_keyframe(keyframe(1))
+        drain(worker)
+        gate = threading.Event()
+        worker.call(lambda: gate.wait(10.0))  # the keyframe and the map queued behind it: no idle moment between
+        worker.submit_keyframe(keyframe(2))
+        worker.submit_map(second)
+        gate.set()
+        wait_until(lambda: (first, 2) in sink.published, 10.0, "keyframe 2 published before the update", process=None)
+        assert worker.session.mapper.gaussians is first and worker.stats.map_updates == 0
+        if ahead:
+            worker.submit_keyframe(replace(keyframe(3), cam_to_world=shift))
+            wait_until(lambda: (first, 3) in sink.published, 10.0, "the keyframe integrated ahead", process=None)
+        worker.release.set()
+        wait_until(lambda: worker.stats.map_updates == 1, 10.0, "the update", process=None)
+        drain(worker)
+    finally:
+        worker.stop(final_snapshot=False)
+    assert sink.published[-1] == (second, 3 if ahead else 2)
+    # Publication time counts as publication, not as the map update it happened in.
+    assert worker.stats.worker_s_map_updates < 5.0
+
+
+def test_a_map_update_applied_ahead_is_due_before_any_other_task_or_once_its_plan_is_ready_and_the_worker_idle():
+    plan, other = Future(), Future()
+    pending = _Ahead(_Task("map", plane_map(), plan=plan, motion=other), None)
+    kf, call = _Task("keyframe", keyframe(1)), _Task("call", lambda: None)
+    assert not pending.due(kf) and not pending.due(None)  # its plan is not ready
+    assert pending.due(call)  # only keyframes go ahead of it
+    plan.set_result(None)
+    assert pending.due(None)  # ready, and the worker idle
+    assert [pending.due(kf) for _ in range(AHEAD_KEYFRAMES_WHEN_READY + 1)] == [False] * AHEAD_KEYFRAMES_WHEN_READY + [
+        True
+    ]
 
 
 def test_a_stop_applies_the_map_update_applied_ahead_before_the_final_snapshot(tmp_path):

@@ -39,10 +39,10 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
     succeeded = [0]
     done = threading.Semaphore(0)
 
-    def on_done(future: Any, sent: float, sent_wall: float) -> None:
+    def on_done(future: Any, sent: float, sent_wall: float, n: int) -> None:
         elapsed = time.perf_counter() - sent
         with lock:
-            timed.append((sent_wall, elapsed))
+            timed.append((sent_wall, elapsed, n))
             succeeded[0] += bool(future.result() is not None and future.result().success)
         done.release()
 
@@ -55,7 +55,7 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
             time.sleep(due - now)
         sent, sent_wall = time.perf_counter(), time.time()
         future = client.call_async(TextQuery.Request(text=TEXTS[n % len(TEXTS)], top_k=5))
-        future.add_done_callback(lambda f, sent=sent, sent_wall=sent_wall: on_done(f, sent, sent_wall))
+        future.add_done_callback(lambda f, sent=sent, sent_wall=sent_wall, n=n: on_done(f, sent, sent_wall, n))
         futures.append(future)
     sending_s = time.perf_counter() - start
     deadline = time.monotonic() + timeout_s
@@ -64,7 +64,7 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
         answered += 1
     with lock:
         slowest = sorted(timed, key=lambda t: -t[1])
-    samples = [seconds for _, seconds in reversed(slowest)]
+    samples = [seconds for _, seconds, _ in reversed(slowest)]
 
     def pct(q: float) -> float:
         return round(1e3 * samples[min(len(samples) - 1, int(q * len(samples)))], 1) if samples else float("nan")
@@ -78,7 +78,8 @@ def open_loop_queries(client: Any, rate_hz: float, count: int, timeout_s: float 
         "p50_ms": pct(0.50),
         "p99_ms": pct(0.99),
         "max_ms": round(1e3 * samples[-1], 1) if samples else float("nan"),
-        "slowest": [[round(wall, 3), round(1e3 * seconds, 1)] for wall, seconds in slowest[:5]],
+        # [wall time sent, ms, which query (its text is TEXTS[n % len(TEXTS)]; the first of each is not cached)]
+        "slowest": [[round(wall, 3), round(1e3 * seconds, 1), n] for wall, seconds, n in slowest[:5]],
     }
 
 

@@ -92,6 +92,10 @@ BUSY_PUBLISH_SHARE = 0.2
 KEYFRAMES_PER_REINTEGRATION_STEP = 3
 # How often the worker looks whether the plan of a map update applied ahead is ready (s).
 _AHEAD_POLL_S = 0.005
+# A map update applied ahead whose plan is ready waits for the worker to be idle (its ~0.2-0.3 s at 1M Gaussians
+# would delay the next keyframe and the cloud of those integrated ahead), but for at most this many keyframes:
+# a robot that never leaves the worker idle still gets its map.
+AHEAD_KEYFRAMES_WHEN_READY = 2
 # How often an idle worker looks whether the snapshot being written is done (s).
 _SNAPSHOT_POLL_S = 0.1
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
@@ -155,6 +159,19 @@ class _Ahead:
     task: _Task
     mover: PoseMover | None  # how the update moves poses (None: they stay)
     taken_back: set[int] = field(default_factory=set)  # stamps of the keyframes whose poses it took back
+    after_ready: int = 0  # keyframes integrated ahead since its plan was ready
+
+    def due(self, task: _Task | None) -> bool:
+        """Whether to apply it before `task` (None: the worker is idle): before any task but a keyframe; once its
+        plan is ready, when the worker is idle or after AHEAD_KEYFRAMES_WHEN_READY more keyframes."""
+        if task is not None and task.kind != "keyframe":
+            return True
+        if not self.task.plan.done():
+            return False
+        if task is None or self.after_ready >= AHEAD_KEYFRAMES_WHEN_READY:
+            return True
+        self.after_ready += 1
+        return False
 
 
 class TaskQueue:
@@ -301,6 +318,7 @@ class MapWorker:
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
         self._publish_s = 0.0  # the last publication's time
+        self._published_s = 0.0  # every publication's time, summed (a task's time leaves out those within it)
         self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
         self._ahead: _Ahead | None = None  # a map update applied once its plan is ready (map_update_ahead)
         self._last_save = time.monotonic()
@@ -385,6 +403,7 @@ class MapWorker:
         if task.base is not None and (mapper is None or task.base is not mapper.gaussians):
             task.plan.cancel()  # of a map not in use (refused, reset, loaded): no use waiting for it
             return None
+        self._publish_before_waiting(task.plan)
         try:
             return task.plan.result()
         except CancelledError:
@@ -590,12 +609,14 @@ class MapWorker:
             if task is None and self.queue.closed:
                 return
             try:
-                # Applied once its plan is ready, or before any other task (only keyframes go ahead of it), but
-                # never while the session holds keyframes: they are posed in the map in use.
+                # Applied when due (`_Ahead.due`: only keyframes go ahead of it), but never while the session holds
+                # keyframes: they are posed in the map in use. When idle, the keyframes integrated ahead are
+                # published first.
                 ahead = self._ahead
-                if ahead is not None and not ready:
-                    if ahead.task.plan.done() or (task is not None and task.kind != "keyframe"):
-                        self._apply_ahead()
+                if ahead is not None and not ready and ahead.due(task):
+                    if task is None:
+                        self._maybe_publish()
+                    self._apply_ahead()
                 start = time.perf_counter()
                 if ready:
                     if self.session.integrate_next() is not None:
@@ -603,8 +624,10 @@ class MapWorker:
                         self._keyframes_since_step += 1
                     self.stats.add(worker_s_keyframes=time.perf_counter() - start)
                 elif task is not None:
+                    published = self._published_s
                     self._execute(task)
-                    self.stats.add(**{_ACTIVITY[task.kind]: time.perf_counter() - start})
+                    elapsed = time.perf_counter() - start - (self._published_s - published)
+                    self.stats.add(**{_ACTIVITY[task.kind]: elapsed})
                 if self.session.reintegrating and (
                     self.keyframes_waiting == 0 or self._keyframes_since_step >= KEYFRAMES_PER_REINTEGRATION_STEP
                 ):
@@ -667,6 +690,7 @@ class MapWorker:
             or self.session.map_refusal(task.payload) is not None
         ):
             return False
+        self._publish_before_waiting(task.motion)
         wait([task.motion, task.plan], return_when=FIRST_COMPLETED)
         if not task.motion.done() or task.motion.result() is None:  # cancelled, refused, or nothing to prepare
             return False
@@ -680,13 +704,22 @@ class MapWorker:
         ahead, self._ahead = self._ahead, None
         if ahead is None:
             return
-        start = time.perf_counter()
+        start, published = time.perf_counter(), self._published_s
         try:
             self._apply_map(ahead.task, frozenset(ahead.taken_back))
         except Exception as exc:
             self.stats.add(worker_errors=1)
             self.log.error(f"map {ahead.task.name}: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-        self.stats.add(worker_s_map_updates=time.perf_counter() - start)
+        self.stats.add(worker_s_map_updates=time.perf_counter() - start - (self._published_s - published))
+
+    def _publish_before_waiting(self, pending: Future) -> None:
+        """The worker is about to wait for `pending` (a map update's plan or motion, computed beside it): what
+        changed is published meanwhile when a publication is due (the keyframes integrated right before a map get
+        their cloud ~0.3-0.8 s sooner at 1M Gaussians); not while stopping."""
+        if pending.done() or not self._output_dirty or self.queue.closed:
+            return
+        if time.monotonic() >= self._last_publish + self.settings.publish_period_s:
+            self._publish()
 
     def _changed(self, unsaved: bool = True) -> None:
         self._output_dirty = True
@@ -740,6 +773,7 @@ class MapWorker:
         observed = int(result.observed.sum()) if result is not None else 0
         end = time.perf_counter()
         self._publish_s = end - start
+        self._published_s += end - start
         self.stats.update(objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
         self.stats.add(
             publishes=1,

@@ -20,6 +20,7 @@ keep a SLAM's logged poses from following its map.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -55,7 +56,7 @@ def posed_before(gaussians: GaussianMap, keyframe: Keyframe) -> bool:
 
 @dataclass(frozen=True)
 class _Update:
-    gaussians: GaussianMap  # the map it made the one in use
+    stamp_ns: int  # of the map it made the one in use
     mover: PoseMover | None  # poses from the map before it into it (None: they stay)
 
 
@@ -65,29 +66,33 @@ class MapFrames:
     def __init__(self) -> None:
         self._updates: list[_Update] = []
         self._base_ns = 0  # the stamp of the map before the oldest update held (0: unknown)
+        # The map the newest update made the one in use; weak: an old map's arrays (~150 MB at 1M Gaussians, with
+        # the rasterizer's) must not live on here.
+        self._newest: weakref.ref[GaussianMap] | None = None
 
     def started(self, gaussians: GaussianMap) -> None:
         """A first map (or one loaded): no update before it."""
-        self._updates, self._base_ns = [], gaussians.stamp_ns
+        self._updates, self._base_ns, self._newest = [], gaussians.stamp_ns, None
 
     def updated(self, gaussians: GaussianMap, mover: PoseMover | None) -> None:
         """A map update made `gaussians` the map in use; `mover` moves poses from the map before it into it."""
         if gaussians.stamp_ns <= 0 or gaussians.stamp_ns <= self._newest_ns():  # unknown, or out of order
             self.started(gaussians)
             return
-        self._updates.append(_Update(gaussians, mover))
+        self._updates.append(_Update(gaussians.stamp_ns, mover))
+        self._newest = weakref.ref(gaussians)
         if len(self._updates) > HISTORY:
-            self._base_ns = self._updates.pop(0).gaussians.stamp_ns
+            self._base_ns = self._updates.pop(0).stamp_ns
 
     def into_map(self, gaussians: GaussianMap, keyframe: Keyframe) -> Keyframe | None:
         """`keyframe` moved into `gaussians`, the map in use, when it is stamped before that map and after the
         oldest map held (module docstring); None when it is in that map's frame as sent, or nothing tells."""
         s = keyframe.stamp_ns
-        if not self._updates or self._updates[-1].gaussians is not gaussians:  # first map, or not ours (loaded)
+        if self._newest is None or self._newest() is not gaussians:  # a first map, or not ours (loaded)
             return None
         if not posed_before(gaussians, keyframe) or not 0 < self._base_ns <= s:
             return None
-        movers = [u.mover for u in self._updates if u.gaussians.stamp_ns > s and u.mover is not None]
+        movers = [u.mover for u in self._updates if u.stamp_ns > s and u.mover is not None]
         if not movers:
             return None
         pose = np.asarray(keyframe.cam_to_world, np.float64)[None]
@@ -96,4 +101,4 @@ class MapFrames:
         return replace(keyframe, cam_to_world=pose[0])
 
     def _newest_ns(self) -> int:
-        return self._updates[-1].gaussians.stamp_ns if self._updates else self._base_ns
+        return self._updates[-1].stamp_ns if self._updates else self._base_ns
