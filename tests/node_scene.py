@@ -3,12 +3,17 @@ offline reference run over the very same message objects."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.ingest import KeyframeAssembler
-from monovoc_ros.nodes.keyframe_publisher import ROLE_ORDER, keyframe_messages
+from monovoc_ros.nodes.keyframe_publisher import ROLE_ORDER, KeyframePublisher, keyframe_messages
 from monovoc_ros.synthetic import SceneConfig, SyntheticScene, generate_scene
 
 NODE = ["-m", "monovoc_ros.nodes.mapping_node"]
@@ -60,3 +65,40 @@ class RecordingLog:
 
     def error(self, msg):
         self.lines.append(("error", msg))
+
+
+@dataclass(frozen=True)
+class RunningMapper:
+    node: Any  # the mapping node's NodeProcess
+    diagnostics: Any  # DiagnosticsMonitor of its /diagnostics
+    publisher: Any  # KeyframePublisher of its inputs (and its map)
+    save: Any  # client of /monovoc/save_map
+
+
+@contextlib.contextmanager
+def running_mapper(tmp_path: Path, params: dict) -> Iterator[RunningMapper]:
+    """The mapping node started with `params` in a test's own ROS environment, and a client ready to talk to it:
+    every input publisher matched and the save_map service up."""
+    from monovoc_interfaces.srv import SaveMap
+    from monovoc_ros.ros_harness import (
+        ClientNode,
+        DiagnosticsMonitor,
+        NodeProcess,
+        ros_args,
+        wait_for_service,
+        wait_for_subscribers,
+    )
+    from tests.rosutil import ros_environment
+
+    env = ros_environment(tmp_path)
+    with (
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
+    ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        publisher = KeyframePublisher(client.node)
+        save = client.node.create_client(SaveMap, "/monovoc/save_map")
+        for pub in publisher.all_publishers():
+            wait_for_subscribers(pub, timeout=20.0, process=node)
+        wait_for_service(save, process=node)
+        yield RunningMapper(node, diagnostics, publisher, save)

@@ -16,19 +16,12 @@ import pytest
 import msg_adapters as ma
 from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map_store import load_snapshot
-from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
+from monovoc_ros.nodes.keyframe_publisher import keyframe_messages
 from monovoc_ros.ros_harness import (
-    ClientNode,
-    DiagnosticsMonitor,
-    NodeProcess,
     call_service,
-    ros_args,
-    wait_for_service,
-    wait_for_subscribers,
 )
 from tests.evidence import assert_same_evidence
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, small_scene
-from tests.rosutil import ros_environment
+from tests.node_scene import N_KEYFRAMES, assemble, offline_mapper, running_mapper, small_scene
 from tests.test_node_bombs import jpeg_bomb, png_bomb
 
 pytestmark = pytest.mark.ros
@@ -224,18 +217,9 @@ def test_seeded_fuzz_corpus_changes_nothing(tmp_path):
         cursors[role] += 1
 
     reference = offline_mapper(scene.gaussians, keyframes)
-    env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "input_depth": 1000}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        publisher = KeyframePublisher(client.node)
-        save = client.node.create_client(SaveMap, "/monovoc/save_map")
-        for pub in publisher.all_publishers():
-            wait_for_subscribers(pub, timeout=20.0, process=node)
-        wait_for_service(save, process=node)
+    with running_mapper(tmp_path, params) as mapper:
+        node, diagnostics, publisher, save = mapper.node, mapper.diagnostics, mapper.publisher, mapper.save
         publisher.publish_map(scene.gaussians)
         for msgs in good[:4]:
             publisher.publish_messages(msgs)

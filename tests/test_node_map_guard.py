@@ -10,19 +10,11 @@ import pytest
 import msg_adapters as ma
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map_store import load_snapshot
-from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from monovoc_ros.ros_harness import (
-    ClientNode,
-    DiagnosticsMonitor,
-    NodeProcess,
     call_service,
-    ros_args,
-    wait_for_service,
-    wait_for_subscribers,
 )
 from tests.evidence import assert_same_evidence
-from tests.node_scene import NODE, assemble, offline_mapper, scene_messages, small_scene
-from tests.rosutil import ros_environment
+from tests.node_scene import assemble, offline_mapper, running_mapper, scene_messages, small_scene
 
 pytestmark = pytest.mark.ros
 
@@ -63,18 +55,9 @@ def test_map_updates_that_would_wipe_the_map_are_refused(tmp_path):
     moved = GaussianMap(
         gaussians.means + np.float32(0.05), gaussians.scales, gaussians.quats, gaussians.opacities, gaussians.colors
     )
-    env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        publisher = KeyframePublisher(client.node)
-        save = client.node.create_client(SaveMap, "/monovoc/save_map")
-        for pub in publisher.all_publishers():
-            wait_for_subscribers(pub, timeout=20.0, process=node)
-        wait_for_service(save, process=node)
+    with running_mapper(tmp_path, params) as mapper:
+        node, diagnostics, publisher, save = mapper.node, mapper.diagnostics, mapper.publisher, mapper.save
         publisher.publish_map(gaussians)
         for msgs in messages[:4]:
             publisher.publish_messages(msgs)

@@ -15,19 +15,12 @@ import msg_adapters as ma
 from monovoc_ros.core.follow.map_updater import update_map
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map_store import load_snapshot
-from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
+from monovoc_ros.nodes.keyframe_publisher import keyframe_messages
 from monovoc_ros.ros_harness import (
-    ClientNode,
-    DiagnosticsMonitor,
-    NodeProcess,
     call_service,
-    ros_args,
-    wait_for_service,
-    wait_for_subscribers,
 )
 from tests.evidence import assert_same_evidence
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
-from tests.rosutil import ros_environment
+from tests.node_scene import N_KEYFRAMES, assemble, offline_mapper, running_mapper, scene_messages, small_scene
 
 pytestmark = pytest.mark.ros
 
@@ -72,7 +65,6 @@ def test_map_update_carries_evidence_by_id(tmp_path, ahead, reader_process):
     for keyframe in keyframes[8:]:
         reference.integrate(keyframe)
 
-    env = ros_environment(tmp_path)
     # The transfer alone (10% moved 0.3 m bends the fitted motion: no re-integration of its own accord here).
     params = {
         "publish_rate_hz": 0.0,
@@ -81,16 +73,8 @@ def test_map_update_carries_evidence_by_id(tmp_path, ahead, reader_process):
         "map_update_ahead": ahead,
         "map_reader_process": reader_process,
     }
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        publisher = KeyframePublisher(client.node)
-        save = client.node.create_client(SaveMap, "/monovoc/save_map")
-        for pub in publisher.all_publishers():
-            wait_for_subscribers(pub, timeout=20.0, process=node)
-        wait_for_service(save, process=node)
+    with running_mapper(tmp_path, params) as mapper:
+        node, diagnostics, publisher, save = mapper.node, mapper.diagnostics, mapper.publisher, mapper.save
         publisher.publish_map(scene.gaussians)
         for msgs in messages[:8]:
             publisher.publish_messages(msgs)
@@ -140,18 +124,9 @@ def test_a_keyframe_stamped_after_a_map_update_that_reaches_the_node_first_keeps
                             stamp_ns=keyframes[8].stamp_ns - 1)  # fmt: skip
     sent = scene.keyframe(8).cam_to_world.copy()
     sent[:3, 3] += shift
-    env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "reintegrate_below": 0.0}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        publisher = KeyframePublisher(client.node)
-        save = client.node.create_client(SaveMap, "/monovoc/save_map")
-        for pub in publisher.all_publishers():
-            wait_for_subscribers(pub, timeout=20.0, process=node)
-        wait_for_service(save, process=node)
+    with running_mapper(tmp_path, params) as mapper:
+        node, diagnostics, publisher, save = mapper.node, mapper.diagnostics, mapper.publisher, mapper.save
         publisher.publish_map(scene.gaussians, stamp_ns=keyframes[0].stamp_ns)
         for msgs in messages[:8]:
             publisher.publish_messages(msgs)

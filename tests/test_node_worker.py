@@ -838,8 +838,6 @@ def test_what_changed_is_published_while_the_worker_waits_for_a_map_updates_plan
     finally:
         worker.stop(final_snapshot=False)
     assert sink.published[-1] == (second, 3 if ahead else 2)
-    # Publication time counts as publication, not as the map update it happened in.
-    assert worker.stats.worker_s_map_updates < 5.0
 
 
 def test_a_map_update_applied_ahead_is_due_before_any_other_task_or_once_its_plan_is_ready_and_the_worker_idle():

@@ -246,13 +246,11 @@ class MappingSession:
         mapper, keyframe = self._mapper, self._waiting.popleft()
         assert mapper is not None
         corrected = self._pending_poses.pop(keyframe.stamp_ns, None)
+        moved = None if corrected is not None else self._updates.frames.into_map(mapper.gaussians, keyframe)
         if corrected is not None:  # in the newest map's frame
             keyframe = replace(keyframe, cam_to_world=corrected)
-        else:
-            moved = self._updates.frames.into_map(mapper.gaussians, keyframe)
-            if moved is not None:  # posed in a map older than the one in use
-                keyframe = moved
-                self.stats.add(keyframes_moved_into_map=1)
+        elif moved is not None:  # posed in a map older than the one in use
+            keyframe = moved
         try:
             report = mapper.integrate(keyframe)
         except DuplicateKeyframeError:
@@ -266,6 +264,7 @@ class MappingSession:
         ms = 1e3 * report.seconds
         with self.stats.lock:
             self.stats.keyframes_processed += 1
+            self.stats.keyframes_moved_into_map += moved is not None
             self.stats.ms_per_keyframe_last = ms
             self.stats.ms_per_keyframe_total += ms
             self.stats.last_stamp_ns = max(self.stats.last_stamp_ns, keyframe.stamp_ns)
@@ -443,6 +442,7 @@ class MappingSession:
         commits = [fn(path, mapper) for fn in self._load_checks]  # may raise: nothing swapped yet
         self._updates.cancel()
         self._mapper = mapper
+        self._updates.frames.started(mapper.gaussians)
         for commit in commits:
             if commit is not None:
                 commit()

@@ -14,9 +14,10 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
   (else the session computes the update itself: the same function, the same result). With `map_update_ahead`
   the keyframes after a map whose plan is not ready do not wait for it: once the registration has the map's
   motion (about half of the plan), they go into the map in use with their poses taken back by that motion
-  (`unmoved_pose`; not those stamped before the map, posed in the map in use: core.follow.map_frames), and the
-  update, applied when its plan is ready or before any other task, carries their evidence with the rest and
-  moves their logged poses back to where they were sent. The session
+  (`unmoved_pose`; not those stamped before the map, posed in an earlier map: core.follow.map_frames), and the
+  update, applied once its plan is ready and the worker idle (or after AHEAD_KEYFRAMES_WHEN_READY more
+  keyframes, and before any other task), carries their evidence with the rest and moves their logged poses back
+  to where they were sent. The session
   skips unchanged maps and refuses (and counts) a map without Gaussians or one removing more than
   `map_update_max_shrink` of them: one empty cloud must not wipe the map.
 * calls (services, plugins): never dropped; run in arrival order with the rest, results via a Future.
@@ -610,8 +611,8 @@ class MapWorker:
                 return
             try:
                 # Applied when due (`_Ahead.due`: only keyframes go ahead of it), but never while the session holds
-                # keyframes: they are posed in the map in use. When idle, the keyframes integrated ahead are
-                # published first.
+                # keyframes: they are posed in the map in use. When idle, what the keyframes integrated ahead
+                # changed is published first if a publication is due.
                 ahead = self._ahead
                 if ahead is not None and not ready and ahead.due(task):
                     if task is None:
@@ -673,9 +674,8 @@ class MapWorker:
     def _start_ahead(self, task: _Task) -> bool:
         """With `map_update_ahead`, when the plan of this map update is not ready: waits for its motion only and
         lets the keyframes after it into the map in use, their poses taken back by that motion (`unmoved_pose`);
-        the update is applied, moving every logged pose with the map, once its plan is ready or before any other
-        task. Not when the SLAM's corrected poses are in play (they are in the new map's frame) or a
-        re-integration runs."""
+        the update is applied, moving the logged poses with the map, when `_Ahead.due` says. Not when the SLAM's
+        corrected poses are in play (they are in the new map's frame) or a re-integration runs."""
         mapper = self.session.mapper
         if (
             not self.settings.map_update_ahead
@@ -715,7 +715,8 @@ class MapWorker:
     def _publish_before_waiting(self, pending: Future) -> None:
         """The worker is about to wait for `pending` (a map update's plan or motion, computed beside it): what
         changed is published meanwhile when a publication is due (the keyframes integrated right before a map get
-        their cloud ~0.3-0.8 s sooner at 1M Gaussians); not while stopping."""
+        their cloud ~0.3-0.8 s sooner at 1M Gaussians); with publish_period_s 0 even while tasks wait, unlike
+        between tasks: the worker would only wait. Not while stopping."""
         if pending.done() or not self._output_dirty or self.queue.closed:
             return
         if time.monotonic() >= self._last_publish + self.settings.publish_period_s:

@@ -12,6 +12,10 @@ in use; a segmenter's masks may come after a map stamped later than their image.
 * a keyframe stamped before the map in use is moved into it, before it is integrated, by the updates stamped
   after it (`MapFrames.into_map`).
 
+Maps the live node replaced by a newer one before applying them (a SLAM sending maps faster than they are applied)
+leave no update: a keyframe posed in such a map is taken as posed in the one before it (offline mapping, which
+applies every map of a bag, moves it by the map it was posed in and the next).
+
 A stamp of 0 is unknown: the order of arrival decides then, as it does without stamps (every logged pose moves
 with an update, every keyframe is integrated as sent). So it does for stamps further apart than
 FRAME_WINDOW_NS: clocks that do not agree (a map stamped by wall time, keyframes by simulation time) must not
@@ -66,17 +70,21 @@ class MapFrames:
     def __init__(self) -> None:
         self._updates: list[_Update] = []
         self._base_ns = 0  # the stamp of the map before the oldest update held (0: unknown)
-        # The map the newest update made the one in use; weak: an old map's arrays (~150 MB at 1M Gaussians, with
+        # The map in use as far as this history knows; weak: an old map's arrays (~150 MB at 1M Gaussians, with
         # the rasterizer's) must not live on here.
         self._newest: weakref.ref[GaussianMap] | None = None
 
     def started(self, gaussians: GaussianMap) -> None:
         """A first map (or one loaded): no update before it."""
-        self._updates, self._base_ns, self._newest = [], gaussians.stamp_ns, None
+        self._updates, self._base_ns, self._newest = [], gaussians.stamp_ns, weakref.ref(gaussians)
 
-    def updated(self, gaussians: GaussianMap, mover: PoseMover | None) -> None:
-        """A map update made `gaussians` the map in use; `mover` moves poses from the map before it into it."""
-        if gaussians.stamp_ns <= 0 or gaussians.stamp_ns <= self._newest_ns():  # unknown, or out of order
+    def updated(self, old: GaussianMap, gaussians: GaussianMap, mover: PoseMover | None) -> None:
+        """A map update made `gaussians` the map in use instead of `old`; `mover` moves poses from `old` into it.
+        A history of another map than `old` (a load came between) or a stamp unknown or not after the newest
+        starts over."""
+        if self._newest is None or self._newest() is not old:
+            self.started(old)
+        if gaussians.stamp_ns <= 0 or gaussians.stamp_ns <= self._newest_ns():
             self.started(gaussians)
             return
         self._updates.append(_Update(gaussians.stamp_ns, mover))
@@ -88,7 +96,7 @@ class MapFrames:
         """`keyframe` moved into `gaussians`, the map in use, when it is stamped before that map and after the
         oldest map held (module docstring); None when it is in that map's frame as sent, or nothing tells."""
         s = keyframe.stamp_ns
-        if self._newest is None or self._newest() is not gaussians:  # a first map, or not ours (loaded)
+        if self._newest is None or self._newest() is not gaussians:  # not the map this history ends in (loaded)
             return None
         if not posed_before(gaussians, keyframe) or not 0 < self._base_ns <= s:
             return None

@@ -104,7 +104,7 @@ class MapUpdateReport:
     sources: np.ndarray | None = None  # (N_new,) int64 old row whose evidence each new Gaussian took, -1: none
     prepared: bool = False  # its MapUpdatePlan was prepared beforehand (live: beside the worker)
     mover: PoseMover | None = None  # how it moved camera poses (None: they stay)
-    poses_kept: int = 0  # logged keyframes stamped at or after the map (in its frame already): not moved
+    poses_kept: int = 0  # logged poses it would have moved that are stamped at or after it (in its frame already)
 
     @property
     def carried_share(self) -> float:
@@ -240,7 +240,9 @@ def update_map(
     if plan.refusal and mapper.state.observed.any():  # nothing to protect: any new map is taken
         raise MapMotionError(plan.refusal)
     mover = pose_mover(old.means, follow.motion)
-    kept = move_logged_poses(mapper.keyframe_log, mover, gaussians.stamp_ns, taken_back)
+    # Stamps order the frames only when the new map is the newer (two SLAM processes, a clock reset: arrival).
+    newer = old.stamp_ns <= 0 or gaussians.stamp_ns > old.stamp_ns
+    kept = move_logged_poses(mapper.keyframe_log, mover, gaussians.stamp_ns if newer else 0, taken_back)
     # The newest labels carried to the new map, their geometry computed beside the mapper's next steps (the
     # update's end, a keyframe): the first result after the update starts its geometry there.
     labelling = mapper.labelling()
@@ -278,10 +280,10 @@ def move_logged_poses(
     def keep(stamp: int) -> bool:
         return in_new_frame(stamp_ns, stamp) and stamp not in taken_back
 
-    kept = sum(keep(entry.stamp_ns) for entry in log.entries)
-    if mover is not None:
-        log.move_poses(mover, keep)
-    return kept
+    if mover is None:
+        return 0
+    log.move_poses(mover, keep)
+    return sum(keep(entry.stamp_ns) for entry in log.entries)
 
 
 def pose_mover(means: np.ndarray, motion: MapMotion) -> PoseMover | None:
@@ -409,7 +411,7 @@ class MapUpdater:
         when map updates keep restarting it (module docstring)."""
         old = mapper.gaussians
         report = update_map(mapper, gaussians, plan, taken_back)
-        self.frames.updated(gaussians, report.mover)
+        self.frames.updated(old, gaussians, report.mover)
         self.stats.add(
             map_updates=1, map_updates_prepared=int(report.prepared), keyframes_before_their_map=report.poses_kept
         )
