@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
 import sys
 import textwrap
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -62,6 +64,23 @@ def test_rotation_keeps_two_snapshots_and_links_an_unchanged_map(small_scene, tm
     assert os.stat(third / "gaussians.npz").st_ino != os.stat(second / "gaussians.npz").st_ino
     assert sorted(p.name for p in tmp_path.glob("snap-*")) == [second.name, third.name]
     assert len(load_snapshot(tmp_path).gaussians) == len(small_scene.gaussians) - 100
+
+
+def test_the_maps_stamp_is_kept_and_a_bad_one_refused(small_scene, tmp_path):
+    """The SLAM's stamp of the map (keyframes stamped before it come from an older map: core.follow.map_frames)
+    survives a resume; a meta.json whose stamp is not one is refused like any other broken snapshot."""
+    mapper = SemanticMapper(replace(small_scene.gaussians, stamp_ns=123_456_789), MapperConfig())
+    mapper.integrate(small_scene.keyframe(0))
+    info = save_snapshot(mapper, tmp_path)
+    assert load_snapshot(tmp_path).gaussians.stamp_ns == 123_456_789
+    meta = json.loads((info.path / "meta.json").read_text())
+    for bad in (-1, "soon", True):
+        (info.path / "meta.json").write_text(json.dumps({**meta, "map_stamp_ns": bad}))
+        with pytest.raises(MapStoreError, match="map_stamp_ns"):
+            load_snapshot(tmp_path)
+    del meta["map_stamp_ns"]  # a snapshot from before it: unknown
+    (info.path / "meta.json").write_text(json.dumps(meta))
+    assert load_snapshot(tmp_path).gaussians.stamp_ns == 0
 
 
 def test_missing_and_corrupt_directories_raise_clear_errors(small_scene, tmp_path):

@@ -79,9 +79,9 @@ def _save_map(path: Path, gmap: GaussianMap) -> None:
         np.savez(fh, **arrays)
 
 
-def _load_map(path: Path) -> GaussianMap:
+def _load_map(path: Path, stamp_ns: int = 0) -> GaussianMap:
     with np.load(path, allow_pickle=False) as arrays:
-        return GaussianMap(**{name: arrays[name] for name in ARRAY_FIELDS if name in arrays})
+        return GaussianMap(**{name: arrays[name] for name in ARRAY_FIELDS if name in arrays}, stamp_ns=stamp_ns)
 
 
 def current_snapshot(map_dir: str | os.PathLike) -> Path | None:
@@ -187,6 +187,7 @@ def write_snapshot(content: SnapshotContent, map_dir: str | os.PathLike, *, expo
         "gaussians": len(content.gaussians),
         "map_version": content.map_version,
         "map_digest": digest,
+        "map_stamp_ns": int(content.gaussians.stamp_ns),  # the SLAM's stamp of the map (core.follow.map_frames)
         "deferred_keyframes": len(content.deferred),
         "config": asdict(content.config),
     }
@@ -270,7 +271,10 @@ def _read_snapshot(snap: Path, config: MapperConfig | None) -> SemanticMapper:
         raise MapStoreError(f"{snap}: unsupported format_version {meta.get('format_version')}")
     if not isinstance(meta.get("config"), dict):
         raise MapStoreError(f"{snap}: meta.json has no 'config' object")
-    gaussians = _read(snap / "gaussians.npz", _load_map)
+    stamp = meta.get("map_stamp_ns", 0)  # 0: unknown (snapshots from before it)
+    if isinstance(stamp, bool) or not isinstance(stamp, int) or stamp < 0:
+        raise MapStoreError(f"{snap}: meta.json's map_stamp_ns is {stamp!r}, not a stamp in ns")
+    gaussians = _read(snap / "gaussians.npz", lambda p: _load_map(p, stamp))
     # Snapshots from before semantic_mode used SCD, before weight_power the paper's k = 1, before max_depth_m no limit.
     saved = {"weight_power": 1, "semantic_mode": "scd", "max_depth_m": 0.0, **meta["config"]}
     try:
