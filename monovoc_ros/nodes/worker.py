@@ -627,8 +627,7 @@ class MapWorker:
                 elif task is not None:
                     published = self._published_s
                     self._execute(task)
-                    elapsed = time.perf_counter() - start - (self._published_s - published)
-                    self.stats.add(**{_ACTIVITY[task.kind]: elapsed})
+                    self.stats.add(**{_ACTIVITY[task.kind]: self._task_seconds(start, published)})
                 if self.session.reintegrating and (
                     self.keyframes_waiting == 0 or self._keyframes_since_step >= KEYFRAMES_PER_REINTEGRATION_STEP
                 ):
@@ -710,7 +709,12 @@ class MapWorker:
         except Exception as exc:
             self.stats.add(worker_errors=1)
             self.log.error(f"map {ahead.task.name}: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-        self.stats.add(worker_s_map_updates=time.perf_counter() - start - (self._published_s - published))
+        self.stats.add(worker_s_map_updates=self._task_seconds(start, published))
+
+    def _task_seconds(self, start: float, published: float) -> float:
+        """A task's worker time since `start` (perf_counter), less the publications made within it (`_published_s`
+        was `published` at `start`): they count as publication."""
+        return time.perf_counter() - start - (self._published_s - published)
 
     def _publish_before_waiting(self, pending: Future) -> None:
         """The worker is about to wait for `pending` (a map update's plan or motion, computed beside it): what

@@ -58,6 +58,12 @@ def posed_before(gaussians: GaussianMap, keyframe: Keyframe) -> bool:
     return stamps_order(gaussians.stamp_ns, keyframe.stamp_ns) and keyframe.stamp_ns < gaussians.stamp_ns
 
 
+def update_stamp(old: GaussianMap, new: GaussianMap) -> int:
+    """The stamp a map update from `old` to `new` orders keyframes by: the new map's when it is known and newer than
+    the old one's (or that one is unknown); else 0, the order of arrival (two SLAM processes, a clock reset)."""
+    return new.stamp_ns if new.stamp_ns > 0 and (old.stamp_ns <= 0 or new.stamp_ns > old.stamp_ns) else 0
+
+
 @dataclass(frozen=True)
 class _Update:
     stamp_ns: int  # of the map it made the one in use
@@ -80,11 +86,11 @@ class MapFrames:
 
     def updated(self, old: GaussianMap, gaussians: GaussianMap, mover: PoseMover | None) -> None:
         """A map update made `gaussians` the map in use instead of `old`; `mover` moves poses from `old` into it.
-        A history of another map than `old` (a load came between) or a stamp unknown or not after the newest
-        starts over."""
+        A history of another map than `old` (a load came between), or an update that stamps cannot order
+        (`update_stamp`), starts over."""
         if self._newest is None or self._newest() is not old:
             self.started(old)
-        if gaussians.stamp_ns <= 0 or gaussians.stamp_ns <= self._newest_ns():
+        if update_stamp(old, gaussians) == 0:
             self.started(gaussians)
             return
         self._updates.append(_Update(gaussians.stamp_ns, mover))
@@ -107,6 +113,3 @@ class MapFrames:
         for mover in movers:
             pose = mover(pose)
         return replace(keyframe, cam_to_world=pose[0])
-
-    def _newest_ns(self) -> int:
-        return self._updates[-1].stamp_ns if self._updates else self._base_ns

@@ -38,7 +38,7 @@ import numpy as np
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, LoggedKeyframe
 from monovoc_ros.core.follow.map_follow import FollowConfig, FollowResult, follow_ids, follow_positions
-from monovoc_ros.core.follow.map_frames import MapFrames, PoseMover, in_new_frame
+from monovoc_ros.core.follow.map_frames import MapFrames, PoseMover, in_new_frame, update_stamp
 from monovoc_ros.core.follow.map_motion import MapMotion
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import validate_pose
@@ -240,9 +240,7 @@ def update_map(
     if plan.refusal and mapper.state.observed.any():  # nothing to protect: any new map is taken
         raise MapMotionError(plan.refusal)
     mover = pose_mover(old.means, follow.motion)
-    # Stamps order the frames only when the new map is the newer (two SLAM processes, a clock reset: arrival).
-    newer = old.stamp_ns <= 0 or gaussians.stamp_ns > old.stamp_ns
-    kept = move_logged_poses(mapper.keyframe_log, mover, gaussians.stamp_ns if newer else 0, taken_back)
+    kept = move_logged_poses(mapper.keyframe_log, mover, update_stamp(old, gaussians), taken_back)
     # The newest labels carried to the new map, their geometry computed beside the mapper's next steps (the
     # update's end, a keyframe): the first result after the update starts its geometry there.
     labelling = mapper.labelling()
@@ -277,13 +275,11 @@ def move_logged_poses(
         log.poses_given = False
         return 0
 
-    def keep(stamp: int) -> bool:
-        return in_new_frame(stamp_ns, stamp) and stamp not in taken_back
-
     if mover is None:
         return 0
-    log.move_poses(mover, keep)
-    return sum(keep(entry.stamp_ns) for entry in log.entries)
+    kept = {e.stamp_ns for e in log.entries if in_new_frame(stamp_ns, e.stamp_ns) and e.stamp_ns not in taken_back}
+    log.move_poses(mover, kept.__contains__)
+    return len(kept)
 
 
 def pose_mover(means: np.ndarray, motion: MapMotion) -> PoseMover | None:
