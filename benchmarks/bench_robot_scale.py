@@ -3,6 +3,7 @@
     scripts/with_env.sh python benchmarks/bench_robot_scale.py                       # 1M and 2M Gaussians
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
 
 The scene: Replica office_0's 204k-Gaussian map tiled side by side to the size (benchmarks/bench_map_churn.py's
 `tiled`, per-Gaussian ids dropped: most SLAM front-ends have none), its 81 RGB keyframes replayed in every tile
@@ -255,7 +256,16 @@ def main() -> int:
     parser.add_argument("--map-update-ahead", action="store_true", help="the node's map_update_ahead")
     parser.add_argument("--map-in-node", action="store_true", help="map_reader_process false: the node takes the map")
     parser.add_argument("--fast-without-viewer", action="store_true", help="nothing subscribes to the fast run's cloud")
+    parser.add_argument(
+        "--fastdds-profile", type=Path, help="a Fast DDS XML profile for every process (node, replay, clients)"
+    )
     args = parser.parse_args()
+    if args.fastdds_profile is not None:
+        if not args.fastdds_profile.is_file():
+            parser.error(f"--fastdds-profile: no file {args.fastdds_profile}")
+        # Set before the first participant of this process (Fast DDS reads it once); the node and clients inherit it.
+        # The replay's 50 ms writer heartbeat (bags/rosnode.py) then applies only if the profile sets it.
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(args.fastdds_profile.resolve())
     node_params = {"map_update_ahead": args.map_update_ahead, "map_reader_process": not args.map_in_node}
     if not (REPLICA / "traj.txt").exists():
         print(f"{REPLICA} not present: nothing to measure", file=sys.stderr)
@@ -264,8 +274,9 @@ def main() -> int:
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 232)))
     loopback_environment(work / "ros_log")
     base = open_sequence(str(REPLICA))
+    profile = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE")
     report = {"source": str(REPLICA), "cpus": os.cpu_count(), "update_period_s": args.update_period_s,
-              **node_params, "rows": []}  # fmt: skip
+              "fastdds_profile": profile, **node_params, "rows": []}  # fmt: skip
     for n in (int(s) for s in args.sizes.split(",")):
         for kind in args.runs.split(","):
             rate, count = (args.robot_rate, args.robot_keyframes) if kind == "robot" else (10.0, args.fast_keyframes)
