@@ -16,7 +16,9 @@ snapshots into a map directory) running as its own process. Runs per size:
 - ``robot``: keyframes at `--robot-rate` (2/s) with the semantic cloud published whenever the queue is empty
   (`publish_rate_hz` 0): per keyframe the latency from its publication (the last of its messages, when the
   replay sent it: `KeyframePublishTimes`) to the first semantic cloud holding it (p50 / p95 / max); open-loop
-  text queries at 5/s meanwhile (p99, lost);
+  text queries at 5/s meanwhile (p99, lost). The cloud's viewer (monovoc_ros.nodes.cloud_viewer) and the query
+  client (monovoc_ros.nodes.query_load) are processes of their own, as RViz and a user's client are: in the
+  replaying process, its serializing of 56 MB map messages counted as the node's latency;
 - ``fast``: keyframes stamped at 10/s (the issue's target rate) replayed at `--fast-rate` times that rate
   (`publish_rate_hz` 1, the default): keyframes/s sustained from the first message to the last integrated, and
   keyframes dropped. (An as-fast-as-possible replay cannot hold the map updates: the map topic keeps the
@@ -59,7 +61,6 @@ from monovoc_ros.core.map.gaussians import GaussianMap  # noqa: E402
 from monovoc_ros.ros_harness import (  # noqa: E402
     SEMANTIC_MAPPER,
     ClientNode,
-    CloudMonitor,
     DiagnosticsMonitor,
     KeyframePublishTimes,
     NodeProcess,
@@ -150,7 +151,8 @@ def run(
     }
     # Named after the bag (size and run): the sizes share the work folder.
     start_file, queries_file = work / f"{bag.stem}_queries.start", work / f"{bag.stem}_queries.json"
-    for stale in (start_file, queries_file):
+    viewer_files = {k: work / f"{bag.stem}_viewer.{k}" for k in ("ready", "stop", "json")}
+    for stale in (start_file, queries_file, *viewer_files.values()):
         stale.unlink(missing_ok=True)
     duration = (stamps[-1] - stamps[0]) / 1e9
     with contextlib.ExitStack() as stack:
@@ -168,9 +170,17 @@ def run(
                 NodeProcess.python(load_args, name="query_load", output_path=work / f"query_load_{kind}.log")
             )
         diagnostics = DiagnosticsMonitor(client.node, "semantic mapping")
-        # A viewer of the semantic cloud (the node builds it only while something subscribes): the robot run's
-        # latency needs it; the fast run has one unless --fast-without-viewer.
-        clouds = CloudMonitor(client.node) if kind == "robot" or viewer else None
+        # A viewer of the semantic cloud (the node builds it only while something subscribes) from a process of
+        # its own, as RViz (monovoc_ros.nodes.cloud_viewer): the robot run's latency needs it; the fast run has
+        # one unless --fast-without-viewer.
+        cloud_viewer = None
+        if kind == "robot" or viewer:
+            viewer_args = ["-m", "monovoc_ros.nodes.cloud_viewer", "--ready-file", str(viewer_files["ready"]),
+                           "--stop-file", str(viewer_files["stop"]), "--out", str(viewer_files["json"])]  # fmt: skip
+            cloud_viewer = stack.enter_context(
+                NodeProcess.python(viewer_args, name="cloud_viewer", output_path=work / f"cloud_viewer_{kind}.log")
+            )
+            wait_until(viewer_files["ready"].exists, 300.0, "the cloud viewer", process=cloud_viewer)
         diagnostics.wait_for(lambda d: float(d.get("warm_up_ms", 0)) > 0, 300.0, what="warm-up", process=node)
         started: list[float] = []
 
@@ -196,6 +206,13 @@ def run(
                 raise RuntimeError(f"the query load failed\n{querying.describe()}")
             queries = json.loads(queries_file.read_text())
         time.sleep(1.0)  # the last cloud
+        arrivals: dict[int, float] = {}
+        if cloud_viewer is not None:
+            viewer_files["stop"].touch()
+            wait_until(lambda: not cloud_viewer.running(), 60.0, "the cloud viewer to end", process=None)
+            if cloud_viewer.returncode != 0 or not viewer_files["json"].exists():
+                raise RuntimeError(f"the cloud viewer failed\n{cloud_viewer.describe()}")
+            arrivals = {int(k): v for k, v in json.loads(viewer_files["json"].read_text())["arrivals"].items()}
         values = diagnostics.values()
         wall = finished - started[0]
         out = {
@@ -219,7 +236,7 @@ def run(
             "map_update_ms_last": round(float(values["ms_map_update_last"]), 1),
             "map_decode_ms_mean": round(1e3 * float(values["map_decode_s"]) / max(1, int(values["maps_decoded"])), 1),
             "snapshots": int(values["snapshots_saved"]),
-            "cloud_viewer": clouds is not None,
+            "cloud_viewer": cloud_viewer is not None,
             "clouds_skipped": int(values.get("clouds_skipped", 0)),
             "worker_share": worker_shares(values, wall),
             "node_peak_rss_mb": round(peak_rss_mb(node.pid)),
@@ -230,7 +247,7 @@ def run(
             ],
         }
         if kind == "robot":
-            lat = np.array(cloud_latencies_ms(published.at, clouds.arrivals))
+            lat = np.array(cloud_latencies_ms(published.at, arrivals))
             out.update(
                 keyframes_with_cloud=len(lat),
                 latency_ms_p50=round(float(np.percentile(lat, 50)), 1) if len(lat) else None,
@@ -238,7 +255,10 @@ def run(
                 latency_ms_max=round(float(lat.max()), 1) if len(lat) else None,
                 latency_ms_by_keyframe=[round(float(x)) for x in lat],
                 queries={
-                    k: queries.get(k) for k in ("sent", "answered", "lost", "p50_ms", "p99_ms", "max_ms", "slowest")
+                    **{k: queries.get(k) for k in ("sent", "answered", "lost", "p50_ms", "p99_ms", "max_ms")},
+                    "slowest": queries.get("slowest"),
+                    # The node's own part (its handlers' time): the rest of a slow answer was DDS and the executor.
+                    **{f"node_{k.split('.', 1)[1]}": values.get(k) for k in values if k.startswith("queries.handler_")},
                 },
             )
     return out

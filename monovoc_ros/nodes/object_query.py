@@ -68,8 +68,42 @@ from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
 
 REFRESH_DEFER_S = 5.0  # longest time embedding waits while keyframes are queued for the worker
+SLOW_ANSWER_MS = 50.0  # answers slower than this in the handler are counted (issue 25's query p99 target)
 # Added to the nice value of the indexing thread (and its encoder threads) and of the objects.db writer.
 BACKGROUND_NICENESS = 10
+
+
+class HandlerTimes:
+    """How long the query and ask handlers took: the node's own part of an answer's latency (the rest is the
+    request's and the answer's way through DDS and the executor), to tell the two apart in /diagnostics."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()  # handlers run side by side (a reentrant callback group)
+        self.max_ms = 0.0
+        self.slowest_at = 0.0  # time.time() when the slowest began
+        self.slow = 0  # over SLOW_ANSWER_MS
+
+    def timed(self, handler: Callable[[Any, Any], Any]) -> Callable[[Any, Any], Any]:
+        def call(request: Any, response: Any) -> Any:
+            began, start = time.time(), time.perf_counter()
+            try:
+                return handler(request, response)
+            finally:
+                ms = 1e3 * (time.perf_counter() - start)
+                with self._lock:
+                    self.slow += ms > SLOW_ANSWER_MS
+                    if ms > self.max_ms:
+                        self.max_ms, self.slowest_at = ms, began
+
+        return call
+
+    def diagnostics(self) -> dict[str, Any]:
+        with self._lock:
+            return {
+                "queries.handler_ms_max": round(self.max_ms, 1),
+                "queries.handler_slowest_at": round(self.slowest_at, 3),
+                f"queries.handler_over_{SLOW_ANSWER_MS:.0f}ms": self.slow,
+            }
 
 
 def _lower_priority() -> None:
@@ -153,10 +187,11 @@ class ObjectQueryComponent:
         def count_error() -> None:
             self.queries_failed += 1
 
+        self.handler_times = HandlerTimes()
         handler = guarded(TextQuery, "query", self._on_query, log=self.log.error, on_error=count_error)
-        self.service = host.create_service(TextQuery, "query", handler, SERVICE_QOS)
+        self.service = host.create_service(TextQuery, "query", self.handler_times.timed(handler), SERVICE_QOS)
         handler = guarded(Ask, "ask", self._on_ask, log=self.log.error, on_error=count_error, text_field="answer")
-        self.ask_service = host.create_service(Ask, "ask", handler, SERVICE_QOS)
+        self.ask_service = host.create_service(Ask, "ask", self.handler_times.timed(handler), SERVICE_QOS)
         self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
         self.save_errors = 0  # objects.db writes that failed (logged; the next save writes what the file lacks)
         self.highlight = host.create_publisher(PointCloud2, "query/highlight", latched_qos())
@@ -244,6 +279,7 @@ class ObjectQueryComponent:
             "objects.backend_error": self.backend_error or "",
             "queries.answered": self.queries_answered,
             "queries.failed": self.queries_failed,
+            **self.handler_times.diagnostics(),
             "objects.restore_errors": self.restore_errors,
             "objects.save_errors": self.save_errors,
         }
