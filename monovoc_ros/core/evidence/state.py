@@ -28,7 +28,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from monovoc_ros.core.map.gaussians import gather_rows, id_partners
+from monovoc_ros.core.map.gaussians import all_distinct, gather_rows, id_partners
 
 # Written into every saved file (beside the store's FORMAT) so that a foreign .npz is recognised as such.
 _FORMAT_VERSION = 1
@@ -43,7 +43,7 @@ def _as_ids(ids: np.ndarray | None, n: int, what: str) -> np.ndarray | None:
     if ids.dtype.kind not in "iu":
         raise ValueError(f"{what}: expected integer ids, got dtype {ids.dtype}")
     ids = ids.astype(np.int64)
-    if np.unique(ids).size != n:
+    if not all_distinct(ids):
         raise ValueError(f"{what}: ids must be unique")
     return ids
 
@@ -64,7 +64,7 @@ class GaussianEvidence:
         name = type(self).__name__
         if stamps.ndim != 1:
             raise ValueError(f"{name}.stamps_ns: expected shape (K,), got {stamps.shape}")
-        if np.unique(stamps).size != stamps.size:
+        if not all_distinct(stamps):
             raise ValueError(f"{name}.stamps_ns: duplicate keyframe stamps")
         self.ids = _as_ids(self.ids, n, f"{name}.ids")
         self.stamps_ns = stamps

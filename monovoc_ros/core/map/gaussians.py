@@ -35,6 +35,14 @@ def _frozen(a: np.ndarray | None, dtype, shape_tail: tuple, name: str, n: int | 
     return a
 
 
+def all_distinct(values: np.ndarray) -> bool:
+    """Whether the (N,) integers are pairwise distinct. A sort and a neighbour test: numpy 2.4's np.unique hashes
+    integers, 13x slower on 1M distinct ids (700 against 53 ms) and holding the interpreter up to 0.1 s at a time
+    (every other thread of the node waits), where the sort releases it."""
+    ordered = np.sort(np.asarray(values).ravel())
+    return not bool(np.any(ordered[1:] == ordered[:-1]))
+
+
 @dataclass(frozen=True, eq=False)
 class GaussianMap:
     means: np.ndarray  # (N, 3) float32, world frame, metres
@@ -70,10 +78,8 @@ class GaussianMap:
         object.__setattr__(self, "colors", _frozen(self.colors, np.float32, (3,), "colors", n))
         object.__setattr__(self, "ids", _frozen(self.ids, np.int64, (), "ids", n))
         object.__setattr__(self, "semantics", _frozen(self.semantics, np.float32, (3,), "semantics", n))
-        if self.ids is not None and n > 1:
-            ordered = np.sort(self.ids)  # sort + neighbour test: ~10x faster than np.unique at 600k
-            if np.any(ordered[1:] == ordered[:-1]):
-                raise ValueError("GaussianMap.ids: ids must be unique")
+        if self.ids is not None and not all_distinct(self.ids):
+            raise ValueError("GaussianMap.ids: ids must be unique")
 
     def __len__(self) -> int:
         return self.means.shape[0]
