@@ -239,6 +239,8 @@ def run(
             "cloud_viewer": cloud_viewer is not None,
             "clouds_skipped": int(values.get("clouds_skipped", 0)),
             "worker_share": worker_shares(values, wall),
+            # The longest time any thread of the node held the interpreter (nodes/interpreter_watch.py), and when.
+            **{k: values.get(k) for k in values if k.startswith("interpreter_hold")},
             "node_peak_rss_mb": round(peak_rss_mb(node.pid)),
             "map_reader_peak_rss_mb": [
                 round(peak_rss_mb(c.pid))

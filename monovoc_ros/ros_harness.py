@@ -198,7 +198,7 @@ class ClientNode:
     discovery range and log directory from the process environment at init, so those variables are set for
     the life of the node and restored on exit. Without it, the node uses this process's environment.
 
-    The node is created under bags.rosnode.writer_heartbeat: when it is the process's first participant,
+    The node is created under fastdds_profile.writer_heartbeat: when it is the process's first participant,
     every writer of the process (a bag replay's too) gets the 50 ms Fast DDS heartbeat.
     """
 
@@ -216,7 +216,8 @@ class ClientNode:
         import rclpy
         from rclpy.signals import SignalHandlerOptions
 
-        from monovoc_ros.bags.rosnode import WRITER_HEARTBEAT_MS, spinning, writer_heartbeat
+        from monovoc_ros.bags.rosnode import spinning
+        from monovoc_ros.fastdds_profile import WRITER_HEARTBEAT_MS, writer_heartbeat
 
         if self._env is not None:
             for key in self._ENV_KEYS:
@@ -229,7 +230,7 @@ class ClientNode:
             self.context = rclpy.Context()
             domain = os.environ.get("ROS_DOMAIN_ID")
             # A replay in this process (tests, the demo, benchmarks) gets its writers' short heartbeat
-            # only if the process's first participant (its first node) was created with it (bags.rosnode).
+            # only if the process's first participant (its first node) was created with it (fastdds_profile).
             with writer_heartbeat(WRITER_HEARTBEAT_MS):
                 rclpy.init(context=self.context, domain_id=int(domain) if domain else None,
                            signal_handler_options=SignalHandlerOptions.NO)  # fmt: skip

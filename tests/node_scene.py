@@ -76,9 +76,9 @@ class RunningMapper:
 
 
 @contextlib.contextmanager
-def running_mapper(tmp_path: Path, params: dict) -> Iterator[RunningMapper]:
-    """The mapping node started with `params` in a test's own ROS environment, and a client ready to talk to it:
-    every input publisher matched and the save_map service up."""
+def running_mapper(tmp_path: Path, params: dict, node_env: dict | None = None) -> Iterator[RunningMapper]:
+    """The mapping node started with `params` in a test's own ROS environment (plus `node_env`, the node's
+    only), and a client ready to talk to it: every input publisher matched and the save_map service up."""
     from monovoc_interfaces.srv import SaveMap
     from monovoc_ros.ros_harness import (
         ClientNode,
@@ -92,7 +92,7 @@ def running_mapper(tmp_path: Path, params: dict) -> Iterator[RunningMapper]:
 
     env = ros_environment(tmp_path)
     with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        NodeProcess.python([*NODE, *ros_args(params)], {**env, **(node_env or {})}, name="semantic_mapper") as node,
         ClientNode(env) as client,
     ):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")

@@ -283,7 +283,8 @@ def test_the_short_writer_heartbeat_is_in_place_when_the_participant_is_created(
     environment, and it is gone afterwards (a fast replay beside a client ended 3 s late without it)."""
     import rclpy
 
-    from monovoc_ros.bags.rosnode import WRITER_HEARTBEAT_MS, ros_node
+    from monovoc_ros.bags.rosnode import ros_node
+    from monovoc_ros.fastdds_profile import WRITER_HEARTBEAT_MS
 
     env = ros_environment(tmp_path)
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOG_DIR", "HOME"):

@@ -183,3 +183,15 @@ def test_runtime_needs_no_torch_or_transformers():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=os.environ, check=True)
     assert out.stdout.strip() == ""
+
+
+def test_backend_classes_are_found_by_name_without_loading_a_model():
+    """What a node imports before it serves (the modules' import held the interpreter 0.1-0.26 s)."""
+    from monovoc_ros.embed.backend import BACKENDS, backend_class
+
+    assert BACKENDS == ("conse", "clip_onnx")
+    assert [backend_class(name).__name__ for name in BACKENDS] == ["ConseBackend", "ClipOnnxBackend"]
+    with pytest.raises(ValueError, match="unknown embedding backend 'nope'; choose one of conse, clip_onnx"):
+        backend_class("nope")
+    with pytest.raises(ValueError, match="unknown embedding backend"):
+        load_backend("nope")

@@ -32,8 +32,9 @@ from typing import Any
 from monovoc_ros.bags import schemas
 from monovoc_ros.bags.qos import rclpy_profile
 from monovoc_ros.bags.reader import BagInfo, bag_info, iter_messages
-from monovoc_ros.bags.rosnode import WRITER_HEARTBEAT_MS, ros_node
+from monovoc_ros.bags.rosnode import ros_node
 from monovoc_ros.contract import KEYFRAME_ROLES, MAP_ROLE
+from monovoc_ros.fastdds_profile import WRITER_HEARTBEAT_MS
 
 STREAM_DEPTH_MAX = 100  # history of a volatile topic (unacknowledged messages in flight in fast mode)
 LATCHED_DEPTH_MAX = 32  # history of a transient-local topic (what a late joiner gets)

@@ -5,54 +5,20 @@ rclpy's signal handlers are not installed: Ctrl-C arrives as ``KeyboardInterrupt
 and SIGTERM sets the ``stop`` event (``install_stop_signals``), so files and acknowledgements are
 finished properly either way.
 
-Replay's writers get a Fast DDS heartbeat period of WRITER_HEARTBEAT_MS instead of 3 s (when no Fast
-DDS profile is configured): a reliable reader acknowledges only on a heartbeat, so with the default the
-final ``wait_for_all_acked`` of a fast replay idled up to 3 s (measured 2.9 s of a 3.3 s replay of the
-bundled bag; 0.5 s with the profile). Fast DDS reads the profile once per process, when the first
-participant is created, so a process that replays beside another context (ros_harness.ClientNode:
-tests, the demo, benchmarks) must create its first context and node under `writer_heartbeat` too.
+Replay's writers get a short Fast DDS heartbeat (monovoc_ros.fastdds_profile): Fast DDS reads the profile
+once per process, when the first participant is created, so a process that replays beside another context
+(ros_harness.ClientNode: tests, the demo, benchmarks) must create its first context and node under it too.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
 import signal
-import tempfile
 import threading
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
-WRITER_HEARTBEAT_MS = 50  # acknowledgements within ~50 ms instead of Fast DDS's 3 s
-_PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
-_WRITER_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
-<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
-  <data_writer profile_name="monovoc_replay_writer" is_default_profile="true">
-    <times><heartbeatPeriod><sec>0</sec><nanosec>{ns}</nanosec></heartbeatPeriod></times>
-  </data_writer>
-</profiles>
-"""
-
-
-@contextlib.contextmanager
-def writer_heartbeat(period_ms: int | None) -> Iterator[None]:
-    # Fast DDS reads the default profiles file when it creates the process's first participant (with
-    # the first node of the first context); a user's own profile, another middleware or an earlier
-    # context in the process win.
-    rmw = os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
-    if period_ms is None or os.environ.get(_PROFILES_ENV) or rmw != "rmw_fastrtps_cpp":
-        yield
-        return
-    fd, name = tempfile.mkstemp(prefix="monovoc_replay_", suffix=".xml")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(_WRITER_PROFILE.format(ns=int(period_ms) * 1_000_000))
-        os.environ[_PROFILES_ENV] = name
-        yield
-    finally:
-        os.environ.pop(_PROFILES_ENV, None)
-        Path(name).unlink(missing_ok=True)
+from monovoc_ros.fastdds_profile import writer_heartbeat
 
 
 @contextlib.contextmanager

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
@@ -27,7 +28,21 @@ class EmbeddingBackend(Protocol):
         ...
 
 
-BACKENDS = ("conse", "clip_onnx")
+# name -> (module, class): imported on first use (onnxruntime, tokenizers).
+_IMPLEMENTATIONS = {
+    "conse": ("monovoc_ros.embed.conse", "ConseBackend"),
+    "clip_onnx": ("monovoc_ros.embed.clip_onnx", "ClipOnnxBackend"),
+}
+BACKENDS = tuple(_IMPLEMENTATIONS)
+
+
+def backend_class(name: str) -> type:
+    """The class of backend ``name``, its modules imported (no model loaded). Their import holds the interpreter
+    0.1-0.3 s: a node does it before it serves (nodes/object_query.py), not while it answers queries."""
+    if name not in _IMPLEMENTATIONS:
+        raise ValueError(f"unknown embedding backend {name!r}; choose one of {', '.join(BACKENDS)}")
+    module, cls = _IMPLEMENTATIONS[name]
+    return getattr(importlib.import_module(module), cls)
 
 
 def load_backend(name: str = "conse", **options) -> EmbeddingBackend:
@@ -38,14 +53,7 @@ def load_backend(name: str = "conse", **options) -> EmbeddingBackend:
     - ``"clip_onnx"``: user-supplied CLIP-style ONNX files; options ``model_dir`` (required), ``threads``
       (see :class:`monovoc_ros.embed.clip_onnx.ClipOnnxBackend`).
     """
-    if name == "conse":
-        from monovoc_ros.embed.conse import ConseBackend
-
-        return ConseBackend(**options)
-    if name == "clip_onnx":
-        from monovoc_ros.embed.clip_onnx import ClipOnnxBackend
-
-        if "model_dir" not in options:
-            raise ValueError("the clip_onnx backend needs model_dir=<directory with visual.onnx, textual.onnx, ...>")
-        return ClipOnnxBackend(**options)
-    raise ValueError(f"unknown embedding backend {name!r}; choose one of {', '.join(BACKENDS)}")
+    cls = backend_class(name)
+    if name == "clip_onnx" and "model_dir" not in options:
+        raise ValueError("the clip_onnx backend needs model_dir=<directory with visual.onnx, textual.onnx, ...>")
+    return cls(**options)

@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.fastdds_profile import child_environment
 
 # The arrays of a GaussianMap that a map message carries (cloud_to_gaussian_map fills no others), as the
 # GaussianMap holds them: the only dtypes a header may name.
@@ -266,7 +267,9 @@ class MapReaderProcess:
         try:
             command = [sys.executable, "-m", "monovoc_ros.nodes.map_reader", "--fd", str(theirs.fileno()),
                        "--topic", self.topic, "--node-name", self.node_name, "--namespace", self.namespace]  # fmt: skip
-            child = subprocess.Popen(command, pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL)
+            child = subprocess.Popen(
+                command, pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL, env=child_environment()
+            )
         except BaseException:
             ours.close()
             raise

@@ -56,9 +56,12 @@ from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_def
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import KeyframeListener
 from monovoc_ros.core.warm_up import kernels_cached, warm_up
+from monovoc_ros.fastdds_profile import WRITER_HEARTBEAT_MS, writer_heartbeat
+from monovoc_ros.fastdds_profile import describe as describe_dds
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.component import Component, MappingHost
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
+from monovoc_ros.nodes.interpreter_watch import InterpreterWatch
 from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal, supported
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.param_spec import ParameterError, declare
@@ -107,6 +110,8 @@ class MappingNode(Node):
         self._warned_frame: set[str] = set()
         self._map_reader: MapReaderProcess | None = None
         self._diagnostics_sources: list[Callable[[], dict[str, Any]]] = []
+        self._interpreter_watch = InterpreterWatch()  # what keeps every thread of the node waiting
+        self._diagnostics_sources.append(self._interpreter_watch.diagnostics)
         # Named so that plugins can put their own callbacks beside ours.
         # One group per input topic: each topic's messages are handled one at a time, in order (what the
         # assembler needs), while the topics progress side by side. In one shared mutually exclusive group
@@ -252,6 +257,7 @@ class MappingNode(Node):
     # ------------------------------------------------------------------ life cycle
 
     def start(self) -> None:
+        self._interpreter_watch.start()
         self.worker.start()
         if self._map_reader is not None:
             self._map_reader.start()
@@ -271,6 +277,7 @@ class MappingNode(Node):
         if self._map_reader is not None:  # no map arrives while the worker drains
             self._map_reader.stop()
         self.worker.stop(within_s=end - TEARDOWN_RESERVE_S - time.monotonic())
+        self._interpreter_watch.stop()
 
     def destroy_node(self) -> None:
         if self._map_reader is not None:  # stopped already unless start-up was cut short
@@ -626,10 +633,14 @@ def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Com
 
 def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component]] | None, stop: StopSignals) -> int:
     # rclpy's own handlers would shut the context down under the final snapshot's feet: ours only ask to stop.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
-        node = MappingNode(stop=stop.requested)
+        # The participant comes with the first node: its reliable writers (the query's answers among them)
+        # repair a lost sample within 50 ms, not Fast DDS's 3 s (monovoc_ros.fastdds_profile).
+        with writer_heartbeat(WRITER_HEARTBEAT_MS) as ours:
+            rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+            node = MappingNode(stop=stop.requested)
+        node.get_logger().info(describe_dds(ours))
         components = compose(node) if compose is not None else []
         check_stop(stop.requested, "starting components")
     except StartupAborted as exc:

@@ -47,6 +47,7 @@ import numpy as np
 
 import msg_adapters as ma
 from monovoc_ros.core.segments.object_labels import ObjectLabel, display
+from monovoc_ros.embed.backend import backend_class
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
 from monovoc_ros.nodes.navigation import NavigationSettings
@@ -219,6 +220,13 @@ class ObjectQueryComponent:
         host.add_save_listener(self._on_saved)
         host.add_load_check(self._check_load)
         host.set_label_provider(lambda: self._labels)
+        # The backend's modules imported now, before the worker and the executor run: importing them held the
+        # interpreter 0.1-0.26 s, and the queries of a robot run's first second waited for it (docs/results.md,
+        # robot scale, eleventh session). The models themselves load on the indexing thread.
+        name = getattr(self._backend_source, "backend_name", None)
+        if name is not None:
+            with contextlib.suppress(ValueError, ImportError):  # the indexing thread reports it
+                backend_class(name)
         if host.resume and host.map_directory:
             self._restore(host.map_directory)
             mapper = host.mapper()

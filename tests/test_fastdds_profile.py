@@ -1,0 +1,90 @@
+"""The Fast DDS profile of our processes (monovoc_ros.fastdds_profile): a 50 ms heartbeat for reliable writers,
+set only around the first node, never over a user's profile, never passed to children; the mapping node runs
+under it and says so."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from monovoc_ros import fastdds_profile as fp
+
+USER_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <data_writer profile_name="users_writer" is_default_profile="true">
+    <times><heartbeatPeriod><sec>0</sec><nanosec>200000000</nanosec></heartbeatPeriod></times>
+  </data_writer>
+</profiles>
+"""
+
+
+@pytest.fixture
+def clean_env(monkeypatch, tmp_path):
+    for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE", "RMW_IMPLEMENTATION"):
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.chdir(tmp_path)  # no DEFAULT_FASTRTPS_PROFILES.xml here
+    return monkeypatch
+
+
+def test_the_profile_and_when_a_users_settings_win(clean_env, tmp_path):
+    assert "<nanosec>50000000</nanosec>" in fp.profile_xml(fp.WRITER_HEARTBEAT_MS)
+    assert fp.profile_xml(None) is None
+    clean_env.setenv("RMW_IMPLEMENTATION", "rmw_cyclonedds_cpp")
+    assert fp.profile_xml(50) is None and fp.describe(False) == "DDS: rmw_cyclonedds_cpp as configured"
+    clean_env.delenv("RMW_IMPLEMENTATION")
+    for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE"):
+        clean_env.setenv(key, "/etc/mine.xml")
+        assert fp.profile_xml(50) is None
+        assert fp.describe(False) == "Fast DDS: the user's profile /etc/mine.xml, as it is"
+        clean_env.delenv(key)
+    (tmp_path / "DEFAULT_FASTRTPS_PROFILES.xml").write_text(USER_PROFILE)
+    assert fp.profile_xml(50) is None
+
+
+def test_the_profile_is_set_only_inside_and_children_do_not_inherit_it(clean_env):
+    with fp.writer_heartbeat(fp.WRITER_HEARTBEAT_MS) as applied:
+        assert applied
+        path = Path(os.environ[fp.PROFILES_ENV])
+        assert "heartbeatPeriod" in path.read_text()
+        assert fp.PROFILES_ENV not in fp.child_environment()
+    assert fp.PROFILES_ENV not in os.environ and not path.exists()
+    clean_env.setenv(fp.PROFILES_ENV, "/etc/mine.xml")  # a user's profile is passed on, and left alone
+    assert fp.child_environment()[fp.PROFILES_ENV] == "/etc/mine.xml"
+    with fp.writer_heartbeat(fp.WRITER_HEARTBEAT_MS) as applied:
+        assert not applied and os.environ[fp.PROFILES_ENV] == "/etc/mine.xml"
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("users", [False, True])
+def test_the_mapping_node_runs_under_the_profile_or_the_users(tmp_path, users):
+    """The node says which it runs under, takes a map and keyframes under it, and its map reader child starts
+    without our profile (a user's is passed on)."""
+    import psutil
+
+    from tests.node_scene import running_mapper, scene_messages, small_scene
+
+    node_env = {}
+    if users:
+        (tmp_path / "mine.xml").write_text(USER_PROFILE)
+        node_env[fp.PROFILES_ENV] = str(tmp_path / "mine.xml")
+    with running_mapper(tmp_path, {"publish_rate_hz": 0.0, "map_reader_process": True}, node_env) as mapper:
+        mapper.publisher.publish_map(small_scene().gaussians)
+        for msgs in scene_messages()[:2]:
+            mapper.publisher.publish_messages(msgs)
+        mapper.diagnostics.wait_for(lambda v: v["keyframes_processed"] == "2", 30.0, process=mapper.node)
+        readers = [c for c in psutil.Process(mapper.node.pid).children() if "map_reader" in " ".join(c.cmdline())]
+        assert len(readers) == 1
+        environ = dict(
+            entry.split("=", 1)
+            for entry in Path(f"/proc/{readers[0].pid}/environ").read_text().split("\0")
+            if "=" in entry
+        )
+        output = mapper.node.output()
+    if users:
+        assert f"Fast DDS: the user's profile {tmp_path / 'mine.xml'}, as it is" in output
+        assert environ.get(fp.PROFILES_ENV) == str(tmp_path / "mine.xml")
+    else:
+        assert f"Fast DDS: reliable writers' heartbeat {fp.WRITER_HEARTBEAT_MS} ms" in output
+        assert fp.PROFILES_ENV not in environ
