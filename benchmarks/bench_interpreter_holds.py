@@ -5,9 +5,9 @@
 
 While the worker runs C code that keeps the GIL (numpy's hashing `np.unique`, a numba kernel without
 ``nogil``), no other thread of the node runs: the executor cannot take a query, a handler cannot finish its
-answer. A thread beside the tasks wakes every 0.5 ms and records the gaps between its wakes; per task the
-longest gap is the longest hold (plus a scheduling slice). The node sets the interpreter's switch interval to
-1 ms (nodes/mapping_node.py), as here.
+answer. The node's watch (nodes/interpreter_watch.py) beside the tasks wakes every 0.5 ms; per task, the most
+it woke late by is the longest hold (plus a scheduling slice). The node sets the interpreter's switch interval
+to 1 ms (nodes/mapping_node.py), as here.
 
 The tasks, through the session the node uses (core.session.MappingSession): the first map (office_0 tiled to the
 size, with and without per-Gaussian ids), keyframes, a map update planned beside the worker and applied, the
@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -32,41 +31,34 @@ from bench_map_churn import REPLICA, tiled  # noqa: E402
 
 from monovoc_ros.core.evaluation.datasets import open_sequence  # noqa: E402
 from monovoc_ros.core.session import MappingSession  # noqa: E402
+from monovoc_ros.nodes.interpreter_watch import InterpreterWatch  # noqa: E402
 from monovoc_ros.synthetic import churn  # noqa: E402
 
 TICK_S = 0.0005
 
 
 class HoldProbe:
-    """A thread that wakes every TICK_S; `longest(start, end)`: the longest gap between its wakes in that span."""
+    """The node's own watch (nodes/interpreter_watch.py), waking every TICK_S, read per task."""
 
     def __init__(self) -> None:
-        self._wakes: list[float] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            time.sleep(TICK_S)
-            self._wakes.append(time.perf_counter())
+        self.watch = InterpreterWatch(period_s=TICK_S)
 
     def __enter__(self) -> HoldProbe:
-        self._thread.start()
+        self.watch.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
+        self.watch.stop()
 
     def timed(self, fn) -> dict:
         """Runs fn(); its milliseconds and the longest hold (ms) while it ran."""
+        self.watch.reset()
         start = time.perf_counter()
         fn()
         end = time.perf_counter()
         time.sleep(0.005)  # the wake that ends a hold at the task's end
-        wakes = [t for t in list(self._wakes) if start <= t <= end + 0.005]
-        gaps = [b - a for a, b in zip([start, *wakes], wakes, strict=False)]
-        return {"ms": round(1e3 * (end - start), 1), "longest_hold_ms": round(1e3 * max(gaps, default=0.0), 1)}
+        longest = self.watch.diagnostics()["interpreter_hold_ms_max"]
+        return {"ms": round(1e3 * (end - start), 1), "longest_hold_ms": longest}
 
 
 def run(gaussians, keyframes, ids: bool, probe: HoldProbe) -> dict:

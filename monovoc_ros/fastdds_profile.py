@@ -5,8 +5,9 @@ says what it sent; Fast DDS's heartbeat period is 3 s. So one lost sample holds 
 up to 3 s:
 * the final ``wait_for_all_acked`` of a fast replay idled up to 3 s (2.9 s of a 3.3 s replay of the bundled bag;
   0.5 s with 50 ms);
-* the node's answers to queries: 62-65 of a 1M robot run (docs/results.md, robot scale, eleventh session) came
-  1.8-2.9 s late, all at once, while no handler took over 19 ms and the interpreter was never held over 35 ms.
+* the node's answers to queries: in three of eight 1M robot runs (docs/results.md, robot scale, eleventh
+  session) the answers to a few consecutive queries came 1.8-2.9 s late, all at once, while no handler took
+  over 40 ms.
 WRITER_HEARTBEAT_MS bounds that wait. Heartbeats go out only while a writer has unacknowledged samples.
 
 Fast DDS reads its default profiles file once per process, when the first participant is created; rmw creates

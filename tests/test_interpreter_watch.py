@@ -40,3 +40,5 @@ def test_the_longest_hold_and_when_it_ended_are_kept():
     values = watch.diagnostics()
     assert values[LONG] == 1 and values["interpreter_hold_ms_max"] == LONG_HOLD_MS + 1
     assert values["interpreter_hold_max_at"] == 5.0
+    watch.reset()
+    assert watch.diagnostics() == {"interpreter_hold_ms_max": 0.0, "interpreter_hold_max_at": 0.0, LONG: 0}

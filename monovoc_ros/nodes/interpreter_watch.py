@@ -43,6 +43,11 @@ class InterpreterWatch:
             self.record(1e3 * (now - last - self.period_s), time.time())
             last = now
 
+    def reset(self) -> None:
+        """Forgets what was recorded (benchmarks/bench_interpreter_holds.py: one task at a time)."""
+        with self._lock:
+            self.max_ms, self.max_at, self.long_holds = 0.0, 0.0, 0
+
     def record(self, late_ms: float, at: float) -> None:
         """One wake, ``late_ms`` after it was due (the watch's own loop; public for the tests)."""
         with self._lock:
