@@ -5,9 +5,9 @@
 
 While the worker runs C code that keeps the GIL (numpy's hashing `np.unique`, a numba kernel without
 ``nogil``), no other thread of the node runs: the executor cannot take a query, a handler cannot finish its
-answer. The node's watch (nodes/interpreter_watch.py) beside the tasks wakes every 0.5 ms; per task, the most
-it woke late by is the longest hold (plus a scheduling slice). The node sets the interpreter's switch interval
-to 1 ms (nodes/mapping_node.py), as here.
+answer. The node's watch (nodes/interpreter_watch.py; every 5 ms in the node) wakes here every 0.5 ms beside the
+tasks; per task, the most it woke late by is the longest hold (plus a scheduling slice). The node sets the
+interpreter's switch interval to 1 ms (nodes/mapping_node.py), as here.
 
 The tasks, through the session the node uses (core.session.MappingSession): the first map (office_0 tiled to the
 size, with and without per-Gaussian ids), keyframes, a map update planned beside the worker and applied, the
@@ -85,6 +85,8 @@ def main() -> int:
     parser.add_argument("--gaussians", type=int, default=1_000_000)
     parser.add_argument("--keyframes", type=int, default=6)
     args = parser.parse_args()
+    if args.keyframes < 2:
+        parser.error("--keyframes: at least 2 (the first is not counted: its chunks are built)")
     if not (REPLICA / "traj.txt").exists():
         print(f"{REPLICA} not present: nothing to measure", file=sys.stderr)
         return 1

@@ -240,7 +240,7 @@ def run(
             "clouds_skipped": int(values.get("clouds_skipped", 0)),
             "worker_share": worker_shares(values, wall),
             # The longest time any thread of the node held the interpreter (nodes/interpreter_watch.py), and when.
-            **{k: values.get(k) for k in values if k.startswith("interpreter_hold")},
+            **{k: float(v) for k, v in values.items() if k.startswith("interpreter_hold")},
             "node_peak_rss_mb": round(peak_rss_mb(node.pid)),
             "map_reader_peak_rss_mb": [
                 round(peak_rss_mb(c.pid))
@@ -260,7 +260,11 @@ def run(
                     **{k: queries.get(k) for k in ("sent", "answered", "lost", "p50_ms", "p99_ms", "max_ms")},
                     "slowest": queries.get("slowest"),
                     # The node's own part (its handlers' time): the rest of a slow answer was DDS and the executor.
-                    **{f"node_{k.split('.', 1)[1]}": values.get(k) for k in values if k.startswith("queries.handler_")},
+                    **{
+                        f"node_{k.split('.', 1)[1]}": float(v)
+                        for k, v in values.items()
+                        if k.startswith("queries.handler_")
+                    },
                 },
             )
     return out
@@ -286,7 +290,8 @@ def main() -> int:
         if not args.fastdds_profile.is_file():
             parser.error(f"--fastdds-profile: no file {args.fastdds_profile}")
         # Set before the first participant of this process (Fast DDS reads it once); the node and clients inherit it.
-        # The replay's 50 ms writer heartbeat (bags/rosnode.py) then applies only if the profile sets it.
+        # The replay's and the node's 50 ms writer heartbeat (monovoc_ros/fastdds_profile.py) then applies only if
+        # the profile sets it.
         os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(args.fastdds_profile.resolve())
     node_params = {"map_update_ahead": args.map_update_ahead, "map_reader_process": not args.map_in_node}
     if not (REPLICA / "traj.txt").exists():

@@ -14,8 +14,8 @@ Fast DDS reads its default profiles file once per process, when the first partic
 a context's participant with its first node (not at ``rclpy.init``). So the profile must be in place around the
 process's first ``create_node`` (``writer_heartbeat``), and is gone afterwards: children started meanwhile get
 ``child_environment()``, without it (its file may be gone before they read it). A profile of the user's
-(``FASTRTPS_DEFAULT_PROFILES_FILE``, ``FASTDDS_DEFAULT_PROFILES_FILE``, DEFAULT_FASTRTPS_PROFILES.xml in the
-working directory) or another middleware wins: nothing is changed then.
+(``FASTRTPS_DEFAULT_PROFILES_FILE``, or DEFAULT_FASTRTPS_PROFILES.xml in the working directory unless
+``SKIP_DEFAULT_XML=1``: what Jazzy's Fast DDS 2.14 reads) or another middleware wins: nothing is changed then.
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from pathlib import Path
 
 PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
 WRITER_HEARTBEAT_MS = 50
-_USER_PROFILES = (PROFILES_ENV, "FASTDDS_DEFAULT_PROFILES_FILE")
 _DEFAULT_FILE = "DEFAULT_FASTRTPS_PROFILES.xml"  # Fast DDS reads it from the working directory
 _FILE_PREFIX = "monovoc_fastdds_"
 _WRITER_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
@@ -40,11 +39,20 @@ _WRITER_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
 """
 
 
+def _users_profile() -> str | None:
+    """The profiles file Fast DDS reads without us, if any."""
+    if os.environ.get(PROFILES_ENV):
+        return os.environ[PROFILES_ENV]
+    if os.environ.get("SKIP_DEFAULT_XML") != "1" and Path(_DEFAULT_FILE).exists():
+        return _DEFAULT_FILE
+    return None
+
+
 def profile_xml(period_ms: int | None) -> str | None:
     """The profile for this heartbeat in this environment, or None when nothing is to change."""
     if period_ms is None or os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp":
         return None
-    if any(os.environ.get(key) for key in _USER_PROFILES) or Path(_DEFAULT_FILE).exists():
+    if _users_profile() is not None:
         return None
     return _WRITER_PROFILE.format(ns=int(period_ms) * 1_000_000)
 
@@ -71,9 +79,9 @@ def describe(applied: bool) -> str:
     """What the process's participant runs under, for its log."""
     if applied:
         return f"Fast DDS: reliable writers' heartbeat {WRITER_HEARTBEAT_MS} ms (monovoc_ros.fastdds_profile)"
-    user = next((os.environ[key] for key in _USER_PROFILES if os.environ.get(key)), None)
-    if user or Path(_DEFAULT_FILE).exists():
-        return f"Fast DDS: the user's profile {user or _DEFAULT_FILE}, as it is"
+    user = _users_profile()
+    if user is not None:
+        return f"Fast DDS: the user's profile {user}, as it is"
     return f"DDS: {os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')} as configured"
 
 

@@ -434,6 +434,11 @@ class CloudMonitor:
             self._cloud = msg
             self.arrivals.setdefault(stamp, now)
 
+    def arrivals_now(self) -> dict[int, float]:
+        """A copy of ``arrivals`` (stamp ns -> time.monotonic()), safe while clouds keep arriving."""
+        with self._lock:
+            return dict(self.arrivals)
+
     def latest(self):
         """The newest semantic cloud as msg_adapters.SemanticCloud, or None."""
         import msg_adapters as ma

@@ -32,12 +32,18 @@ def test_the_viewer_reports_when_each_cloud_arrived(tmp_path):
         wait_until(files["ready"].exists, 30.0, "the viewer to see the publisher", process=viewer)
         wait_until(lambda: publisher.get_subscription_count() > 0, 30.0, "the viewer's subscription", process=viewer)
         sent = {}
+
+        def arrived() -> set[int]:
+            if not files["json"].exists():
+                return set()
+            return {int(k) for k in json.loads(files["json"].read_text())["arrivals"]}
+
         for stamp in (7 * S, 8 * S):
             sent[stamp] = time.monotonic()
             msg = ma.semantic_cloud_from_arrays(points, np.zeros((3, 3), np.uint8), np.zeros(3, np.uint32),
                                                np.ones(3, np.float32), stamp=stamp)  # fmt: skip
             publisher.publish(msg)
-            time.sleep(0.2)
+            wait_until(lambda s=stamp: s in arrived(), 30.0, f"cloud {stamp} at the viewer", process=viewer)
         files["stop"].touch()
         wait_until(lambda: not viewer.running(), 30.0, "the viewer to end", process=None)
         assert viewer.returncode == 0, viewer.describe()

@@ -22,7 +22,7 @@ USER_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
 
 @pytest.fixture
 def clean_env(monkeypatch, tmp_path):
-    for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE", "RMW_IMPLEMENTATION"):
+    for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "SKIP_DEFAULT_XML", "RMW_IMPLEMENTATION"):
         monkeypatch.delenv(key, raising=False)
     monkeypatch.chdir(tmp_path)  # no DEFAULT_FASTRTPS_PROFILES.xml here
     return monkeypatch
@@ -34,13 +34,16 @@ def test_the_profile_and_when_a_users_settings_win(clean_env, tmp_path):
     clean_env.setenv("RMW_IMPLEMENTATION", "rmw_cyclonedds_cpp")
     assert fp.profile_xml(50) is None and fp.describe(False) == "DDS: rmw_cyclonedds_cpp as configured"
     clean_env.delenv("RMW_IMPLEMENTATION")
-    for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE"):
-        clean_env.setenv(key, "/etc/mine.xml")
-        assert fp.profile_xml(50) is None
-        assert fp.describe(False) == "Fast DDS: the user's profile /etc/mine.xml, as it is"
-        clean_env.delenv(key)
+    clean_env.setenv("FASTRTPS_DEFAULT_PROFILES_FILE", "/etc/mine.xml")
+    assert fp.profile_xml(50) is None
+    assert fp.describe(False) == "Fast DDS: the user's profile /etc/mine.xml, as it is"
+    clean_env.delenv("FASTRTPS_DEFAULT_PROFILES_FILE")
+    # Fast DDS 2.14 (Jazzy) reads the working directory's file too, unless told to skip it.
     (tmp_path / "DEFAULT_FASTRTPS_PROFILES.xml").write_text(USER_PROFILE)
     assert fp.profile_xml(50) is None
+    assert fp.describe(False) == "Fast DDS: the user's profile DEFAULT_FASTRTPS_PROFILES.xml, as it is"
+    clean_env.setenv("SKIP_DEFAULT_XML", "1")
+    assert "<nanosec>50000000</nanosec>" in fp.profile_xml(50)
 
 
 def test_the_profile_is_set_only_inside_and_children_do_not_inherit_it(clean_env):

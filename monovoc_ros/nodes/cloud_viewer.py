@@ -21,8 +21,9 @@ POLL_S = 0.01
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Subscribes to the semantic cloud; once the node publishes it, writes `--ready-file`; once `--stop-file`
-    exists, writes {"arrivals": {stamp ns: monotonic s}} as JSON to `--out` and exits."""
+    """Subscribes to the semantic cloud; once the node publishes it, writes `--ready-file`; writes
+    {"arrivals": {stamp ns: monotonic s}} as JSON to `--out` whenever a new stamp arrived (replaced whole), and
+    exits once `--stop-file` exists."""
     from monovoc_ros.ros_harness import ClientNode, CloudMonitor
 
     parser = argparse.ArgumentParser(description=main.__doc__)
@@ -41,11 +42,18 @@ def main(argv: list[str] | None = None) -> int:
                 raise SystemExit(f"no publisher of {topic} within {args.timeout:.0f} s")
             time.sleep(POLL_S)
         Path(args.ready_file).touch()
-        stop = Path(args.stop_file)
-        while not stop.exists():
+        stop, out, written = Path(args.stop_file), Path(args.out), -1
+        while True:
+            stopping = stop.exists()
+            arrivals = clouds.arrivals_now()
+            if len(arrivals) != written:  # a caller can wait for a stamp in the file before it stops the viewer
+                partial = out.with_name(out.name + ".part")
+                partial.write_text(json.dumps({"arrivals": {str(k): v for k, v in arrivals.items()}}))
+                partial.replace(out)
+                written = len(arrivals)
+            if stopping:
+                break
             time.sleep(POLL_S)
-    # Read once the client stopped spinning: no callback adds to it any more.
-    Path(args.out).write_text(json.dumps({"arrivals": {str(k): v for k, v in clouds.arrivals.items()}}))
     return 0
 
 

@@ -280,6 +280,7 @@ class MappingNode(Node):
         self._interpreter_watch.stop()
 
     def destroy_node(self) -> None:
+        self._interpreter_watch.stop()
         if self._map_reader is not None:  # stopped already unless start-up was cut short
             self._map_reader.stop()
         super().destroy_node()

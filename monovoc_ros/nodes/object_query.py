@@ -225,8 +225,10 @@ class ObjectQueryComponent:
         # robot scale, eleventh session). The models themselves load on the indexing thread.
         name = getattr(self._backend_source, "backend_name", None)
         if name is not None:
-            with contextlib.suppress(ValueError, ImportError):  # the indexing thread reports it
+            try:
                 backend_class(name)
+            except Exception as exc:  # a broken optional dependency: the indexing thread reports it too
+                self.log.warning(f"embedding backend {name!r} could not be imported: {type(exc).__name__}: {exc}")
         if host.resume and host.map_directory:
             self._restore(host.map_directory)
             mapper = host.mapper()
@@ -319,7 +321,7 @@ class ObjectQueryComponent:
         _lower_priority()  # background work, as are onnxruntime's pool threads, created with the models below
         try:
             _ = self.index.backend  # load the models now, so the first query does not pay for it
-        except (ModelMissingError, ValueError, OSError) as exc:  # a clip_onnx dir with bad files: ValueError
+        except (ModelMissingError, ValueError, OSError, ImportError) as exc:  # bad clip_onnx files: ValueError
             self._backend_failed(exc)
         while not self._stopping.is_set():
             self._wake.wait(1.0)

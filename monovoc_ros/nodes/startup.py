@@ -15,6 +15,8 @@ import tempfile
 import threading
 import time
 
+from monovoc_ros.fastdds_profile import child_environment
+
 POLL_S = 0.05
 
 
@@ -34,7 +36,11 @@ def compile_kernels(stop: threading.Event | None) -> float:
     start = time.monotonic()
     with tempfile.TemporaryFile("w+") as log:  # a pipe left unread could fill and block the child
         child = subprocess.Popen(
-            [sys.executable, "-m", "monovoc_ros.cli", "warm-up"], stdout=log, stderr=subprocess.STDOUT, text=True
+            [sys.executable, "-m", "monovoc_ros.cli", "warm-up"],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=child_environment(),
         )
         try:
             while child.poll() is None:
