@@ -39,6 +39,7 @@ import dataclasses
 import json
 import os
 import random
+import shutil
 import sys
 import tempfile
 import time
@@ -325,6 +326,9 @@ def main() -> int:
             )  # fmt: skip
             seq.updates.clear()
             bag.unlink()
+            # The node's snapshots (~1 GB at 1M): a run left them behind and repeated runs filled the disk. The logs
+            # (mapper_*.log, query_load_*.log, cloud_viewer_*.log) stay in the work folder.
+            shutil.rmtree(work / f"map_{kind}", ignore_errors=True)
             report["rows"].append(row)
             print(json.dumps(row), file=sys.stderr)
     report["loadavg"] = [round(x, 2) for x in os.getloadavg()]
