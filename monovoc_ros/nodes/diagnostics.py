@@ -99,6 +99,32 @@ def diagnostic_status(stats: dict[str, Any], *, name: str, hardware_id: str, ext
     )
 
 
+class Longest:
+    """The longest of a series of durations, when it was, and how many passed `limit_ms`; for /diagnostics under
+    `keys` (longest ms, its time.time(), how many over). Thread-safe (several threads add)."""
+
+    def __init__(self, keys: tuple[str, str, str], limit_ms: float) -> None:
+        self._keys = keys
+        self.limit_ms = limit_ms
+        self._lock = threading.Lock()
+        self.reset()
+
+    def reset(self) -> None:
+        with self._lock:
+            self._max_ms, self._at, self._over = 0.0, 0.0, 0
+
+    def add(self, ms: float, at: float) -> None:
+        """One duration of `ms`; `at`: its time.time() (start or end, as the keys say)."""
+        with self._lock:
+            self._over += ms > self.limit_ms
+            if ms > self._max_ms:
+                self._max_ms, self._at = ms, at
+
+    def values(self) -> dict[str, Any]:
+        with self._lock:
+            return dict(zip(self._keys, (round(self._max_ms, 1), round(self._at, 3), self._over), strict=True))
+
+
 class RejectionLog:
     """Logs rejections per reason: the first at once, then at most one line per `interval_s` per reason
     with the number suppressed since, so a stream of bad messages cannot flood the log."""

@@ -14,6 +14,8 @@ import threading
 import time
 from typing import Any
 
+from monovoc_ros.nodes.diagnostics import Longest
+
 PERIOD_S = 0.005  # 200 wakes a second: too few to cost anything, fine enough for holds of 10 ms and more
 LONG_HOLD_MS = 50.0  # holds longer than this are counted (a query's whole budget, issue 25)
 
@@ -21,10 +23,9 @@ LONG_HOLD_MS = 50.0  # holds longer than this are counted (a query's whole budge
 class InterpreterWatch:
     def __init__(self, period_s: float = PERIOD_S) -> None:
         self.period_s = period_s
-        self._lock = threading.Lock()
-        self.max_ms = 0.0
-        self.max_at = 0.0  # time.time() when the longest hold ended
-        self.long_holds = 0
+        # The time kept is when the longest hold ended (the wake that saw it).
+        keys = ("interpreter_hold_ms_max", "interpreter_hold_max_at", f"interpreter_holds_over_{LONG_HOLD_MS:.0f}ms")
+        self._longest = Longest(keys, LONG_HOLD_MS)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="monovoc-interpreter-watch", daemon=True)
 
@@ -45,20 +46,11 @@ class InterpreterWatch:
 
     def reset(self) -> None:
         """Forgets what was recorded (benchmarks/bench_interpreter_holds.py: one task at a time)."""
-        with self._lock:
-            self.max_ms, self.max_at, self.long_holds = 0.0, 0.0, 0
+        self._longest.reset()
 
     def record(self, late_ms: float, at: float) -> None:
         """One wake, ``late_ms`` after it was due (the watch's own loop; public for the tests)."""
-        with self._lock:
-            self.long_holds += late_ms > LONG_HOLD_MS
-            if late_ms > self.max_ms:
-                self.max_ms, self.max_at = late_ms, at
+        self._longest.add(late_ms, at)
 
     def diagnostics(self) -> dict[str, Any]:
-        with self._lock:
-            return {
-                "interpreter_hold_ms_max": round(self.max_ms, 1),
-                "interpreter_hold_max_at": round(self.max_at, 3),
-                f"interpreter_holds_over_{LONG_HOLD_MS:.0f}ms": self.long_holds,
-            }
+        return self._longest.values()

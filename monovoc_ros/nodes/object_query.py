@@ -50,6 +50,7 @@ from monovoc_ros.core.segments.object_labels import ObjectLabel, display
 from monovoc_ros.embed.backend import backend_class
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
+from monovoc_ros.nodes.diagnostics import Longest
 from monovoc_ros.nodes.navigation import NavigationSettings
 from monovoc_ros.nodes.object_query_params import PARAMETERS
 from monovoc_ros.nodes.outputs import semantic_objects
@@ -79,10 +80,9 @@ class HandlerTimes:
     request's and the answer's way through DDS and the executor), to tell the two apart in /diagnostics."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()  # handlers run side by side (a reentrant callback group)
-        self.max_ms = 0.0
-        self.slowest_at = 0.0  # time.time() when the slowest began
-        self.slow = 0  # over SLOW_ANSWER_MS
+        # Handlers run side by side (a reentrant callback group); the time kept is when the slowest began.
+        keys = ("queries.handler_ms_max", "queries.handler_slowest_at", f"queries.handler_over_{SLOW_ANSWER_MS:.0f}ms")
+        self._longest = Longest(keys, SLOW_ANSWER_MS)
 
     def timed(self, handler: Callable[[Any, Any], Any]) -> Callable[[Any, Any], Any]:
         def call(request: Any, response: Any) -> Any:
@@ -90,21 +90,12 @@ class HandlerTimes:
             try:
                 return handler(request, response)
             finally:
-                ms = 1e3 * (time.perf_counter() - start)
-                with self._lock:
-                    self.slow += ms > SLOW_ANSWER_MS
-                    if ms > self.max_ms:
-                        self.max_ms, self.slowest_at = ms, began
+                self._longest.add(1e3 * (time.perf_counter() - start), began)
 
         return call
 
     def diagnostics(self) -> dict[str, Any]:
-        with self._lock:
-            return {
-                "queries.handler_ms_max": round(self.max_ms, 1),
-                "queries.handler_slowest_at": round(self.slowest_at, 3),
-                f"queries.handler_over_{SLOW_ANSWER_MS:.0f}ms": self.slow,
-            }
+        return self._longest.values()
 
 
 def _lower_priority() -> None:
