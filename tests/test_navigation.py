@@ -15,6 +15,7 @@ import pytest
 from monovoc_ros.contract import DEFAULT_NAMESPACE
 from monovoc_ros.embed import default_model_dir
 from monovoc_ros.nodes import service_call
+from monovoc_ros.nodes.action_client import LockedActionClient
 from monovoc_ros.nodes.mapping_node import NODE_NAME
 from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, ros_args, wait_for_service, wait_until
 from tests.object_room import copy_directory, room_directory, room_id
@@ -138,8 +139,6 @@ def result_of(handle, timeout: float = 30.0):
 
 
 def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
-    from rclpy.action import ActionClient
-
     from monovoc_interfaces.action import GoTo
 
     directory = copy_directory(room_directory(), tmp_path / "map")
@@ -149,7 +148,7 @@ def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
         # One Nav2 for both goals: the node's navigate_to_pose client meets a fresh server only once.
         nav2 = FakeNav2(env, finish=True)
         with nav2.running(), ClientNode(env) as client:
-            action = ActionClient(client.node, GoTo, "/monovoc/go_to")
+            action = LockedActionClient(client.node, GoTo, "/monovoc/go_to")
             wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 60.0, "the go_to action", process=node)
             nav2.wait_for_mapper(node)
             feedback: list = []
@@ -180,7 +179,7 @@ def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
             assert not done.result.success and "Nav2's goal canceled too" in done.result.message
 
         with ClientNode(env) as client:  # no Nav2 at all: a clear failure, not a hang
-            action = ActionClient(client.node, GoTo, "/monovoc/go_to")
+            action = LockedActionClient(client.node, GoTo, "/monovoc/go_to")
             wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)
             done = result_of(send(action, GoTo.Goal(text="the sofa"), [], node), timeout=60.0)
             assert not done.result.success and "navigate_to_pose is not available" in done.result.message
@@ -189,7 +188,6 @@ def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
 
 def test_go_to_publishes_on_the_goal_topic_and_approach_pose_answers(tmp_path):
     from geometry_msgs.msg import PoseStamped
-    from rclpy.action import ActionClient
 
     from monovoc_interfaces.action import GoTo
     from monovoc_interfaces.srv import ApproachPose
@@ -208,7 +206,7 @@ def test_go_to_publishes_on_the_goal_topic_and_approach_pose_answers(tmp_path):
         ceiling = call_service(service, ApproachPose.Request(text="the ceiling"), 20.0, process=node)
         assert not ceiling.success and "overhead" in ceiling.message
 
-        action = ActionClient(client.node, GoTo, "/monovoc/go_to")
+        action = LockedActionClient(client.node, GoTo, "/monovoc/go_to")
         wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)
         wait_until(lambda: client.node.count_publishers("/goal_pose") >= 1, 20.0, "the goal publisher", process=node)
         done = result_of(send(action, GoTo.Goal(text="the sofa", standoff=0.8), [], node))

@@ -190,10 +190,10 @@ class MappingNode(Node):
         )
 
     def _create_action_client(self, action_type: Any, name: str) -> Any:
-        from rclpy.action import ActionClient
+        from monovoc_ros.nodes.action_client import LockedActionClient
 
         group = self.callback_groups.setdefault("actions", ReentrantCallbackGroup())
-        return ActionClient(self, action_type, name, callback_group=group)
+        return LockedActionClient(self, action_type, name, callback_group=group)
 
     def host(self) -> MappingHost:
         """What this node offers the components composed with it (monovoc_ros.nodes.component)."""
