@@ -4,6 +4,7 @@
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
+    RMW_FASTRTPS_PUBLICATION_MODE=ASYNCHRONOUS scripts/with_env.sh python benchmarks/bench_robot_scale.py --runs robot
 
 The scene: Replica office_0's 204k-Gaussian map tiled side by side to the size (benchmarks/bench_map_churn.py's
 `tiled`, per-Gaussian ids dropped: most SLAM front-ends have none), its 81 RGB keyframes replayed in every tile
@@ -303,8 +304,10 @@ def main() -> int:
     loopback_environment(work / "ros_log")
     base = open_sequence(str(REPLICA))
     profile = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE")
+    # Every process inherits the caller's RMW_FASTRTPS_PUBLICATION_MODE (rmw_fastrtps: synchronous when unset).
+    mode = os.environ.get("RMW_FASTRTPS_PUBLICATION_MODE") or "SYNCHRONOUS (rmw_fastrtps default)"
     report = {"source": str(REPLICA), "cpus": os.cpu_count(), "update_period_s": args.update_period_s,
-              "fastdds_profile": profile, **node_params, "rows": []}  # fmt: skip
+              "fastdds_profile": profile, "publication_mode": mode, **node_params, "rows": []}  # fmt: skip
     for n in (int(s) for s in args.sizes.split(",")):
         for kind in args.runs.split(","):
             rate, count = (args.robot_rate, args.robot_keyframes) if kind == "robot" else (10.0, args.fast_keyframes)

@@ -16,6 +16,10 @@ process's first ``create_node`` (``writer_heartbeat``), and is gone afterwards: 
 ``child_environment()``, without it (its file may be gone before they read it). A profile of the user's
 (``FASTRTPS_DEFAULT_PROFILES_FILE``, or DEFAULT_FASTRTPS_PROFILES.xml in the working directory unless
 ``SKIP_DEFAULT_XML=1``: what Jazzy's Fast DDS 2.14 reads) or another middleware wins: nothing is changed then.
+
+The publication mode is left as rmw_fastrtps sets it (synchronous in Jazzy) unless the user sets
+RMW_FASTRTPS_PUBLICATION_MODE; the node's log says which. Asynchronous publication took away the interpreter
+holds of a blocked ``publish()`` in 1M-Gaussian runs but not the query tails (docs/results.md, twelfth session).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
+PUBLICATION_MODE_ENV = "RMW_FASTRTPS_PUBLICATION_MODE"
 WRITER_HEARTBEAT_MS = 50
 _DEFAULT_FILE = "DEFAULT_FASTRTPS_PROFILES.xml"  # Fast DDS reads it from the working directory
 _FILE_PREFIX = "monovoc_fastdds_"
@@ -77,12 +82,14 @@ def writer_heartbeat(period_ms: int | None) -> Iterator[bool]:
 
 def describe(applied: bool) -> str:
     """What the process's participant runs under, for its log."""
-    if applied:
-        return f"Fast DDS: reliable writers' heartbeat {WRITER_HEARTBEAT_MS} ms (monovoc_ros.fastdds_profile)"
     user = _users_profile()
-    if user is not None:
-        return f"Fast DDS: the user's profile {user}, as it is"
-    return f"DDS: {os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')} as configured"
+    if applied:
+        line = f"Fast DDS: reliable writers' heartbeat {WRITER_HEARTBEAT_MS} ms (monovoc_ros.fastdds_profile)"
+    elif user is not None:
+        line = f"Fast DDS: the user's profile {user}, as it is"
+    else:
+        return f"DDS: {os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')} as configured"
+    return line + f"; publication mode {os.environ.get(PUBLICATION_MODE_ENV) or 'SYNCHRONOUS (rmw_fastrtps default)'}"
 
 
 def child_environment() -> dict[str, str]:

@@ -37,7 +37,12 @@ from monovoc_ros.nodes import service_call
 SEMANTIC_MAPPER = "monovoc_ros.nodes.semantic_mapper"  # mapping + object database + query service
 MAPPING_ONLY = "monovoc_ros.nodes.mapping_node"
 # Variables that would take a child off loopback or onto a profile the caller did not choose.
-FOREIGN_ROS_VARIABLES = ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", "FASTRTPS_DEFAULT_PROFILES_FILE")
+FOREIGN_ROS_VARIABLES = (
+    "ROS_LOCALHOST_ONLY",
+    "ROS_STATIC_PEERS",
+    "FASTRTPS_DEFAULT_PROFILES_FILE",
+    "RMW_FASTRTPS_PUBLICATION_MODE",
+)
 
 
 class HarnessError(RuntimeError):

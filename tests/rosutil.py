@@ -1,8 +1,8 @@
 """The ROS environment of one test: its own random ``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``,
 a temporary ``ROS_LOG_DIR`` and ``HOME``, and ``AMENT_PREFIX_PATH`` pointing at the project venv. Inherited
-``ROS_LOCALHOST_ONLY``, ``ROS_STATIC_PEERS`` and ``FASTRTPS_DEFAULT_PROFILES_FILE`` are dropped; a test that wants a
-Fast DDS profile passes it in ``extra``. Processes, clients and waits come from monovoc_ros.ros_harness, the
-harness the demo and the benchmarks use too::
+``ROS_LOCALHOST_ONLY``, ``ROS_STATIC_PEERS``, ``FASTRTPS_DEFAULT_PROFILES_FILE`` and ``RMW_FASTRTPS_PUBLICATION_MODE``
+are dropped; a test that wants a Fast DDS profile or mode passes it in ``extra``. Processes, clients and waits
+come from monovoc_ros.ros_harness, the harness the demo and the benchmarks use too::
 
     env = ros_environment(tmp_path)
     with NodeProcess.python(["-m", "my_pkg.my_node"], env, name="my_node") as server, ClientNode(env) as client:

@@ -22,7 +22,7 @@ USER_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
 
 @pytest.fixture
 def clean_env(monkeypatch, tmp_path):
-    for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "SKIP_DEFAULT_XML", "RMW_IMPLEMENTATION"):
+    for key in ("FASTRTPS_DEFAULT_PROFILES_FILE", "SKIP_DEFAULT_XML", "RMW_IMPLEMENTATION", fp.PUBLICATION_MODE_ENV):
         monkeypatch.delenv(key, raising=False)
     monkeypatch.chdir(tmp_path)  # no DEFAULT_FASTRTPS_PROFILES.xml here
     return monkeypatch
@@ -36,12 +36,17 @@ def test_the_profile_and_when_a_users_settings_win(clean_env, tmp_path):
     clean_env.delenv("RMW_IMPLEMENTATION")
     clean_env.setenv("FASTRTPS_DEFAULT_PROFILES_FILE", "/etc/mine.xml")
     assert fp.profile_xml(50) is None
-    assert fp.describe(False) == "Fast DDS: the user's profile /etc/mine.xml, as it is"
+    assert fp.describe(False) == (
+        "Fast DDS: the user's profile /etc/mine.xml, as it is; publication mode SYNCHRONOUS (rmw_fastrtps default)"
+    )
+    clean_env.setenv(fp.PUBLICATION_MODE_ENV, "ASYNCHRONOUS")  # a user's mode is named
+    assert fp.describe(False).endswith("; publication mode ASYNCHRONOUS")
+    clean_env.delenv(fp.PUBLICATION_MODE_ENV)
     clean_env.delenv("FASTRTPS_DEFAULT_PROFILES_FILE")
     # Fast DDS 2.14 (Jazzy) reads the working directory's file too, unless told to skip it.
     (tmp_path / "DEFAULT_FASTRTPS_PROFILES.xml").write_text(USER_PROFILE)
     assert fp.profile_xml(50) is None
-    assert fp.describe(False) == "Fast DDS: the user's profile DEFAULT_FASTRTPS_PROFILES.xml, as it is"
+    assert fp.describe(False).startswith("Fast DDS: the user's profile DEFAULT_FASTRTPS_PROFILES.xml, as it is;")
     clean_env.setenv("SKIP_DEFAULT_XML", "1")
     assert "<nanosec>50000000</nanosec>" in fp.profile_xml(50)
 
@@ -72,6 +77,7 @@ def test_the_mapping_node_runs_under_the_profile_or_the_users(tmp_path, users):
     if users:
         (tmp_path / "mine.xml").write_text(USER_PROFILE)
         node_env[fp.PROFILES_ENV] = str(tmp_path / "mine.xml")
+        node_env[fp.PUBLICATION_MODE_ENV] = "ASYNCHRONOUS"
     with running_mapper(tmp_path, {"publish_rate_hz": 0.0, "map_reader_process": True}, node_env) as mapper:
         mapper.publisher.publish_map(small_scene().gaussians)
         for msgs in scene_messages()[:2]:
@@ -86,8 +92,10 @@ def test_the_mapping_node_runs_under_the_profile_or_the_users(tmp_path, users):
         )
         output = mapper.node.output()
     if users:
-        assert f"Fast DDS: the user's profile {tmp_path / 'mine.xml'}, as it is" in output
-        assert environ.get(fp.PROFILES_ENV) == str(tmp_path / "mine.xml")
+        mine = tmp_path / "mine.xml"
+        assert f"Fast DDS: the user's profile {mine}, as it is; publication mode ASYNCHRONOUS" in output
+        assert environ.get(fp.PROFILES_ENV) == str(mine) and environ.get(fp.PUBLICATION_MODE_ENV) == "ASYNCHRONOUS"
     else:
-        assert f"Fast DDS: reliable writers' heartbeat {fp.WRITER_HEARTBEAT_MS} ms" in output
+        ours = f"heartbeat {fp.WRITER_HEARTBEAT_MS} ms (monovoc_ros.fastdds_profile); publication mode SYNCHRONOUS"
+        assert ours in output
         assert fp.PROFILES_ENV not in environ
