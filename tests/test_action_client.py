@@ -83,7 +83,8 @@ def test_locked_client_gets_an_answer_taken_while_it_sends(tmp_path):
 
 
 def test_rclpy_client_loses_that_answer(tmp_path):
-    """The race the lock closes is real in this rclpy: the same handle makes its client lose the answer."""
+    """The race the lock closes is real in this rclpy: the same handle makes its client lose the answer. (Once the
+    venv's rclpy has the upstream fix, ros2/rclpy#1308, this fails: LockedActionClient may go then.)"""
     from rclpy.action import ActionClient
 
     done, _future = goal_answer_after_slow_send(tmp_path, ActionClient, 2.0)
