@@ -74,7 +74,9 @@ def test_no_query_is_lost_at_100_per_second_while_mapping(tmp_path):
     assert 0 < float(state["queries.handler_ms_max"]) < 30_000
     assert 0 <= int(state["queries.handler_over_50ms"]) <= QUERIES + 1
     assert began - 60 <= float(state["queries.handler_slowest_at"]) <= ended
-    assert float(state["interpreter_hold_ms_max"]) >= 0 and int(state["interpreter_holds_over_50ms"]) >= 0
+    # The node's interpreter watch ran: every wake of a 5 ms sleep comes a little late.
+    assert float(state["interpreter_hold_ms_max"]) > 0 and int(state["interpreter_holds_over_50ms"]) >= 0
+    assert 0 < float(state["interpreter_hold_max_at"]) <= time.time()
     assert result["answered"] == QUERIES and result["lost"] == 0, result
     assert result["succeeded"] == QUERIES and int(state["keyframes_processed"]) >= 2
     slowest = [ms for _, ms, _ in result["slowest"]]  # what a bench sets beside the node's log
