@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import colour
 import numpy as np
 import pytest
 
 from monovoc_ros.core.evidence import quantize_kernels as kernels
+from monovoc_ros.core.evidence.color import srgb01_to_lab
 from monovoc_ros.core.evidence.quantize import (
     METRICS,
     Quantization,
@@ -103,6 +107,32 @@ def test_conversions_are_srgb_d65():
     np.testing.assert_allclose(lab, [[100, 0, 0], [0, 0, 0]], atol=0.01)
     np.testing.assert_allclose(to_metric_space(np.array([[1.0, 0.5, 0.0]]), "rgb"), [[255, 127.5, 0]])
     np.testing.assert_allclose(to_metric_space(np.array([[1.0, 1.0, 1.0]]), "cam16ucs")[0, 0], 100, atol=0.01)
+
+
+def test_srgb01_to_lab_is_colour_sciences_conversion():
+    """The CIELAB of quantization, written out, equals colour's XYZ_to_Lab(sRGB_to_XYZ(.)) to float rounding: on
+    random colors, both sides of the sRGB decoding's and the CIE 1976 function's thresholds, black and white."""
+    rng = np.random.default_rng(3)
+    edges = np.array([0.0, 1.0, 0.04045, 0.04044994, 0.0404499 + 1e-9, 0.0404499 - 1e-9, 1e-4, 2e-3, 0.5])
+    rgb = np.concatenate([rng.random((5000, 3)), rng.random((500, 3)) * 0.02, np.stack([edges] * 3, axis=1),
+                          rng.choice(edges, (300, 3))])  # fmt: skip
+    ours = srgb01_to_lab(rgb)
+    theirs = colour.XYZ_to_Lab(colour.sRGB_to_XYZ(rgb))
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(srgb01_to_lab(rgb[:5000].reshape(10, 500, 3)), ours[:5000].reshape(10, 500, 3))
+
+
+def test_quantizing_does_not_import_colour():
+    """The live node's path (quantize in CIELAB) runs without colour-science, whose import pulls in matplotlib."""
+    code = (
+        "import sys, numpy as np\n"
+        "from monovoc_ros.core.evidence.quantize import quantize\n"
+        "q = quantize(np.array([[0.2, 0.4, 0.6]]), np.array([[50, 100, 150], [200, 0, 0]], np.uint8), 'cmc')\n"
+        "assert q.index.tolist() == [0], q.index\n"
+        "print(sorted(m for m in ('colour', 'matplotlib') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
 
 
 def test_single_empty_palette_and_ties():

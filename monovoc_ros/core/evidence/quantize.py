@@ -10,11 +10,12 @@
   DIN99b with its chroma scale 23.0 written as 1/0.0435, so it is computed here (`lab_to_din99o`).
 * ``"rgb"``: Euclidean in sRGB, in 8-bit units (0-255).
 
-sRGB colors (in [0, 1], sRGB transfer function) go to CIE XYZ under D65 and then to CIELAB (D65) with
-colour-science. CMC and CIE94 are asymmetric: they weight the difference by the *reference* (first)
-color's lightness, chroma and hue. As written in METHOD.md and the paper, the deblended color is the
-reference, ``d_CMC(Lab(s_hat), Lab(c))``, so each sample is judged with tolerances of its own region of
-color space. (CIEDE2000 and the Euclidean metrics are symmetric.)
+sRGB colors (in [0, 1], sRGB transfer function) go to CIE XYZ under D65 and then to CIELAB (D65) as
+colour-science converts them (`core.evidence.color.srgb01_to_lab`, without importing colour: CAM16-UCS
+does). CMC and CIE94 are asymmetric: they weight the difference by the *reference* (first) color's lightness,
+chroma and hue. As written in METHOD.md and the paper, the deblended color is the reference,
+``d_CMC(Lab(s_hat), Lab(c))``, so each sample is judged with tolerances of its own region of color space.
+(CIEDE2000 and the Euclidean metrics are symmetric.)
 
 Distances come from numba kernels (`core.evidence.quantize_kernels`): the samples and the palette are each
 converted once, then each sample walks the K palette colors; colour's `colour.delta_E` (plain NumPy for
@@ -30,6 +31,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from monovoc_ros.core.evidence.color import srgb01_to_lab
 
 METRICS = ("cmc", "ciede2000", "cie94", "cam16ucs", "din99o", "rgb")
 
@@ -59,20 +62,24 @@ def lab_to_din99o(lab: np.ndarray) -> np.ndarray:
     return np.stack([303.67 * np.log1p(0.0039 * L), C * np.cos(h), C * np.sin(h)], axis=-1)
 
 
-def to_metric_space(rgb: np.ndarray, metric: str) -> np.ndarray:
-    """(M, 3) sRGB in [0, 1] -> (M, 3) float64 coordinates of the metric's color space."""
-    import colour  # deferred: slow to import (colour pulls in its plotting stack)
-
+def to_metric_space(rgb: np.ndarray, metric: str, *, with_colour: bool = False) -> np.ndarray:
+    """(M, 3) sRGB in [0, 1] -> (M, 3) float64 coordinates of the metric's color space. `with_colour`: CIELAB by
+    colour-science itself (the reference twins) instead of its formulas written out (`srgb01_to_lab`)."""
     _check_metric(metric)
     rgb = np.asarray(rgb, dtype=np.float64).reshape(-1, 3)
     if metric == "rgb":
         return rgb * 255.0
     if rgb.shape[0] == 0:
         return np.zeros((0, 3))
-    xyz = colour.sRGB_to_XYZ(rgb)
-    if metric == "cam16ucs":
-        return np.asarray(colour.XYZ_to_CAM16UCS(xyz), dtype=np.float64).reshape(-1, 3)
-    lab = np.asarray(colour.XYZ_to_Lab(xyz), dtype=np.float64).reshape(-1, 3)
+    if metric == "cam16ucs" or with_colour:
+        import colour  # deferred: slow to import (colour pulls in its plotting stack)
+
+        xyz = colour.sRGB_to_XYZ(rgb)
+        if metric == "cam16ucs":
+            return np.asarray(colour.XYZ_to_CAM16UCS(xyz), dtype=np.float64).reshape(-1, 3)
+        lab = np.asarray(colour.XYZ_to_Lab(xyz), dtype=np.float64).reshape(-1, 3)
+    else:
+        lab = srgb01_to_lab(rgb)
     return lab_to_din99o(lab) if metric == "din99o" else lab
 
 
@@ -143,7 +150,7 @@ def distance_matrix_reference(colors: np.ndarray, palette_rgb: np.ndarray, metri
     _check_metric(metric)
     values, observed, palette = _check_inputs(colors, palette_rgb)
     out = np.full((len(observed), palette.shape[0]), np.nan)
-    x, p = to_metric_space(values, metric), to_metric_space(palette, metric)
+    x, p = to_metric_space(values, metric, with_colour=True), to_metric_space(palette, metric, with_colour=True)
     method = {"cmc": "CMC", "cie94": "CIE 1994", "ciede2000": "CIE 2000", "cam16ucs": "CAM16-UCS"}.get(metric)
     rows = np.empty((x.shape[0], p.shape[0]))
     for j in range(p.shape[0]):
