@@ -105,7 +105,8 @@ def test_colcon_builds_both_packages_into_the_install_layout(workspace: Workspac
         assert (ws / "install" / package / "share" / package / "package.xml").is_file()
     share = ws / "install" / "monovoc_ros" / "share" / "monovoc_ros"
     for name in ("config/semantic_mapper.yaml", "config/object_query.yaml", "config/queries/synthetic_room.json",
-                 "config/queries/replica_office0.json", "launch/monovoc.launch.py", "rviz/monovoc.rviz"):  # fmt: skip
+                 "config/queries/replica_office0.json", "config/fastdds_large_clouds.xml", "launch/monovoc.launch.py",
+                 "rviz/monovoc.rviz"):  # fmt: skip
         assert (share / name).read_bytes() == (REPO / name).read_bytes(), name
     lib = ws / "install" / "monovoc_ros" / "lib" / "monovoc_ros"
     assert sorted(p.name for p in lib.iterdir()) == ["mapping_node", "monovoc", "segmenter", "semantic_mapper"]

@@ -64,20 +64,37 @@ def test_the_profile_is_set_only_inside_and_children_do_not_inherit_it(clean_env
         assert not applied and os.environ[fp.PROFILES_ENV] == "/etc/mine.xml"
 
 
+LARGE_CLOUDS = Path(__file__).resolve().parents[1] / "config" / "fastdds_large_clouds.xml"
+
+
+def shm_mappings_mb(pid: int) -> list[float]:
+    """Sizes (MB) of the Fast DDS shared-memory segments a process has mapped."""
+    sizes = []
+    for line in Path(f"/proc/{pid}/maps").read_text().splitlines():
+        fields = line.split()
+        if len(fields) >= 6 and "/dev/shm/fastrtps_" in fields[5] and "_port" not in fields[5]:
+            lo, hi = (int(x, 16) for x in fields[0].split("-"))
+            sizes.append((hi - lo) / 2**20)
+    return sizes
+
+
 @pytest.mark.ros
-@pytest.mark.parametrize("users", [False, True])
+@pytest.mark.parametrize("users", [False, True, "large_clouds"])
 def test_the_mapping_node_runs_under_the_profile_or_the_users(tmp_path, users):
     """The node says which it runs under, takes a map and keyframes under it, and its map reader child starts
-    without our profile (a user's is passed on)."""
+    without our profile (a user's is passed on). The shipped config/fastdds_large_clouds.xml gives the node's
+    participant its 64 MB shared-memory segment (Fast DDS's own: 512 KB)."""
     import psutil
 
     from tests.node_scene import running_mapper, scene_messages, small_scene
 
     node_env = {}
-    if users:
+    if users is True:
         (tmp_path / "mine.xml").write_text(USER_PROFILE)
         node_env[fp.PROFILES_ENV] = str(tmp_path / "mine.xml")
         node_env[fp.PUBLICATION_MODE_ENV] = "ASYNCHRONOUS"
+    elif users == "large_clouds":
+        node_env[fp.PROFILES_ENV] = str(LARGE_CLOUDS)
     with running_mapper(tmp_path, {"publish_rate_hz": 0.0, "map_reader_process": True}, node_env) as mapper:
         mapper.publisher.publish_map(small_scene().gaussians)
         for msgs in scene_messages()[:2]:
@@ -90,8 +107,13 @@ def test_the_mapping_node_runs_under_the_profile_or_the_users(tmp_path, users):
             for entry in Path(f"/proc/{readers[0].pid}/environ").read_text().split("\0")
             if "=" in entry
         )
+        segments = shm_mappings_mb(mapper.node.pid)
         output = mapper.node.output()
-    if users:
+    if users == "large_clouds":
+        assert f"Fast DDS: the user's profile {LARGE_CLOUDS}, as it is" in output
+        assert environ.get(fp.PROFILES_ENV) == str(LARGE_CLOUDS)
+        assert max(segments) >= 64, segments
+    elif users:
         mine = tmp_path / "mine.xml"
         assert f"Fast DDS: the user's profile {mine}, as it is; publication mode ASYNCHRONOUS" in output
         assert environ.get(fp.PROFILES_ENV) == str(mine) and environ.get(fp.PUBLICATION_MODE_ENV) == "ASYNCHRONOUS"
@@ -99,3 +121,4 @@ def test_the_mapping_node_runs_under_the_profile_or_the_users(tmp_path, users):
         ours = f"heartbeat {fp.WRITER_HEARTBEAT_MS} ms (monovoc_ros.fastdds_profile); publication mode SYNCHRONOUS"
         assert ours in output
         assert fp.PROFILES_ENV not in environ
+        assert segments and max(segments) < 2, segments  # Fast DDS's 512 KB segments

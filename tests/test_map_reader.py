@@ -12,6 +12,7 @@ import os
 import re
 import signal
 import socket
+from pathlib import Path
 
 import numpy as np
 import psutil
@@ -201,9 +202,28 @@ def test_a_reader_that_dies_is_replaced_and_the_latched_map_is_not_applied_twice
         assert values["map_updates"] == "2" and values["maps_unchanged"] == "1"  # the redelivered map not applied
         assert "the map reader exited" in node.output()
 
+        segments = _own_fastdds_segments(second.pid)
+        assert segments, "the reader's participant holds no Fast DDS shared-memory segment"
         node.proc.kill()  # the node dies without a word: its reader must not outlive it
         node.proc.wait()
         wait_until(lambda: _gone(second), 10.0, "the reader to exit after its node")
+        # ... nor leave its participant's shared-memory files in /dev/shm (an os._exit alone did, at every stop).
+        assert [p.name for p in segments if p.exists() or p.with_name(p.name + "_el").exists()] == []
+
+
+def _own_fastdds_segments(pid: int) -> list[Path]:
+    """The Fast DDS shared-memory segments the participant of process `pid` created: /dev/shm/fastrtps_<id>, whose
+    lock file <id>_el the process holds (/proc/locks); the shared port files are left out."""
+    held = set()
+    for line in Path("/proc/locks").read_text().splitlines():
+        fields = line.split()
+        if str(pid) in fields:
+            held.add(fields[fields.index(str(pid)) + 1].rsplit(":", 1)[-1])
+    return [
+        lock.with_name(lock.name[: -len("_el")])
+        for lock in Path("/dev/shm").glob("fastrtps_*_el")
+        if not lock.name.startswith("fastrtps_port") and str(lock.stat().st_ino) in held
+    ]
 
 
 def _gone(process: psutil.Process) -> bool:

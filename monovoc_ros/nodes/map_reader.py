@@ -15,9 +15,10 @@ long as the map's arrays do. The node asks for each map (a credit byte) as soon 
 before; until then the child keeps only the newest (NewestMap), so a node starting up or falling behind never
 has a backlog of maps waiting in the socket.
 
-Lifetime: the child ends when the node closes its end of the socket (a stop, or the node dying in any way)
-and ignores SIGINT and SIGTERM (a terminal's Ctrl-C or a signal to the process group reaches it too; the node
-decides when it stops). If the child dies while the node runs, the node logs it, counts it
+Lifetime: the child ends when the node closes its end of the socket (a stop, or the node dying in any way),
+destroying its participant first (Fast DDS removes its shared-memory files then), and ignores SIGINT and
+SIGTERM (a terminal's Ctrl-C or a signal to the process group reaches it too; the node decides when it
+stops). If the child dies while the node runs, the node logs it, counts it
 (``map_reader_restarts``) and starts another after a back-off. The latched map that the new child receives
 again is the map in use: the session skips it as it skips any map sent again (``maps_unchanged``).
 """
@@ -62,7 +63,8 @@ _SEALS = (
 _CREDIT = b"+"  # the node asks for one map (the newest the child holds)
 RESTART_DELAY_S = (1.0, 30.0)  # first and longest back-off before starting a child again
 HEALTHY_RUN_S = 60.0  # a child that ran this long before it exited was no crash loop: the back-off starts over
-STOP_WAIT_S = 0.5  # how long a stop waits for the child to exit on its own (it exits at once) before killing it
+STOP_WAIT_S = 0.5  # how long a stop waits for the child to exit on its own (~0.1 s) before killing it
+_POLL_S = 0.05  # the child looks for the end of the socket this often between messages
 
 
 def supported() -> bool:
@@ -369,12 +371,13 @@ def _child_main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     sock = socket.socket(fileno=args.fd)
     newest = NewestMap()
+    node_gone = threading.Event()
 
     def listen_to_node() -> None:  # credits; the end of the socket is the end of the node: nothing left to do
         with contextlib.suppress(OSError):
             while data := sock.recv(16):
                 newest.credit(data.count(_CREDIT))
-        os._exit(0)
+        node_gone.set()
 
     def hand_over() -> None:
         while True:
@@ -382,7 +385,8 @@ def _child_main(argv: list[str] | None = None) -> int:
             try:
                 send_map(sock, gmap, stamp_ns=stamp_ns, frame_id=frame_id, decode_s=decode_s, superseded=superseded)
             except ConnectionError:  # the node is gone
-                os._exit(0)
+                node_gone.set()
+                return
             except Exception as exc:  # no shared memory for it, most likely
                 with contextlib.suppress(OSError):
                     send_refusal(sock, Refusal(_failure("handing over", exc), bad_input=False))
@@ -391,6 +395,7 @@ def _child_main(argv: list[str] | None = None) -> int:
     threading.Thread(target=hand_over, name="hand_over", daemon=True).start()
 
     import rclpy
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import PointCloud2
 
@@ -418,8 +423,19 @@ def _child_main(argv: list[str] | None = None) -> int:
     rclpy.init(args=["--ros-args", "--disable-rosout-logs"], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(args.node_name, namespace=args.namespace)
     node.create_subscription(PointCloud2, args.topic, on_map, latched_qos())  # the node's own QoS for `gaussians`
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
     with contextlib.suppress(Exception):
-        rclpy.spin(node)
+        while not node_gone.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=_POLL_S)
+    # Fast DDS deletes a participant's shared-memory files (/dev/shm/fastrtps_*) only when the participant is
+    # destroyed: an os._exit alone left them behind at every stop of the node (0.5 MB each; 64 MB under
+    # config/fastdds_large_clouds.xml, which a child inherits). os._exit then, not the interpreter's teardown:
+    # the hand-over thread may be waiting for a map.
+    with contextlib.suppress(Exception):
+        executor.shutdown(timeout_sec=STOP_WAIT_S / 2)
+        node.destroy_node()
+        rclpy.try_shutdown()
     os._exit(0)
 
 
