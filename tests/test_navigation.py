@@ -84,7 +84,12 @@ class FakeNav2:
         wanted = {"/navigate_to_pose/_action/send_goal", "/navigate_to_pose/_action/get_result"}
 
         def seen() -> bool:
-            clients = self.node.get_client_names_and_types_by_node(NODE_NAME, DEFAULT_NAMESPACE)
+            from rclpy.node import NodeNameNonExistentError
+
+            try:
+                clients = self.node.get_client_names_and_types_by_node(NODE_NAME, DEFAULT_NAMESPACE)
+            except NodeNameNonExistentError:  # this server's participant has not discovered the node yet
+                return False
             return wanted <= {name for name, _ in clients}
 
         wait_until(seen, 30.0, "the mapping node's navigate_to_pose client", process=process)
