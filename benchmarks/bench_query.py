@@ -38,6 +38,8 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
+from monovoc_ros.ros_harness import FOREIGN_ROS_VARIABLES  # noqa: E402
+
 QUERIES = [
     "a sofa",
     "the red book on the table",
@@ -129,7 +131,7 @@ def _ros_env(tmp: Path) -> dict:
     from monovoc_ros.embed import default_model_dir
 
     env = dict(os.environ)
-    for key in ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", "FASTRTPS_DEFAULT_PROFILES_FILE"):
+    for key in FOREIGN_ROS_VARIABLES:
         env.pop(key, None)
     venv = REPO / ".venv"
     env.update(

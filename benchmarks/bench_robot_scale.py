@@ -60,6 +60,7 @@ from monovoc_ros.core.evaluation.datasets import Sequence, open_sequence  # noqa
 from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb, unpack_rgb  # noqa: E402
 from monovoc_ros.core.keyframe import Keyframe  # noqa: E402
 from monovoc_ros.core.map.gaussians import GaussianMap  # noqa: E402
+from monovoc_ros.fastdds_profile import publication_mode  # noqa: E402
 from monovoc_ros.ros_harness import (  # noqa: E402
     SEMANTIC_MAPPER,
     ClientNode,
@@ -304,10 +305,10 @@ def main() -> int:
     loopback_environment(work / "ros_log")
     base = open_sequence(str(REPLICA))
     profile = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE")
-    # Every process inherits the caller's RMW_FASTRTPS_PUBLICATION_MODE (rmw_fastrtps: synchronous when unset).
-    mode = os.environ.get("RMW_FASTRTPS_PUBLICATION_MODE") or "SYNCHRONOUS (rmw_fastrtps default)"
+    # Every process inherits the caller's RMW_FASTRTPS_PUBLICATION_MODE.
     report = {"source": str(REPLICA), "cpus": os.cpu_count(), "update_period_s": args.update_period_s,
-              "fastdds_profile": profile, "publication_mode": mode, **node_params, "rows": []}  # fmt: skip
+              "fastdds_profile": profile, "publication_mode": publication_mode(), **node_params,
+              "rows": []}  # fmt: skip
     for n in (int(s) for s in args.sizes.split(",")):
         for kind in args.runs.split(","):
             rate, count = (args.robot_rate, args.robot_keyframes) if kind == "robot" else (10.0, args.fast_keyframes)

@@ -80,6 +80,11 @@ def writer_heartbeat(period_ms: int | None) -> Iterator[bool]:
         Path(name).unlink(missing_ok=True)
 
 
+def publication_mode() -> str:
+    """The rmw_fastrtps publication mode this process and its children run under (the user's, or Jazzy's default)."""
+    return os.environ.get(PUBLICATION_MODE_ENV) or "SYNCHRONOUS (rmw_fastrtps default)"
+
+
 def describe(applied: bool) -> str:
     """What the process's participant runs under, for its log."""
     user = _users_profile()
@@ -89,7 +94,7 @@ def describe(applied: bool) -> str:
         line = f"Fast DDS: the user's profile {user}, as it is"
     else:
         return f"DDS: {os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')} as configured"
-    return line + f"; publication mode {os.environ.get(PUBLICATION_MODE_ENV) or 'SYNCHRONOUS (rmw_fastrtps default)'}"
+    return line + f"; publication mode {publication_mode()}"
 
 
 def child_environment() -> dict[str, str]:

@@ -32,17 +32,13 @@ from typing import Any
 
 from monovoc_ros.contract import DEFAULT_NAMESPACE as NAMESPACE
 from monovoc_ros.contract import KEYFRAME_ROLES, topic_names
+from monovoc_ros.fastdds_profile import PROFILES_ENV, PUBLICATION_MODE_ENV
 from monovoc_ros.nodes import service_call
 
 SEMANTIC_MAPPER = "monovoc_ros.nodes.semantic_mapper"  # mapping + object database + query service
 MAPPING_ONLY = "monovoc_ros.nodes.mapping_node"
 # Variables that would take a child off loopback or onto a profile the caller did not choose.
-FOREIGN_ROS_VARIABLES = (
-    "ROS_LOCALHOST_ONLY",
-    "ROS_STATIC_PEERS",
-    "FASTRTPS_DEFAULT_PROFILES_FILE",
-    "RMW_FASTRTPS_PUBLICATION_MODE",
-)
+FOREIGN_ROS_VARIABLES = ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", PROFILES_ENV, PUBLICATION_MODE_ENV)
 
 
 class HarnessError(RuntimeError):

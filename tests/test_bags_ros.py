@@ -21,6 +21,7 @@ import msg_adapters as ma
 from monovoc_ros.bags import bag_info, iter_messages, record, replay, sequence_to_bag, topic_names
 from monovoc_ros.bags.schemas import canonical_cdr
 from monovoc_ros.ros_harness import (
+    FOREIGN_ROS_VARIABLES,
     ClientNode,
     HarnessError,
     KeyframePublishTimes,
@@ -187,7 +188,7 @@ def _use_ros_env(env: dict, monkeypatch) -> None:
     # In-process replay/record create their own context: it reads these from the process environment.
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOG_DIR", "HOME"):
         monkeypatch.setenv(key, env[key])
-    for key in ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", "FASTRTPS_DEFAULT_PROFILES_FILE"):
+    for key in FOREIGN_ROS_VARIABLES:
         monkeypatch.delenv(key, raising=False)
 
 

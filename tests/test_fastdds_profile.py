@@ -68,6 +68,12 @@ def test_the_profile_is_set_only_inside_and_children_do_not_inherit_it(clean_env
 LARGE_CLOUDS = Path(__file__).resolve().parents[1] / "config" / "fastdds_large_clouds.xml"
 
 
+def test_the_large_clouds_profile_repeats_the_nodes_heartbeat():
+    """A user's profile replaces ours whole: the shipped one must carry the node's writer heartbeat itself."""
+    assert f"<nanosec>{fp.WRITER_HEARTBEAT_MS * 1_000_000}</nanosec>" in LARGE_CLOUDS.read_text()
+    assert "<segment_size>67108864</segment_size>" in LARGE_CLOUDS.read_text()
+
+
 def shm_mappings_mb(pid: int) -> list[float]:
     """Sizes (MB) of the Fast DDS shared-memory segments a process has mapped."""
     sizes = []
