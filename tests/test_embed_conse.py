@@ -195,3 +195,15 @@ def test_backend_classes_are_found_by_name_without_loading_a_model():
         backend_class("nope")
     with pytest.raises(ValueError, match="unknown embedding backend"):
         load_backend("nope")
+
+
+def test_onnxruntime_threads_sleep_between_runs(backend):
+    """Spinning intra-op threads (onnxruntime's default) took a core from the mapper between the index's runs
+    (benchmarks/bench_onnx_spinning.py): every session the package makes lets them sleep."""
+    from monovoc_ros.embed.onnx_session import make_session
+
+    key = "session.intra_op.allow_spinning"
+    for session in (backend.classifier, backend.sentence.session):
+        assert session.get_session_options().get_session_config_entry(key) == "0"
+    spinning = make_session(default_model_dir() / cf.SENTENCE_ONNX, spinning=True)
+    assert spinning.get_session_options().get_session_config_entry(key) == "1"
