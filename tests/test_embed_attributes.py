@@ -41,13 +41,16 @@ def test_known_colors_get_their_basic_name(name):
 
 
 def test_color_names_equal_their_plain_twin():
-    """The numba CIEDE2000 search names every pixel as colour-science's full distance matrix does."""
+    """The numba CIEDE2000 search, for the hued pixels only and once per distinct color, names every pixel as
+    colour-science's full distance matrix does."""
     rng = np.random.default_rng(5)
     pixels = np.concatenate([
         rng.integers(0, 256, (20000, 3)),
         rng.integers(0, 40, (2000, 3)),  # dark: the achromatic and always-black rules
+        rng.integers(100, 140, (2000, 3)),  # grayish: achromatic and near it
         np.array([c for cs in KNOWN_COLORS.values() for c in cs]),
     ]).astype(np.uint8)  # fmt: skip
+    pixels = np.concatenate([pixels, pixels[rng.integers(0, len(pixels), 5000)]])  # colors repeated, in any order
     assert color_names(pixels) == color_names_reference(pixels)
     assert color_names(np.zeros((0, 3), np.uint8)) == color_names_reference(np.zeros((0, 3), np.uint8)) == []
 

@@ -101,3 +101,42 @@ def test_empty_and_bad_input():
     for fn in (percentile_boxes, object_geometry):
         with pytest.raises(ValueError, match="object_ids"):
             fn(gmap, np.zeros(3, np.uint32))
+
+
+def test_upright_sizes_of_a_new_labelling_are_computed_again_only_where_objects_changed():
+    """objects.upright: the sizes of the next labelling of the same map, in the same upright frame, equal the ones
+    computed from scratch, whichever objects grew, shrank, appeared or vanished; another map or up: from scratch."""
+    from monovoc_ros.objects.upright import upright_geometry
+
+    rng = np.random.default_rng(4)
+    n, ids = 20_000, np.array([0x010101 * k for k in range(1, 9)], np.uint32)
+    gaussians = _map(rng.uniform(-3, 3, (n, 3)).astype(np.float32))
+    confidence = rng.uniform(0, 1, n).astype(np.float32)
+    labels = ids[rng.integers(0, len(ids), n)]
+    labels[rng.uniform(size=n) < 0.2] = UNOBSERVED_ID
+    up = np.array([0.1, -0.95, 0.2])  # a tilted SLAM world: boxes in the upright frame, not the map's
+
+    def sizes(result):
+        return result.floor, {k: (v[0].tolist(), v[1]) for k, v in sorted(result.extents.items())}
+
+    previous = upright_geometry(gaussians, object_geometry(gaussians, labels, confidence), up, 1.0)
+    for step in range(4):
+        labels = labels.copy()
+        grown = rng.choice(n, 300, replace=False)
+        labels[grown] = ids[step]  # one object grows (and takes Gaussians of others)
+        if step == 1:
+            labels[labels == ids[5]] = UNOBSERVED_ID  # one vanishes
+        if step == 2:
+            labels[rng.choice(n, 50, replace=False)] = 0x0A0B0C  # one appears
+        geometry = object_geometry(gaussians, labels, confidence)
+        got = upright_geometry(gaussians, geometry, up, 1.0, previous)
+        assert sizes(got) == sizes(upright_geometry(gaussians, geometry, up, 1.0)), step
+        assert got._frame is previous._frame  # the upright centres computed once per map and up
+        previous = got
+    assert (ids[5] not in got.extents) and (0x0A0B0C in got.extents)
+    tilted = upright_geometry(gaussians, geometry, np.array([0.0, -1.0, 0.1]), 1.0, previous)  # up re-estimated
+    assert tilted._frame is not previous._frame
+    assert sizes(tilted) == sizes(upright_geometry(gaussians, geometry, np.array([0.0, -1.0, 0.1]), 1.0))
+    z_up = upright_geometry(gaussians, geometry, np.array([0.0, 0.0, 1.0]), 1.0, previous)  # the map's own boxes
+    assert sizes(z_up)[1] == {s.id: ((s.bbox_max - s.bbox_min).tolist(), float(s.bbox_min[2] - z_up.floor))
+                              for s in geometry.objects}  # fmt: skip

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.mapping import SemanticMapper
+from monovoc_ros.embed.attributes import combine
 from monovoc_ros.objects.evaluation import evaluate_index, load_queries
 from monovoc_ros.objects.index import EMBED_CHUNK_VIEWS, IndexConfig, ObjectIndex, backend_identity, lazy_backend
 from monovoc_ros.objects.records import QueryError
@@ -66,6 +67,13 @@ def test_refresh_embeds_only_what_changed():
         if oid not in changed:
             assert np.array_equal(index.record(oid).image_embedding, image)
     assert all(np.isclose(np.linalg.norm(r.embedding), 1.0, atol=1e-5) for r in index.records())
+    # Each object's embedding mixes its image embedding with its description's (the combination kept between
+    # refreshes is the one of the current pair).
+    records = index.records()
+    texts = counting.embed_texts([r.description for r in records])
+    weight = index.config.description_weight
+    for r, text in zip(records, texts, strict=True):
+        np.testing.assert_allclose(r.embedding, combine(r.image_embedding, text, weight), atol=1e-6)
 
 
 def test_refresh_stops_between_chunks_of_views_and_keeps_what_it_embedded():

@@ -191,7 +191,7 @@ def _objects_of(
     if voxel > 0:
         shaped = _main_clusters(gaussians.means, rows, slot, distinct.size, shaping[rows], voxel)
         rows, slot = rows[shaped], slot[shaped]
-    summaries = _boxes(gaussians, distinct, rows, slot)
+    summaries = _boxes(gaussians.means, gaussians.opacities, distinct, rows, slot)
     for s, n in zip(summaries, counts[counts > 0].tolist(), strict=True):
         s.num_gaussians = n
     return summaries, rows
@@ -203,11 +203,23 @@ def percentile_boxes(gaussians: GaussianMap, object_ids: np.ndarray) -> list[Obj
     object_ids = np.asarray(object_ids, np.uint32)
     if object_ids.shape != (len(gaussians),):
         raise ValueError(f"object_ids: expected shape ({len(gaussians)},), got {object_ids.shape}")
+    return percentile_boxes_at(gaussians.means, gaussians.opacities, object_ids)
+
+
+def percentile_boxes_at(
+    means: np.ndarray, opacities: np.ndarray, object_ids: np.ndarray, only: np.ndarray | None = None
+) -> list[ObjectSummary]:
+    """``percentile_boxes`` of Gaussians at ``means`` (N, 3) (in any frame) with ``opacities`` (N,), for the objects
+    of ``object_ids`` (N,) uint32 among ``only`` ((K,) ascending ids; None: all of them)."""
     rows = np.flatnonzero((object_ids != UNOBSERVED_ID) & (object_ids != VOID_ID))
+    if only is not None:
+        wanted = np.zeros(_ID_RANGE, bool)
+        wanted[only] = True
+        rows = rows[wanted[object_ids[rows]]]
     if rows.size == 0:
         return []
-    distinct, slot = _slots(object_ids[rows])
-    return _boxes(gaussians, distinct, rows, slot)
+    distinct, slot = _slots(object_ids[rows], only)
+    return _boxes(means, opacities, distinct, rows, slot)
 
 
 def main_cluster_ids(
@@ -253,17 +265,18 @@ def _slots(ids: np.ndarray, candidates: np.ndarray | None = None) -> tuple[np.nd
     return distinct, table[ids]
 
 
-def _boxes(gaussians: GaussianMap, distinct: np.ndarray, rows: np.ndarray, slot: np.ndarray) -> list[ObjectSummary]:
+def _boxes(
+    means: np.ndarray, opacities: np.ndarray, distinct: np.ndarray, rows: np.ndarray, slot: np.ndarray
+) -> list[ObjectSummary]:
     """Percentile box and centroid of each object of ``distinct`` (K,) with rows among ``rows`` (M,) ascending,
-    where ``slot`` (M,) is each row's index in ``distinct`` (core.object_geometry_kernels, one parallel call)."""
+    where ``slot`` (M,) is each row's index in ``distinct``, of the Gaussians at ``means`` (N, 3) with
+    ``opacities`` (N,) (core.object_geometry_kernels, one parallel call)."""
     order = np.argsort(slot, kind="stable")  # rows stay ascending within an object: the same sums
     counts = np.bincount(slot, minlength=distinct.size)
     present = np.flatnonzero(counts)
     bounds = np.concatenate([[0], np.cumsum(counts[present])])
     low, high, centroid = (np.empty((present.size, 3)) for _ in range(3))
-    percentile_boxes_kernel(
-        gaussians.means, gaussians.opacities, rows[order], bounds, _LOW / 100, _HIGH / 100, low, high, centroid
-    )
+    percentile_boxes_kernel(means, opacities, rows[order], bounds, _LOW / 100, _HIGH / 100, low, high, centroid)
     ids = distinct[present]
     rgb = unpack_rgb(ids).tolist()
     return [

@@ -40,7 +40,7 @@ from monovoc_ros.embed.crops import crop_object
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.objects.labels import head_noun, noun
 from monovoc_ros.objects.records import ObjectRecord, QueryError, QueryResult
-from monovoc_ros.objects.upright import axis_vector, camera_up, estimate_up, upright_geometry
+from monovoc_ros.objects.upright import UprightGeometry, axis_vector, camera_up, estimate_up, upright_geometry
 from monovoc_ros.objects.views import ObjectView, ObjectViews, ViewConfig
 
 CROP_MODES = ("soft", "hard")
@@ -177,6 +177,7 @@ class ObjectIndex:
         self.segment_confidence: dict[int, float] = {}  # object id -> its segment label's confidence
         self._floor = 0.0
         self._upright: dict[int, tuple[np.ndarray, float]] = {}  # id -> (extent with height last, height)
+        self._upright_geometry: UprightGeometry | None = None  # what _floor and _upright come from
         self._up_sum = np.zeros(3)  # sum of the keyframes' camera up directions (up_axis "auto")
         # The latest keyframe's camera pose (4, 4) cam_to_world: the robot's viewpoint for spatial queries.
         self.viewpoint: np.ndarray | None = None
@@ -193,6 +194,9 @@ class ObjectIndex:
         # Names (given or segments) of records restored from a database: a restart without labels_file keeps them.
         self._restored_label: dict[int, ObjectLabel] = {}
         self._text_cache: dict[str, np.ndarray] = {}
+        # object id -> (its image embedding, its description, their combination) of the last _publish: most
+        # objects change neither between two refreshes (1M Gaussians, 170 objects: combining took 9% of a refresh).
+        self._combined: dict[int, tuple[np.ndarray, str, np.ndarray]] = {}
         self._restored_backend_info: dict | None = None
 
     # ------------------------------------------------------------------ backend
@@ -327,9 +331,10 @@ class ObjectIndex:
             self._up = None  # re-estimate from the camera hint, which improves with every keyframe
             self._up = estimate_up(gaussians, self.up_vector())
             self._up_key = id(gaussians)
-        self._floor, self._upright = upright_geometry(
-            gaussians, geometry, self.up_vector(), self.config.floor_percentile
+        self._upright_geometry = upright_geometry(
+            gaussians, geometry, self.up_vector(), self.config.floor_percentile, self._upright_geometry
         )
+        self._floor, self._upright = self._upright_geometry.floor, self._upright_geometry.extents
         palette = result.palette
         self._observations = dict(zip(palette.ids.tolist(), palette.mask_counts.tolist(), strict=True))
         self.object_ids = result.object_ids
@@ -417,12 +422,18 @@ class ObjectIndex:
                 del self._text_cache[text]
         previous = {r.id: r for r in self._snapshot[0]}
         records = []
+        combined: dict[int, tuple[np.ndarray, str, np.ndarray]] = {}
         for oid, label, description in rows:
             s = self._summaries[oid]
             image = self._image_emb[oid]
             final = image
             if c.description_weight > 0:
-                final = combine(image, self._text_cache[description], c.description_weight)
+                cached = self._combined.get(oid)
+                if cached is not None and cached[0] is image and cached[1] == description:
+                    final = cached[2]
+                else:
+                    final = combine(image, self._text_cache[description], c.description_weight)
+                combined[oid] = (image, description, final)
             record = ObjectRecord(
                 id=oid,
                 label=label.name,
@@ -446,6 +457,7 @@ class ObjectIndex:
             if old is not None and _same_record(old, record):
                 record.updated_unix = old.updated_unix
             records.append(record)
+        self._combined = combined
         self._swap(tuple(records), np.stack([r.embedding for r in records]).astype(np.float32))
         return embedded
 

@@ -16,10 +16,14 @@ along -y put the chairs "1.8 m above the floor". ``up_axis="auto"`` estimates up
 
 from __future__ import annotations
 
+import weakref
+from dataclasses import dataclass
+
 import numpy as np
 
+from monovoc_ros.core.evidence.palette import VOID_ID
 from monovoc_ros.core.map.gaussians import GaussianMap
-from monovoc_ros.core.object_geometry import ObjectGeometry, percentile_boxes
+from monovoc_ros.core.object_geometry import ObjectGeometry, percentile_boxes_at
 
 AXES = {"+x": (0, 1.0), "-x": (0, -1.0), "+y": (1, 1.0), "-y": (1, -1.0), "+z": (2, 1.0), "-z": (2, -1.0)}
 
@@ -78,19 +82,70 @@ def upright_rotation(up: np.ndarray) -> np.ndarray:
     return np.stack([h1, h2, up])
 
 
+@dataclass(frozen=True, eq=False)
+class _Frame:
+    """One map's centres in one upright frame (None: the map frame is upright) and its floor height."""
+
+    gaussians: weakref.ref  # to the GaussianMap (not kept alive by it)
+    rotation: np.ndarray  # (3, 3) upright_rotation
+    floor_percentile: float
+    means: np.ndarray | None  # (N, 3) float32 centres with height last
+    floor: float
+
+    def of(self, gaussians: GaussianMap, rotation: np.ndarray, floor_percentile: float) -> bool:
+        return (
+            self.gaussians() is gaussians
+            and np.array_equal(self.rotation, rotation)
+            and self.floor_percentile == floor_percentile
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class UprightGeometry:
+    """The objects' sizes in the upright frame: ``extents`` {object id: (extent with height last, lowest point
+    above the floor)} and the ``floor`` height; and what they were computed from, so that the next labelling of the
+    same map in the same frame computes only the objects whose shaping Gaussians changed."""
+
+    floor: float
+    extents: dict[int, tuple[np.ndarray, float]]
+    _frame: _Frame
+    _shape_ids: np.ndarray  # (N,) uint32 ObjectGeometry.shape_ids
+
+
 def upright_geometry(
-    gaussians: GaussianMap, geometry: ObjectGeometry, up: np.ndarray, floor_percentile: float
-) -> tuple[float, dict[int, tuple[np.ndarray, float]]]:
-    """(floor height, {object id: (extent with height last, lowest point above the floor)}), from the
-    percentile boxes of the Gaussians that shape each object (``geometry.shape_ids``) in the upright frame;
-    the map-frame boxes themselves when the map frame already is upright (z up)."""
+    gaussians: GaussianMap,
+    geometry: ObjectGeometry,
+    up: np.ndarray,
+    floor_percentile: float,
+    previous: UprightGeometry | None = None,
+) -> UprightGeometry:
+    """The objects' upright sizes: the percentile boxes of the Gaussians that shape each object
+    (``geometry.shape_ids``) in the upright frame; the map-frame boxes themselves when the map frame already is
+    upright (z up). ``previous``: an earlier result; of the same map, up and percentile, only the objects whose
+    shaping Gaussians changed are computed again (the same result: a box depends on its object's Gaussians only)."""
     rotation = upright_rotation(up)
+    frame = previous._frame if previous is not None else None
+    if frame is None or not frame.of(gaussians, rotation, floor_percentile):
+        frame = _frame(gaussians, rotation, floor_percentile)
+    shape_ids = geometry.shape_ids
+    if frame.means is None:
+        summaries, extents = list(geometry.objects), {}
+    elif previous is not None and previous._frame is frame:
+        rows = np.flatnonzero(shape_ids != previous._shape_ids)
+        changed = np.union1d(shape_ids[rows], previous._shape_ids[rows])
+        changed = changed[changed < VOID_ID]  # UNOBSERVED_ID (the largest) and VOID_ID are no objects
+        gone = set(changed.tolist())
+        extents = {k: v for k, v in previous.extents.items() if k not in gone}
+        summaries = percentile_boxes_at(frame.means, gaussians.opacities, shape_ids, changed) if changed.size else []
+    else:
+        summaries, extents = percentile_boxes_at(frame.means, gaussians.opacities, shape_ids), {}
+    floor = frame.floor
+    extents.update({s.id: (np.maximum(s.bbox_max - s.bbox_min, 0.0), float(s.bbox_min[2] - floor)) for s in summaries})
+    return UprightGeometry(floor, extents, frame, shape_ids)
+
+
+def _frame(gaussians: GaussianMap, rotation: np.ndarray, floor_percentile: float) -> _Frame:
     means = gaussians.means.astype(np.float64) @ rotation.T
     floor = float(np.percentile(means[:, 2], floor_percentile)) if len(means) else 0.0
-    if np.allclose(rotation, np.eye(3)):
-        summaries = list(geometry.objects)
-    else:
-        upright = GaussianMap(means.astype(np.float32), gaussians.scales, gaussians.quats, gaussians.opacities)
-        summaries = percentile_boxes(upright, geometry.shape_ids)
-    out = {s.id: (np.maximum(s.bbox_max - s.bbox_min, 0.0), float(s.bbox_min[2] - floor)) for s in summaries}
-    return floor, out
+    upright = None if np.allclose(rotation, np.eye(3)) else means.astype(np.float32)
+    return _Frame(weakref.ref(gaussians), rotation, float(floor_percentile), upright, floor)
