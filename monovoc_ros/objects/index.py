@@ -574,6 +574,7 @@ class ObjectIndex:
             }
             self._observations = {r.id: r.num_observations for r in records}
             self._upright = {r.id: (np.asarray(r.upright_extent, np.float64), r.height_above_floor) for r in records}
+            self._upright_geometry = None  # the next refresh's map is another: its sizes from scratch
             if up is not None:
                 self._up = np.asarray(up, np.float64)
             if viewpoint is not None:
