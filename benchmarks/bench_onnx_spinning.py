@@ -7,8 +7,8 @@ between (crops, colors, ranking, mask decoding). onnxruntime's default lets its 
 run, waiting for the next one; `make_session` makes them sleep. For ConSE's classifier (3 crops a run, as the
 index's chunks), its sentence encoder (one query text) and the segmenter (YOLOv5s-seg, one 640x384 image), with
 `--gap-ms` of sleep between runs: milliseconds a run (median) and CPU milliseconds of the process a run (sleeps
-included: what spinning costs the other threads), idle and beside one busy process (the mapper's worker on the
-other core).
+included: what spinning costs the other threads), idle and beside one busy process (on a 2-core machine, as the
+node's: the mapper's worker on the other core). Each model runs its spinning block, then its sleeping block.
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
         try:
             for name in sessions["spinning"]:
-                for mode in ("spinning", "sleeping"):  # alternated, so drift in the machine hits both alike
+                for mode in ("spinning", "sleeping"):
                     key = f"{name}/{beside}/{mode}"
                     report["results"][key] = _runs(sessions[mode][name], args.runs, args.gap_ms / 1e3)
         finally:

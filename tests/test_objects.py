@@ -134,6 +134,15 @@ def test_upright_sizes_of_a_new_labelling_are_computed_again_only_where_objects_
         assert got._frame is previous._frame  # the upright centres computed once per map and up
         previous = got
     assert (ids[5] not in got.extents) and (0x0A0B0C in got.extents)
+    same = upright_geometry(gaussians, geometry, up, 1.0, got)  # nothing changed: the same sizes, read-only
+    assert sizes(same) == sizes(got) and not next(iter(same.extents.values()))[0].flags.writeable
+    moved = _map(gaussians.means + np.float32(0.5))  # a map update (another map object), the same up
+    on_moved = upright_geometry(moved, object_geometry(moved, labels, confidence), up, 1.0, got)
+    assert on_moved._frame is not got._frame
+    assert sizes(on_moved) == sizes(upright_geometry(moved, object_geometry(moved, labels, confidence), up, 1.0))
+    empty = _map(np.zeros((0, 3), np.float32))
+    nothing = upright_geometry(empty, object_geometry(empty, np.zeros(0, np.uint32)), up, 1.0, got)
+    assert (nothing.floor, nothing.extents) == (0.0, {})
     tilted = upright_geometry(gaussians, geometry, np.array([0.0, -1.0, 0.1]), 1.0, previous)  # up re-estimated
     assert tilted._frame is not previous._frame
     assert sizes(tilted) == sizes(upright_geometry(gaussians, geometry, np.array([0.0, -1.0, 0.1]), 1.0))

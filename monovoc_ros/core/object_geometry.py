@@ -210,7 +210,7 @@ def percentile_boxes_at(
     means: np.ndarray, opacities: np.ndarray, object_ids: np.ndarray, only: np.ndarray | None = None
 ) -> list[ObjectSummary]:
     """``percentile_boxes`` of Gaussians at ``means`` (N, 3) (in any frame) with ``opacities`` (N,), for the objects
-    of ``object_ids`` (N,) uint32 among ``only`` ((K,) ascending ids; None: all of them)."""
+    of ``object_ids`` (N,) uint32 among ``only`` ((K,) uint32 ascending object ids, below VOID_ID; None: all)."""
     rows = np.flatnonzero((object_ids != UNOBSERVED_ID) & (object_ids != VOID_ID))
     if only is not None:
         wanted = np.zeros(_ID_RANGE, bool)

@@ -177,7 +177,9 @@ class ObjectIndex:
         self.segment_confidence: dict[int, float] = {}  # object id -> its segment label's confidence
         self._floor = 0.0
         self._upright: dict[int, tuple[np.ndarray, float]] = {}  # id -> (extent with height last, height)
-        self._upright_geometry: UprightGeometry | None = None  # what _floor and _upright come from
+        # What _floor and _upright come from, kept for the next refresh: the upright centres (12 bytes per Gaussian)
+        # and the shaping ids of the map in use.
+        self._upright_geometry: UprightGeometry | None = None
         self._up_sum = np.zeros(3)  # sum of the keyframes' camera up directions (up_axis "auto")
         # The latest keyframe's camera pose (4, 4) cam_to_world: the robot's viewpoint for spatial queries.
         self.viewpoint: np.ndarray | None = None
@@ -194,9 +196,10 @@ class ObjectIndex:
         # Names (given or segments) of records restored from a database: a restart without labels_file keeps them.
         self._restored_label: dict[int, ObjectLabel] = {}
         self._text_cache: dict[str, np.ndarray] = {}
-        # object id -> (its image embedding, its description, their combination) of the last _publish: most
-        # objects change neither between two refreshes (1M Gaussians, 170 objects: combining took 9% of a refresh).
-        self._combined: dict[int, tuple[np.ndarray, str, np.ndarray]] = {}
+        # object id -> (its image embedding, its description, the description's weight, their combination) of the
+        # last _publish: most objects change neither between two refreshes (1M Gaussians, 170 objects: combining
+        # took 9% of a refresh).
+        self._combined: dict[int, tuple[np.ndarray, str, float, np.ndarray]] = {}
         self._restored_backend_info: dict | None = None
 
     # ------------------------------------------------------------------ backend
@@ -422,18 +425,19 @@ class ObjectIndex:
                 del self._text_cache[text]
         previous = {r.id: r for r in self._snapshot[0]}
         records = []
-        combined: dict[int, tuple[np.ndarray, str, np.ndarray]] = {}
+        combined: dict[int, tuple[np.ndarray, str, float, np.ndarray]] = {}
         for oid, label, description in rows:
             s = self._summaries[oid]
             image = self._image_emb[oid]
             final = image
             if c.description_weight > 0:
+                key = (image, description, c.description_weight)
                 cached = self._combined.get(oid)
-                if cached is not None and cached[0] is image and cached[1] == description:
-                    final = cached[2]
+                if cached is not None and cached[0] is image and cached[1:] == key[1:]:
+                    final = cached[3]
                 else:
                     final = combine(image, self._text_cache[description], c.description_weight)
-                combined[oid] = (image, description, final)
+                combined[oid] = (*key, final)
             record = ObjectRecord(
                 id=oid,
                 label=label.name,
@@ -574,7 +578,8 @@ class ObjectIndex:
             }
             self._observations = {r.id: r.num_observations for r in records}
             self._upright = {r.id: (np.asarray(r.upright_extent, np.float64), r.height_above_floor) for r in records}
-            self._upright_geometry = None  # the next refresh's map is another: its sizes from scratch
+            self._upright_geometry = None  # the restored sizes are the records': the next refresh computes them all
+            self._combined.clear()
             if up is not None:
                 self._up = np.asarray(up, np.float64)
             if viewpoint is not None:

@@ -140,7 +140,10 @@ def upright_geometry(
     else:
         summaries, extents = percentile_boxes_at(frame.means, gaussians.opacities, shape_ids), {}
     floor = frame.floor
-    extents.update({s.id: (np.maximum(s.bbox_max - s.bbox_min, 0.0), float(s.bbox_min[2] - floor)) for s in summaries})
+    for s in summaries:
+        extent = np.maximum(s.bbox_max - s.bbox_min, 0.0)
+        extent.setflags(write=False)  # kept from one labelling to the next, and handed to the index's records
+        extents[s.id] = (extent, float(s.bbox_min[2] - floor))
     return UprightGeometry(floor, extents, frame, shape_ids)
 
 
