@@ -60,7 +60,7 @@ from monovoc_ros.core.evaluation.datasets import Sequence, open_sequence  # noqa
 from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb, unpack_rgb  # noqa: E402
 from monovoc_ros.core.keyframe import Keyframe  # noqa: E402
 from monovoc_ros.core.map.gaussians import GaussianMap  # noqa: E402
-from monovoc_ros.fastdds_profile import publication_mode  # noqa: E402
+from monovoc_ros.fastdds_profile import PROFILES_ENV, publication_mode  # noqa: E402
 from monovoc_ros.ros_harness import (  # noqa: E402
     SEMANTIC_MAPPER,
     ClientNode,
@@ -295,7 +295,7 @@ def main() -> int:
         # Set before the first participant of this process (Fast DDS reads it once); the node and clients inherit it.
         # The replay's and the node's 50 ms writer heartbeat (monovoc_ros/fastdds_profile.py) then applies only if
         # the profile sets it.
-        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(args.fastdds_profile.resolve())
+        os.environ[PROFILES_ENV] = str(args.fastdds_profile.resolve())
     node_params = {"map_update_ahead": args.map_update_ahead, "map_reader_process": not args.map_in_node}
     if not (REPLICA / "traj.txt").exists():
         print(f"{REPLICA} not present: nothing to measure", file=sys.stderr)
@@ -304,7 +304,7 @@ def main() -> int:
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 232)))
     loopback_environment(work / "ros_log")
     base = open_sequence(str(REPLICA))
-    profile = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE")
+    profile = os.environ.get(PROFILES_ENV)
     # Every process inherits the caller's RMW_FASTRTPS_PUBLICATION_MODE.
     report = {"source": str(REPLICA), "cpus": os.cpu_count(), "update_period_s": args.update_period_s,
               "fastdds_profile": profile, "publication_mode": publication_mode(), **node_params,

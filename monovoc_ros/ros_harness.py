@@ -282,6 +282,21 @@ def call_service(
     return response
 
 
+def node_endpoints(node: Any, kind: str, name: str, namespace: str) -> dict[str, list[str]]:
+    """Names -> types of the ``kind`` ("publishers" or "clients") of the node ``namespace``/``name`` as ``node``'s
+    graph shows them; empty until ``node`` has discovered that node (rclpy raises NodeNameNonExistentError then)."""
+    from rclpy.node import NodeNameNonExistentError
+
+    query = {
+        "publishers": node.get_publisher_names_and_types_by_node,
+        "clients": node.get_client_names_and_types_by_node,
+    }[kind]
+    try:
+        return dict(query(name, namespace))
+    except NodeNameNonExistentError:
+        return {}
+
+
 def wait_for_subscribers(publisher: Any, count: int = 1, timeout: float = 10.0, *, process: Watched = None) -> None:
     """Waits until ``publisher`` is matched with at least ``count`` subscriptions."""
     what = f"{count} subscriber(s) on {publisher.topic_name}"

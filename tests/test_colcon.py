@@ -25,7 +25,14 @@ import pytest
 from test_packaging import RVIZ, parse_launch, rviz_topics
 
 from monovoc_ros.embed import default_model_dir
-from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, wait_for_service, wait_until
+from monovoc_ros.ros_harness import (
+    ClientNode,
+    NodeProcess,
+    call_service,
+    node_endpoints,
+    wait_for_service,
+    wait_until,
+)
 from tests.object_room import copy_directory, room_directory, room_id
 from tests.rosutil import REPO, ros_environment
 
@@ -179,12 +186,7 @@ def test_the_installed_node_answers_a_query_and_publishes_what_rviz_shows(worksp
             assert RVIZ.is_file() and wanted
 
             def published() -> dict[str, list[str]]:
-                from rclpy.node import NodeNameNonExistentError
-
-                try:
-                    return dict(client.node.get_publisher_names_and_types_by_node("semantic_mapper", "/monovoc"))
-                except NodeNameNonExistentError:  # not discovered yet
-                    return {}
+                return node_endpoints(client.node, "publishers", "semantic_mapper", "/monovoc")
 
             wait_until(lambda: set(wanted) <= set(published()), 30.0, f"publishers of {sorted(wanted)}", process=node)
             types = published()

@@ -17,7 +17,15 @@ from monovoc_ros.embed import default_model_dir
 from monovoc_ros.nodes import service_call
 from monovoc_ros.nodes.action_client import LockedActionClient
 from monovoc_ros.nodes.mapping_node import NODE_NAME
-from monovoc_ros.ros_harness import ClientNode, NodeProcess, call_service, ros_args, wait_for_service, wait_until
+from monovoc_ros.ros_harness import (
+    ClientNode,
+    NodeProcess,
+    call_service,
+    node_endpoints,
+    ros_args,
+    wait_for_service,
+    wait_until,
+)
 from tests.object_room import copy_directory, room_directory, room_id
 from tests.rosutil import ros_environment
 
@@ -84,13 +92,7 @@ class FakeNav2:
         wanted = {"/navigate_to_pose/_action/send_goal", "/navigate_to_pose/_action/get_result"}
 
         def seen() -> bool:
-            from rclpy.node import NodeNameNonExistentError
-
-            try:
-                clients = self.node.get_client_names_and_types_by_node(NODE_NAME, DEFAULT_NAMESPACE)
-            except NodeNameNonExistentError:  # this server's participant has not discovered the node yet
-                return False
-            return wanted <= {name for name, _ in clients}
+            return wanted <= set(node_endpoints(self.node, "clients", NODE_NAME, DEFAULT_NAMESPACE))
 
         wait_until(seen, 30.0, "the mapping node's navigate_to_pose client", process=process)
 
