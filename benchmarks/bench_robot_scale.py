@@ -242,6 +242,12 @@ def run(
             "cloud_viewer": cloud_viewer is not None,
             "clouds_skipped": int(values.get("clouds_skipped", 0)),
             "worker_share": worker_shares(values, wall),
+            # What one publication took the worker: the labels, the object geometry, the messages.
+            "publications": int(values["publishes"]),
+            "publication_ms_mean": {
+                a: round(1e3 * float(values[f"worker_s_{a}"]) / max(1, int(values["publishes"])), 1)
+                for a in ("labels", "objects", "publish")
+            },
             # The longest time any thread of the node held the interpreter (nodes/interpreter_watch.py), and when.
             **{k: float(v) for k, v in values.items() if k.startswith("interpreter_hold")},
             "node_peak_rss_mb": round(peak_rss_mb(node.pid)),

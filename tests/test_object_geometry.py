@@ -223,3 +223,35 @@ def test_the_box_kernel_selects_numpys_quantiles_on_ties_and_constant_axes():
     ordered = np.sort(means[:, 2].astype(np.float64))  # NaN last: the 1st percentile reads two finite values
     np.testing.assert_array_equal(low[0, 2], ordered[0] + (ordered[1] - ordered[0]) * 0.49)
     np.testing.assert_array_equal(low[0, :2], np.quantile(means[:, :2].astype(np.float64), 0.01, axis=0))
+
+
+def test_the_maps_voxel_order_and_each_labellings_own_keys_give_the_same_geometry():
+    """Main clusters of many Gaussians come from the map's voxel order (made once, kept by later labellings), of
+    few from their own keys' sort, of a map with a centre that is not finite always from their own: all equal
+    to the reference."""
+    rng = np.random.default_rng(17)
+    gaussians, ids, confidence = _room(rng, n=8000, objects=40)
+    geometry = object_geometry(gaussians, ids, confidence)
+    voxels = geometry._labelling.voxels
+    assert voxels is not None and voxels.sorted(gaussians.means) is not None  # made by the full computation
+    assert_same_geometry(geometry, object_geometry_reference(gaussians, ids, confidence))
+    objects, counts = np.unique(ids[ids < VOID_ID], return_counts=True)
+    small = objects[np.argmin(counts)]
+    labels = ids.copy()
+    labels[rng.choice(np.flatnonzero(ids == small), 5, replace=False)] = UNOBSERVED_ID  # one small object
+    updated = object_geometry(gaussians, labels, confidence, previous=geometry)
+    assert updated._labelling.voxels is voxels
+    assert 8 * np.count_nonzero(ids == small) < len(labels)  # its own keys
+    assert_same_geometry(updated, object_geometry_reference(gaussians, labels, confidence))
+    labels[labels < VOID_ID] = np.roll(labels[labels < VOID_ID], 7)  # most objects change: the map's order
+    assert_same_geometry(
+        object_geometry(gaussians, labels, confidence, previous=updated),
+        object_geometry_reference(gaussians, labels, confidence),
+    )
+    means = gaussians.means.copy()
+    means[3] = np.nan
+    broken = _map(means, rng)
+    ids[3] = UNOBSERVED_ID
+    geometry = object_geometry(broken, ids, confidence)
+    assert geometry._labelling.voxels.sorted(broken.means) is None
+    assert_same_geometry(geometry, object_geometry_reference(broken, ids, confidence))

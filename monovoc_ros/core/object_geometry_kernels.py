@@ -179,3 +179,30 @@ def main_voxel_clusters(ordered, steps, object_shift, n_objects, min_share):  # 
     for i in range(m):
         out[i] = kept_voxel[voxel_of[i]]
     return out
+
+
+@njit(cache=True, nogil=True)
+def voxel_keys_by_object(order, cell_keys, slot_of, n_slots, object_shift):  # pragma: no cover - numba
+    """The voxel keys of ``main_voxel_clusters`` from a map's Gaussians already in voxel order: ``order`` (F,) rows
+    sorted by their packed voxel ``cell_keys`` (F,) (that order), ``slot_of`` (N,) each row's object (< n_slots) or
+    -1 for rows not wanted. Returns the wanted rows' keys, object in the bits from ``object_shift`` up, ascending,
+    and the rows in that order: a stable counting sort by object, two passes over the map where a sort of the
+    wanted rows' keys took ~20 ms at 600k."""
+    starts = np.zeros(n_slots + 1, np.int64)
+    for i in range(order.shape[0]):
+        s = slot_of[order[i]]
+        if s >= 0:
+            starts[s + 1] += 1
+    for s in range(n_slots):
+        starts[s + 1] += starts[s]
+    keys = np.empty(starts[n_slots], np.int64)
+    rows = np.empty(starts[n_slots], np.int64)
+    for i in range(order.shape[0]):
+        r = order[i]
+        s = slot_of[r]
+        if s >= 0:
+            p = starts[s]
+            starts[s] = p + 1
+            keys[p] = (np.int64(s) << object_shift) | cell_keys[i]
+            rows[p] = r
+    return keys, rows
