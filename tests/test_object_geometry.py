@@ -183,7 +183,7 @@ def test_the_box_kernel_takes_numpys_percentiles_bit_for_bit():
     opacities[:3] = 0  # the first objects' weights sum to zero: plain means
     bounds = np.concatenate([[0], np.cumsum(sizes)])
     low, high, centroid = (np.empty((len(sizes), 3)) for _ in range(3))
-    kernel(means, opacities, np.arange(len(means)), bounds, 0.01, 0.99, low, high, centroid)
+    kernel(means.astype(np.float64), opacities.astype(np.float64), bounds, 0.01, 0.99, low, high, centroid)
     for k in range(len(sizes)):
         pts = means[bounds[k] : bounds[k + 1]].astype(np.float64)
         lo, hi = np.percentile(pts, [1.0, 99.0], axis=0)
@@ -211,7 +211,7 @@ def test_the_box_kernel_selects_numpys_quantiles_on_ties_and_constant_axes():
         bounds = np.concatenate([[0], np.cumsum(sizes)])
         low, high, centroid = (np.empty((len(sizes), 3)) for _ in range(3))
         opacities = np.ones(len(means), np.float32)
-        kernel(means, opacities, np.arange(len(means)), bounds, q[0], q[1], low, high, centroid)
+        kernel(means.astype(np.float64), opacities.astype(np.float64), bounds, q[0], q[1], low, high, centroid)
         for k in range(len(sizes)):
             lo, hi = np.quantile(means[bounds[k] : bounds[k + 1]].astype(np.float64), q, axis=0)
             np.testing.assert_array_equal(low[k], lo, err_msg=f"trial {trial}, object {k}")
@@ -219,7 +219,7 @@ def test_the_box_kernel_selects_numpys_quantiles_on_ties_and_constant_axes():
     means = rng.normal(0, 1, (50, 3)).astype(np.float32)
     means[7, 2] = np.nan
     low, high, centroid = (np.empty((1, 3)) for _ in range(3))
-    kernel(means, np.ones(50, np.float32), np.arange(50), np.array([0, 50]), 0.01, 0.99, low, high, centroid)
+    kernel(means.astype(np.float64), np.ones(50), np.array([0, 50]), 0.01, 0.99, low, high, centroid)
     ordered = np.sort(means[:, 2].astype(np.float64))  # NaN last: the 1st percentile reads two finite values
     np.testing.assert_array_equal(low[0, 2], ordered[0] + (ordered[1] - ordered[0]) * 0.49)
     np.testing.assert_array_equal(low[0, :2], np.quantile(means[:, :2].astype(np.float64), 0.01, axis=0))
@@ -255,3 +255,43 @@ def test_the_maps_voxel_order_and_each_labellings_own_keys_give_the_same_geometr
     geometry = object_geometry(broken, ids, confidence)
     assert geometry._labelling.voxels.sorted(broken.means) is None
     assert_same_geometry(geometry, object_geometry_reference(broken, ids, confidence))
+
+
+def test_the_box_kernel_takes_large_objects_tails_beyond_sampled_pivots_bit_for_bit():
+    """Objects of 2048+ Gaussians: the quantiles from the values beyond two pivots of a sample, numpy's to the bit
+    at any quantile, with ties, one value, a sample that misleads (every sampled value far below the others: the
+    whole column is selected instead) and NaN (sorted, as for small objects)."""
+    from monovoc_ros.core.object_geometry_kernels import percentile_boxes as kernel
+
+    rng = np.random.default_rng(29)
+    for trial in range(24):
+        sizes = rng.integers(2048, 9000, rng.integers(1, 4)).tolist()
+        sizes[0] = 8001 if trial % 4 == 3 else sizes[0]
+        means = rng.normal(0, 3, (sum(sizes), 3)).astype(np.float64)
+        if trial % 2:
+            means = np.round(means * 4) / 4  # ties
+        if trial % 5 == 0:
+            means[:, 1] = 1.0  # one value
+        if trial % 4 == 3:  # the sample half -100, half 100: 64 values beyond each pivot, not the 1st percentile's 80
+            step = sizes[0] // 128
+            means[: 128 * step : step, 0] = np.resize([-100.0, 100.0], 128)
+        q = sorted(rng.uniform(0, 1, 2)) if trial % 3 == 0 else [0.01, 0.99]
+        if trial == 6:
+            q = [0.0, 1.0]
+        bounds = np.concatenate([[0], np.cumsum(sizes)])
+        low, high, centroid = (np.empty((len(sizes), 3)) for _ in range(3))
+        kernel(means, np.ones(len(means)), bounds, q[0], q[1], low, high, centroid)
+        for k in range(len(sizes)):
+            lo, hi = np.quantile(means[bounds[k] : bounds[k + 1]], q, axis=0)
+            np.testing.assert_array_equal(low[k], lo, err_msg=f"trial {trial}, object {k}")
+            np.testing.assert_array_equal(high[k], hi, err_msg=f"trial {trial}, object {k}")
+    means = rng.normal(0, 1, (5000, 3))
+    means[1234, 0] = np.nan
+    low, high, centroid = (np.empty((1, 3)) for _ in range(3))
+    kernel(means, np.ones(5000), np.array([0, 5000]), 0.01, 0.99, low, high, centroid)
+    ordered = np.sort(means[:, 0])  # NaN last
+    virtual = 4999 * 0.99
+    below = int(virtual)
+    want = ordered[below] + (ordered[below + 1] - ordered[below]) * (virtual - below)
+    np.testing.assert_array_equal(high[0, 0], want)
+    np.testing.assert_array_equal(low[0, 1:], np.quantile(means[:, 1:], 0.01, axis=0))

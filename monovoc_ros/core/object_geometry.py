@@ -55,7 +55,7 @@ from scipy.sparse.csgraph import connected_components
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, VOID_ID, unpack_rgb
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map.sorting import argsort_keys
-from monovoc_ros.core.object_geometry_kernels import main_voxel_clusters, voxel_keys_by_object
+from monovoc_ros.core.object_geometry_kernels import group_by_object, main_voxel_clusters, voxel_keys_by_object
 from monovoc_ros.core.object_geometry_kernels import percentile_boxes as percentile_boxes_kernel
 
 MIN_CONFIDENCE = 0.3
@@ -306,13 +306,14 @@ def _boxes(
 ) -> list[ObjectSummary]:
     """Percentile box and centroid of each object of ``distinct`` (K,) with rows among ``rows`` (M,) ascending,
     where ``slot`` (M,) is each row's index in ``distinct``, of the Gaussians at ``means`` (N, 3) with
-    ``opacities`` (N,) (core.object_geometry_kernels, one parallel call)."""
-    order = np.argsort(slot, kind="stable")  # rows stay ascending within an object: the same sums
+    ``opacities`` (N,) (core.object_geometry_kernels: grouped by object in one pass, then one parallel call)."""
     counts = np.bincount(slot, minlength=distinct.size)
     present = np.flatnonzero(counts)
     bounds = np.concatenate([[0], np.cumsum(counts[present])])
     low, high, centroid = (np.empty((present.size, 3)) for _ in range(3))
-    percentile_boxes_kernel(means, opacities, rows[order], bounds, _LOW / 100, _HIGH / 100, low, high, centroid)
+    # Rows stay ascending within an object: the sums of the reference, in its order.
+    pts, weights = group_by_object(means, opacities, rows, slot, distinct.size)
+    percentile_boxes_kernel(pts, weights, bounds, _LOW / 100, _HIGH / 100, low, high, centroid)
     ids = distinct[present]
     rgb = unpack_rgb(ids).tolist()
     return [
