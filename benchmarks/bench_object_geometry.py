@@ -8,6 +8,7 @@ publication after a keyframe computes), each checked equal to the reference.
 
     python benchmarks/bench_object_geometry.py
     python benchmarks/bench_object_geometry.py --sizes 1000000 --keyframes 12
+    python benchmarks/bench_object_geometry.py --sizes 1000000 --live 80   # a live node's publications
 """
 
 from __future__ import annotations
@@ -101,12 +102,62 @@ def row(gmap, before, after, n: int, repeats: int) -> dict:
     }
 
 
+def live_row(n: int, keyframes: int, every: int, update_every: int) -> dict:
+    """The geometry of a live node's publications: office_0 tiled to n (bench_robot_scale.TiledSequence, keyframe k
+    in tile k mod tiles, a map update without ids every `update_every` keyframes) mapped by a MappingSession, each
+    `every` keyframes the result's geometry computed as a publication does (starting from the one before: most
+    objects have changed by then). The last one is checked against the reference."""
+    from bench_robot_scale import TiledSequence
+
+    from monovoc_ros.core.evaluation.datasets import open_sequence
+    from monovoc_ros.core.session import MappingSession
+
+    sequence = TiledSequence(open_sequence(str(REPLICA)), n, keyframes, 10.0, update_every)
+    session = MappingSession()
+    session.add_map(sequence.load_gaussians())
+    ms = []
+    for i in range(keyframes):
+        if i in sequence.updates:
+            session.add_map(sequence.updates[i])
+        session.add_keyframe(sequence.keyframe(i))
+        session.integrate_next()
+        if i % every == every - 1:
+            mapper = session.mapper
+            result = mapper.result()
+            start = time.perf_counter()
+            geometry = result.objects(mapper.gaussians)
+            ms.append(1e3 * (time.perf_counter() - start))
+    reference = object_geometry_reference(mapper.gaussians, result.object_ids, result.confidence)
+    return {
+        "gaussians": n,
+        "publications": len(ms),
+        "keyframes_between": every,
+        "map_update_every": update_every,
+        "objects": len(geometry.objects),
+        "publication_ms_mean": round(float(np.mean(ms)), 1),
+        "publication_ms_max": round(float(np.max(ms)), 1),
+        "equal_to_reference": same(geometry, reference),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="200000,1000000,2000000")
     parser.add_argument("--keyframes", type=int, default=30, help="keyframes mapped (the last one is the update)")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--live", type=int, default=0, metavar="KEYFRAMES",
+        help="instead: a live node's publications over this many keyframes (office_0 tiled; see live_row)",
+    )  # fmt: skip
+    parser.add_argument("--publish-every", type=int, default=7, help="--live: keyframes between publications")
+    parser.add_argument("--update-every", type=int, default=20, help="--live: keyframes between map updates")
     args = parser.parse_args()
+    if args.live:
+        if not (REPLICA / "traj.txt").exists():
+            sys.exit(f"{REPLICA} not present: --live needs office_0")
+        rows = [live_row(int(n), args.live, args.publish_every, args.update_every) for n in args.sizes.split(",")]
+        print(json.dumps({"source": "replica", "live": rows}, indent=1))
+        return
     source = "replica" if (REPLICA / "traj.txt").exists() else "synthetic"
     gmap, (before, after) = labellings(source, args.keyframes)
     out = {"source": source, "map_gaussians": len(gmap), "keyframes": args.keyframes, "rows": []}

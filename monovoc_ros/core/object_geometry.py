@@ -197,12 +197,13 @@ def _updated(
     voxel = before.settings[1]
     if not before.fits:  # the keys' range is the confident Gaussians' extent in the whole map
         _check_extent(_cells(gaussians.means[shaping], voxel), voxel)
-    members = np.flatnonzero(np.isin(object_ids, changed))
+    wanted = _id_table(changed)
+    members = np.flatnonzero(wanted[np.minimum(object_ids, VOID_ID)])  # VOID_ID: False, where unobserved look
     summaries, shape_rows = _objects_of(gaussians, object_ids, shaping, members, voxel, before.voxels, changed)
     shape_ids = object_ids
     if voxel > 0:
         shape_ids = previous.shape_ids.copy()
-        shape_ids[np.isin(shape_ids, changed)] = UNOBSERVED_ID
+        shape_ids[wanted[np.minimum(shape_ids, VOID_ID)]] = UNOBSERVED_ID
         shape_ids[shape_rows] = object_ids[shape_rows]
         shape_ids.setflags(write=False)
     gone = set(changed.tolist())
@@ -249,9 +250,7 @@ def percentile_boxes_at(
     of ``object_ids`` (N,) uint32 among ``only`` ((K,) uint32 ascending object ids, below VOID_ID; None: all)."""
     rows = np.flatnonzero((object_ids != UNOBSERVED_ID) & (object_ids != VOID_ID))
     if only is not None:
-        wanted = np.zeros(_ID_RANGE, bool)
-        wanted[only] = True
-        rows = rows[wanted[object_ids[rows]]]
+        rows = rows[_id_table(only)[object_ids[rows]]]
     if rows.size == 0:
         return []
     distinct, slot = _slots(object_ids[rows], only)
@@ -284,6 +283,15 @@ def main_cluster_ids(
         rows = rows[_main_clusters(means, rows, slot, distinct.size, shaping[rows], voxel, min_share)]
         out[rows] = object_ids[rows]
     return out
+
+
+def _id_table(ids: np.ndarray) -> np.ndarray:
+    """(2**24,) bool, True at ``ids`` (K,) uint32 < 2**24 (VOID_ID not among them): membership of every Gaussian's
+    id by one lookup (a map's few hundred ids touch few of its pages), where np.isin sorts (300 ids among 1M / 2M
+    Gaussians: 58 / 137 ms against ~3 / ~6)."""
+    table = np.zeros(_ID_RANGE, bool)
+    table[ids] = True
+    return table
 
 
 def _slots(ids: np.ndarray, candidates: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -376,7 +384,8 @@ def _main_clusters(
     # Two passes over the map cost what sorting an eighth of it does.
     in_order = voxels.sorted(means) if voxels is not None and 8 * index.size >= len(means) else None
     if index.size and in_order is not None:
-        slot_of = np.full(len(means), -1, np.int32)
+        # Read at random in voxel order: the narrowest type keeps more of it in cache (2M Gaussians: 8 MB as int32).
+        slot_of = np.full(len(means), -1, np.int16 if n_slots < 1 << 15 else np.int32)
         slot_of[rows[index]] = slot[index]
         keys, ordered = voxel_keys_by_object(*in_order, slot_of, n_slots, 3 * _COORD_BITS)
         kept = main_voxel_clusters(keys, _NEIGHBOUR_STEPS, 3 * _COORD_BITS, n_slots, float(min_share))
