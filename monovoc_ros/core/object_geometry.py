@@ -40,7 +40,12 @@ same result: 12 / 18 / 24 ms after one keyframe (9 objects changed, 70k of their
 centroids of all objects come from one parallel numba call and the main clusters from one union-find over the
 voxels (core.object_geometry_kernels; on a 2.3-3.4x slower machine, 2026-12-05: 1M from scratch 430 -> 251-279
 ms with the box kernel, then 171 ms with selection for the percentiles and the union-find (the reference: 402 ms
-in that run); after one keyframe 57 -> 50-53 -> 27 ms).
+in that run); after one keyframe 57 -> 50-53 -> 27 ms). A live node's publication comes after several keyframes,
+by which most objects changed (``bench_object_geometry.py --live 80``: office_0 tiled, keyframes in every tile, a
+publication every 7 keyframes, a map update every 20): 101 -> 57 / 170 -> 81 ms at 1M / 2M since each map's
+Gaussians are kept in voxel order (``_VoxelOrder``: the main clusters' keys without a sort), the objects' Gaussians
+are grouped in row order in one pass and large objects' percentiles are selected beyond sampled pivots
+(core.object_geometry_kernels).
 """
 
 from __future__ import annotations
