@@ -358,3 +358,19 @@ def test_surface_normals_equal_their_plain_twin():
     scales[:100] = 0.01  # ties: the first smallest axis, as a stable sort takes it
     scales[100:200, 1] = scales[100:200, 0]
     np.testing.assert_allclose(surface_normals(quats, scales), surface_normals_reference(quats, scales), atol=1e-12)
+
+
+def test_the_fields_sums_equal_their_plain_twin_bit_for_bit():
+    """One pass over the sample's points and nodes adds the same products in the same order as numpy's bincount."""
+    from monovoc_ros.core.follow.map_follow_kernels import field_sums
+    from monovoc_ros.core.follow.map_motion import field_sums_reference
+
+    rng = np.random.default_rng(4)
+    points, n_nodes = 4000, 60
+    flat = rng.integers(0, n_nodes - 5, (points, 8))  # the last nodes support no point: zero sums
+    weights = rng.random((points, 8)) * (rng.random((points, 1)) < 0.8)  # outliers weigh nothing
+    A, Ar = rng.normal(size=(points, 3, 3)), rng.normal(size=(points, 3))
+    got = field_sums(flat, weights, A, Ar, n_nodes)
+    for fast, plain in zip(got, field_sums_reference(flat, weights, A, Ar, n_nodes), strict=True):
+        np.testing.assert_array_equal(fast, plain)
+    assert not got[2][-5:].any()

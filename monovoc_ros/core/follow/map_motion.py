@@ -29,7 +29,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from monovoc_ros.core.follow.map_follow_kernels import PointGrid, move_points
+from monovoc_ros.core.follow.map_follow_kernels import PointGrid, field_sums, move_points, surface_normals_kernel
 from monovoc_ros.core.map.camera import quat_wxyz_to_matrix, validate_pose
 
 # Grid cell of the registration's targets (m): ~40 of a 1M map's 250k-target sample per cell, and a query
@@ -244,6 +244,12 @@ class _Targets:
                 others = rng.choice(len(new), config.rigid_sample)
                 self._others = np.asarray(new[others[~sampled[others]]], np.float64)
 
+    def _nearest_rows(self, queries: np.ndarray, trim: float) -> np.ndarray:
+        """`_nearest`'s rows only: the distances took a third of a grid search's time."""
+        if trim > _GRID_MAX_TRIM_M:
+            return self._nearest(queries, trim)[0]
+        return self.grid.nearest(queries, np.full(len(queries), trim))
+
     def _nearest(self, queries: np.ndarray, trim: float) -> tuple[np.ndarray, np.ndarray]:
         """Per query (Q, 3) its nearest target within `trim` metres: (row (Q,) int64, -1 for none; distance
         (Q,) float64, inf for none)."""
@@ -302,7 +308,7 @@ class _Targets:
             target = self.known
             inlier = np.linalg.norm(target - moved, axis=1) <= trim
             return inlier, target, None
-        i, _ = self._nearest(moved, trim)
+        i = self._nearest_rows(moved, trim)
         inlier = i >= 0
         target = np.where(inlier[:, None], self.points[np.maximum(i, 0)], moved)
         return inlier, target, None if not normals or self.normals is None else self.normals[i]
@@ -311,23 +317,11 @@ class _Targets:
 def surface_normals(quats: np.ndarray, scales: np.ndarray, flat: float = 0.3) -> np.ndarray:
     """(N, 3) float64 unit normal (the axis of the smallest scale) of each flat Gaussian (smallest scale under
     `flat` times the middle one), zero for the others. quats (N, 4) wxyz, scales (N, 3). Only the rotation's
-    column of the smallest axis is computed (a quarter of the time of whole matrices at 250k targets);
-    `surface_normals_reference` is its twin."""
-    scales = np.asarray(scales, np.float64)
-    q = np.asarray(quats, np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    rows = np.arange(len(q))
-    j = np.argmin(scales, axis=1)
-    k, m = (j + 1) % 3, (j + 2) % 3
-    w, v = q[:, 0], q[:, 1:]
-    qj, qk, qm = v[rows, j], v[rows, k], v[rows, m]
-    normals = np.empty((len(q), 3))
-    # Column j of camera.quat_wxyz_to_matrix, with (j, k, m) a cyclic order of the axes.
-    normals[rows, j] = 1 - 2 * (qk * qk + qm * qm)
-    normals[rows, k] = 2 * (qj * qk + w * qm)
-    normals[rows, m] = 2 * (qj * qm - w * qk)
-    s = np.sort(scales, axis=1)
-    return np.where((s[:, 0] < flat * s[:, 1])[:, None], normals, 0.0)
+    column of the smallest axis is computed (map_follow_kernels.surface_normals_kernel); `surface_normals_reference`
+    is its twin."""
+    if len(quats) == 0:
+        return np.zeros((0, 3))
+    return surface_normals_kernel(np.ascontiguousarray(quats), np.ascontiguousarray(scales), float(flat))
 
 
 def surface_normals_reference(quats: np.ndarray, scales: np.ndarray, flat: float = 0.3) -> np.ndarray:
@@ -510,12 +504,7 @@ def _fit_field(sample: _Sample, rigid_moved: np.ndarray, trim: float, config: Mo
             flat_target = np.any(normals != 0, axis=1)
             A[flat_target] = np.einsum("ni,nj->nij", normals[flat_target], normals[flat_target]) + _SLIDE * np.eye(3)
         Ar = np.einsum("nij,nj->ni", A, r)
-        keys = flat.ravel()
-        num = np.stack([np.bincount(keys, (wi * Ar[:, c, None]).ravel(), n_nodes) for c in range(3)], axis=1)
-        M = np.stack(
-            [np.bincount(keys, (wi * A[:, a, b, None]).ravel(), n_nodes) for a in range(3) for b in range(3)], axis=1
-        ).reshape(n_nodes, 3, 3)
-        den = np.bincount(keys, wi.ravel(), n_nodes)
+        num, M, den = field_sums(flat, wi, A, Ar, n_nodes)
         cur = offsets.reshape(-1, 3)
         neighbour = _neighbour_mean(offsets).reshape(-1, 3)
         # Least squares per node with a pull towards the neighbours' mean: smooth, and defined where no point
@@ -534,6 +523,19 @@ def _fit_field(sample: _Sample, rigid_moved: np.ndarray, trim: float, config: Mo
             res = np.linalg.norm(r[inlier], axis=1)
             trim = max(config.min_trim, 3.0 * float(np.median(res)) + 0.01) if res.size else trim
     return _Field(lo, offsets, w, flat, trim)
+
+
+def field_sums_reference(
+    flat: np.ndarray, weights: np.ndarray, A: np.ndarray, Ar: np.ndarray, n_nodes: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain twin of map_follow_kernels.field_sums: numpy's bincount per channel. flat (S, 8) int64 nodes, weights
+    (S, 8), A (S, 3, 3), Ar (S, 3) float64."""
+    keys = flat.ravel()
+    num = np.stack([np.bincount(keys, (weights * Ar[:, c, None]).ravel(), n_nodes) for c in range(3)], axis=1)
+    M = np.stack(
+        [np.bincount(keys, (weights * A[:, a, b, None]).ravel(), n_nodes) for a in range(3) for b in range(3)], axis=1
+    ).reshape(n_nodes, 3, 3)
+    return num, M, np.bincount(keys, weights.ravel(), n_nodes)
 
 
 def _field_motion(
