@@ -38,3 +38,17 @@ def test_kernels_count_as_cached_once_their_cache_is_written(tmp_path, monkeypat
     assert not kernels_cached()
     (tmp_path / "absent.nbi").write_bytes(b"an index of another numba")  # stale: numba would compile
     assert not kernels_cached()
+
+
+def test_a_warm_up_with_a_map_update_readies_every_map_update_kernel():
+    """Kernels a large or bent map reaches and the tiny scene's update does not (sampled targets' normals, the
+    smooth field's sums) are loaded too, for the types a SLAM map gives them: none is compiled on a first real
+    update. (numba's dispatchers list the signatures they hold.)"""
+    from monovoc_ros.core.follow import map_follow_kernels
+    from monovoc_ros.core.object_geometry_kernels import group_by_object, voxel_keys_by_object
+
+    warm_up(MapperConfig(), map_update=True)
+    kernels = (map_follow_kernels.surface_normals_kernel, map_follow_kernels.field_sums)
+    assert all(kernel.signatures for kernel in (*kernels, group_by_object, voxel_keys_by_object))
+    float32_normals = [sig for sig in map_follow_kernels.surface_normals_kernel.signatures if "float32" in str(sig)]
+    assert float32_normals

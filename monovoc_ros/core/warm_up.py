@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from monovoc_ros.core.follow.map_motion import warm_up_kernels
 from monovoc_ros.core.follow.map_updater import update_map
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
@@ -78,6 +79,7 @@ def warm_up(config: MapperConfig, *, map_update: bool = False) -> float:
         )
         update_map(mapper, moved)
         mapper.result().objects(moved)
+        warm_up_kernels()
     return time.perf_counter() - start
 
 

@@ -324,6 +324,15 @@ def surface_normals(quats: np.ndarray, scales: np.ndarray, flat: float = 0.3) ->
     return surface_normals_kernel(np.ascontiguousarray(quats), np.ascontiguousarray(scales), float(flat))
 
 
+def warm_up_kernels() -> None:
+    """Loads (or compiles) the registration's kernels that core.warm_up's small map update does not reach, with the
+    types a SLAM map gives them: the normals of sampled targets (maps beyond `MotionConfig.target_sample`) and the
+    smooth field's sums (bent maps). Left to their first use, compiling them stalled a fresh install's first such
+    map update."""
+    surface_normals(np.array([[1, 0, 0, 0]], np.float32), np.array([[0.01, 0.1, 0.1]], np.float32))
+    field_sums(np.zeros((1, 8), np.int64), np.zeros((1, 8)), np.zeros((1, 3, 3)), np.zeros((1, 3)), 1)
+
+
 def surface_normals_reference(quats: np.ndarray, scales: np.ndarray, flat: float = 0.3) -> np.ndarray:
     """Plain twin of `surface_normals`: whole rotation matrices."""
     order = np.argsort(scales, axis=1, kind="stable")
