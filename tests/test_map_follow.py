@@ -357,7 +357,13 @@ def test_surface_normals_equal_their_plain_twin():
     scales = rng.uniform(0.001, 0.05, (5000, 3))
     scales[:100] = 0.01  # ties: the first smallest axis, as a stable sort takes it
     scales[100:200, 1] = scales[100:200, 0]
-    np.testing.assert_allclose(surface_normals(quats, scales), surface_normals_reference(quats, scales), atol=1e-12)
+    scales[200:210, 0] = np.nan  # NaN scales sort last: the smallest of the others, flat only if two are finite
+    scales[210:220, 2] = np.nan
+    scales[220:230, :2] = np.nan
+    scales[230:240] = np.inf
+    got, want = surface_normals(quats, scales), surface_normals_reference(quats, scales)
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    assert np.any(got[200:220] != 0) and not np.any(got[220:240])
 
 
 def test_the_fields_sums_equal_their_plain_twin_bit_for_bit():

@@ -233,7 +233,7 @@ def test_the_maps_voxel_order_and_each_labellings_own_keys_give_the_same_geometr
     gaussians, ids, confidence = _room(rng, n=8000, objects=40)
     geometry = object_geometry(gaussians, ids, confidence)
     voxels = geometry._labelling.voxels
-    assert voxels is not None and voxels.sorted(gaussians.means) is not None  # made by the full computation
+    assert voxels is not None and voxels._made  # made by the full computation (most of the map)
     assert_same_geometry(geometry, object_geometry_reference(gaussians, ids, confidence))
     objects, counts = np.unique(ids[ids < VOID_ID], return_counts=True)
     small = objects[np.argmin(counts)]
@@ -248,6 +248,12 @@ def test_the_maps_voxel_order_and_each_labellings_own_keys_give_the_same_geometr
         object_geometry(gaussians, labels, confidence, previous=updated),
         object_geometry_reference(gaussians, labels, confidence),
     )
+    only_small = np.where(ids == small, ids, UNOBSERVED_ID)  # a first labelling of few Gaussians: no voxel order
+    first = object_geometry(gaussians, only_small, confidence)
+    assert not first._labelling.voxels._made
+    later = object_geometry(gaussians, ids, confidence, previous=first)  # most of the map: made here
+    assert later._labelling.voxels is first._labelling.voxels and later._labelling.voxels._made
+    assert_same_geometry(later, object_geometry_reference(gaussians, ids, confidence))
     means = gaussians.means.copy()
     means[3] = np.nan
     broken = _map(means, rng)
@@ -266,12 +272,15 @@ def test_the_box_kernel_takes_large_objects_tails_beyond_sampled_pivots_bit_for_
     rng = np.random.default_rng(29)
     for trial in range(24):
         sizes = rng.integers(2048, 9000, rng.integers(1, 4)).tolist()
-        sizes[0] = 8001 if trial % 4 == 3 else sizes[0]
+        sizes[0] = 8001 if trial % 4 == 3 else (2048 if trial % 4 == 1 else sizes[0])  # 2048: the smallest sampled
         means = rng.normal(0, 3, (sum(sizes), 3)).astype(np.float64)
         if trial % 2:
             means = np.round(means * 4) / 4  # ties
         if trial % 5 == 0:
             means[:, 1] = 1.0  # one value
+        if trial % 6 == 2:  # infinities among the tails' values, signed zeros in the middle
+            means[rng.choice(len(means), 3, replace=False), 2] = [np.inf, -np.inf, np.inf]
+            means[rng.choice(len(means), 40, replace=False), 0] = np.resize([0.0, -0.0], 40)
         if trial % 4 == 3:  # the sample half -100, half 100: 64 values beyond each pivot, not the 1st percentile's 80
             step = sizes[0] // 128
             means[: 128 * step : step, 0] = np.resize([-100.0, 100.0], 128)
@@ -295,3 +304,18 @@ def test_the_box_kernel_takes_large_objects_tails_beyond_sampled_pivots_bit_for_
     want = ordered[below] + (ordered[below + 1] - ordered[below]) * (virtual - below)
     np.testing.assert_array_equal(high[0, 0], want)
     np.testing.assert_array_equal(low[0, 1:], np.quantile(means[:, 1:], 0.01, axis=0))
+
+
+def test_a_labelled_gaussian_with_a_non_finite_centre_is_an_error_not_a_crash():
+    """The rasterizer culls such a Gaussian, so the mapper never labels it; labels that do (a caller's own) raise
+    instead of indexing the union-find out of bounds."""
+    rng = np.random.default_rng(23)
+    gaussians, ids, confidence = _room(rng, n=2000)
+    means = gaussians.means.copy()
+    means[5] = np.nan
+    broken = _map(means, rng)
+    ids[5], confidence[5] = ids[ids < VOID_ID][0], 0.9
+    with pytest.raises(ValueError, match="non-finite centre"):
+        object_geometry(broken, ids, confidence)
+    with pytest.raises(ValueError, match="non-finite centre"):
+        main_cluster_ids(broken.means, ids, confidence)

@@ -112,7 +112,7 @@ class _VoxelOrder:
         self._sorted: tuple[np.ndarray, np.ndarray] | None = None
 
     def sorted(self, means: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """The rows (N,) int64 sorted by voxel and their packed voxel coordinates (N,) int64 in that order, of the
+        """The rows (N,) int32 sorted by voxel and their packed voxel coordinates (N,) int64 in that order, of the
         map at ``means`` (N, 3); None where each labelling's keys are made from its own Gaussians instead: a centre
         that is not finite, or a map whose extent does not fit the keys (``_check_extent`` decides per labelling)."""
         if not self._made:  # two threads may both make it: the same arrays
@@ -129,7 +129,10 @@ class _VoxelOrder:
         # Offset for the whole map, not per labelling: the same voxels, the same neighbours, the same clusters.
         keys = _pack(np.zeros(len(cells), np.int64), cells - (low - 1))
         order = argsort_keys(keys)
-        return order, keys[order]
+        out = (order.astype(np.int32), keys[order])  # 12 bytes a Gaussian, kept as long as a geometry of the map
+        for a in out:
+            a.setflags(write=False)
+        return out
 
 
 @dataclass(frozen=True)
@@ -398,7 +401,10 @@ def _main_clusters(
         shapes[ordered[kept]] = True
         out = shapes[rows]
     elif index.size:
-        cells = _cells(means[rows[index]], voxel)
+        centres = means[rows[index]]
+        if not np.isfinite(centres).all():  # its cell would be garbage, and the union-find index out of bounds
+            raise ValueError("object geometry: a Gaussian with a non-finite centre is labelled")
+        cells = _cells(centres, voxel)
         _check_extent(cells, voxel)
         cells -= _bounds(cells)[0] - 1  # >= 1 so that neighbours at -1 stay non-negative
         keys = _pack(slot[index], cells)
