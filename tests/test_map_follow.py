@@ -380,3 +380,29 @@ def test_the_fields_sums_equal_their_plain_twin_bit_for_bit():
     for fast, plain in zip(got, field_sums_reference(flat, weights, A, Ar, n_nodes), strict=True):
         np.testing.assert_array_equal(fast, plain)
     assert not got[2][-5:].any()
+
+
+def test_the_labels_follow_their_rows_through_a_map_update():
+    """After an update the mapper's per-Gaussian labels are gathered from the old ones by source (rows are carried
+    whole), not computed again over the new map: the same as labelling the carried evidence, keyframes after it
+    included."""
+    scene = small_scene()
+    keyframes = assemble(scene_messages()[:4])
+    mapper = SemanticMapper(scene.gaussians)
+    for kf in keyframes[:2]:
+        mapper.integrate(kf)
+    mapper.result()  # the labels kept from here on
+    mapper.integrate(keyframes[2])  # rows to relabel before they are carried
+    new = churn.densify(scene.gaussians, split=0.05, prune=0.05, jitter=0.002, seed=3).gaussians
+    update_map(mapper, new)
+    carried = mapper._labels
+    assert carried is not None
+    for got, want in zip(carried, mapper.state.labels(), strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert carried[0].dtype == np.uint32 and carried[1].dtype == np.float32
+    mapper.integrate(keyframes[3])
+    result = mapper.result()
+    ids, confidence = mapper.state.labels()
+    np.testing.assert_array_equal(result.object_ids, ids)
+    np.testing.assert_array_equal(result.confidence, confidence)
+    assert (ids != 0xFFFFFFFF).sum() > 100

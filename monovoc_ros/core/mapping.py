@@ -481,6 +481,15 @@ class SemanticMapper:
         evidence went to at least one new Gaussian, observed old Gaussians). `seed`: a Future of this map's
         labels as carried to `gaussians` (SemanticResult.carried), where the next result's geometry starts."""
         old_observed = self.state.observed
+        labels = None
+        if self._labels is not None:  # vote mode: a row's label is its evidence's, and the rows are carried whole
+            ids, confidence = self._vote_labels()
+            take, hit = np.maximum(sources, 0), sources >= 0
+            # A gather where labelling the new map took ~25 ms at 1M, in the first publication after each update.
+            labels = (
+                np.where(hit, ids[take], UNOBSERVED_ID).astype(np.uint32, copy=False),
+                np.where(hit, confidence[take], np.float32(0.0)).astype(np.float32, copy=False),
+            )
         state = self.state.carried_over(sources, gaussians.ids)
         used = np.zeros(len(old_observed), bool)
         used[sources[sources >= 0]] = True
@@ -490,7 +499,7 @@ class SemanticMapper:
         self.map_version += 1
         self._result = self._last_result = None
         self._seed = seed
-        self._labels, self._dirty = None, []
+        self._labels, self._dirty = labels, []
         return carried, int(np.count_nonzero(old_observed))
 
     def rename_objects(self, mapping: dict[int, int]) -> None:
