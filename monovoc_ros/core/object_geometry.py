@@ -387,30 +387,29 @@ def _main_clusters(
     """(M,) bool: which of ``rows`` (M,) shape their object (``main_cluster_ids``). ``means``: (N, 3) the map's
     centres; ``slot``: (M,) each row's object, < n_slots; ``shaping``: (M,) bool, the rows that may; ``voxels``:
     the map's voxel order, if it has one (the same result)."""
-    out = np.zeros(rows.size, bool)
     index = np.flatnonzero(shaping)
-    # Two passes over the map cost what sorting an eighth of it does.
-    in_order = voxels.sorted(means) if voxels is not None and 8 * index.size >= len(means) else None
-    if index.size and in_order is not None:
-        # Read at random in voxel order: the narrowest type keeps more of it in cache (2M Gaussians: 8 MB as int32).
-        slot_of = np.full(len(means), -1, np.int16 if n_slots < 1 << 15 else np.int32)
-        slot_of[rows[index]] = slot[index]
-        keys, ordered = voxel_keys_by_object(*in_order, slot_of, n_slots, 3 * _COORD_BITS)
+    shapes = np.zeros(len(means), bool)  # per map row: in its object's main cluster
+    if index.size:
+        # Two passes over the map cost what sorting an eighth of it does.
+        in_order = voxels.sorted(means) if voxels is not None and 8 * index.size >= len(means) else None
+        if in_order is not None:
+            # Read at random in voxel order: the narrowest type keeps more of it in cache (2M: 8 MB as int32).
+            slot_of = np.full(len(means), -1, np.int16 if n_slots < 1 << 15 else np.int32)
+            slot_of[rows[index]] = slot[index]
+            keys, ordered = voxel_keys_by_object(*in_order, slot_of, n_slots, 3 * _COORD_BITS)
+        else:
+            centres = means[rows[index]]
+            if not np.isfinite(centres).all():  # its cell would be garbage, and the union-find index out of bounds
+                raise ValueError("object geometry: a Gaussian with a non-finite centre is labelled")
+            cells = _cells(centres, voxel)
+            _check_extent(cells, voxel)
+            cells -= _bounds(cells)[0] - 1  # >= 1 so that neighbours at -1 stay non-negative
+            keys = _pack(slot[index], cells)
+            order = argsort_keys(keys)  # radix: numpy's quicksort took half of a publication's geometry at 1M
+            keys, ordered = keys[order], rows[index[order]]
         kept = main_voxel_clusters(keys, _NEIGHBOUR_STEPS, 3 * _COORD_BITS, n_slots, float(min_share))
-        shapes = np.zeros(len(means), bool)
         shapes[ordered[kept]] = True
-        out = shapes[rows]
-    elif index.size:
-        centres = means[rows[index]]
-        if not np.isfinite(centres).all():  # its cell would be garbage, and the union-find index out of bounds
-            raise ValueError("object geometry: a Gaussian with a non-finite centre is labelled")
-        cells = _cells(centres, voxel)
-        _check_extent(cells, voxel)
-        cells -= _bounds(cells)[0] - 1  # >= 1 so that neighbours at -1 stay non-negative
-        keys = _pack(slot[index], cells)
-        order = argsort_keys(keys)  # radix: numpy's quicksort took half of a publication's geometry at 1M
-        kept = main_voxel_clusters(keys[order], _NEIGHBOUR_STEPS, 3 * _COORD_BITS, n_slots, float(min_share))
-        out[index[order[kept]]] = True
+    out = shapes[rows]
     # An object left with nothing keeps all its Gaussians rather than vanishing.
     out |= (np.bincount(slot[out], minlength=n_slots) == 0)[slot]
     return out

@@ -256,7 +256,7 @@ class _Targets:
         if trim > _GRID_MAX_TRIM_M:  # the grid would scan (2 trim / cell)^3 cells for a query without a target
             d, i = self._tree.query(queries, k=1, distance_upper_bound=trim)
             return np.where(np.isfinite(d), i, -1), d
-        i = self.grid.nearest(queries, np.full(len(queries), trim))
+        i = self._nearest_rows(queries, trim)
         d = np.full(len(queries), np.inf)
         hit = i >= 0
         d[hit] = np.linalg.norm(self.points[i[hit]] - queries[hit], axis=1)
