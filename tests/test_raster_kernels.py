@@ -9,9 +9,12 @@ from test_raster import random_quats, random_scene
 
 from monovoc_ros.core.map.camera import Intrinsics, pose_from_translation_quat
 from monovoc_ros.core.map.gaussians import (
+    _MORTON_BITS,
     MAP_CHUNK,
     GaussianMap,
     chunk_bounds_reference,
+    finite_box,
+    finite_box_reference,
     group_by_chunk,
     morton_keys,
     morton_keys_reference,
@@ -135,8 +138,14 @@ def test_chunk_bounds_equal_their_plain_twin():
     rng = np.random.default_rng(8)
     means = rng.uniform(-3.0, 7.0, (20000, 3)).astype(np.float32)
     means[::997] = np.nan
-    low, scale = np.full(3, -2.0), np.full(3, ((1 << 21) - 1) / 8.0)  # a box smaller than the points: clamped
+    low, scale = np.full(3, -2.0), np.full(3, ((1 << _MORTON_BITS) - 1) / 8.0)  # a box smaller than the points: clamped
     np.testing.assert_array_equal(morton_keys(means, low, scale), morton_keys_reference(means, low, scale))
+    for rows in (slice(None), slice(0, 1), slice(0, 0)):  # the finite means' box, NaN and inf rows left out
+        want = finite_box_reference(means[rows])
+        for got, w in zip(finite_box(means[rows]), want, strict=True):
+            np.testing.assert_array_equal(got, w)
+    means[5] = (np.inf, 0.0, 0.0)
+    assert finite_box(means)[1][0] < 7.0 and finite_box(means[:1])[0][0] == np.inf
     order = rng.permutation(20000)
     grouped = group_by_chunk(order, 4096)
     for c in range(0, 20000, 4096):
