@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.follow.map_follow import GRID_CELL_M, FollowConfig, follow_map, nearest_within
-from monovoc_ros.core.follow.map_follow_kernels import PointGrid
+from monovoc_ros.core.follow.map_follow_kernels import PointGrid, _cell_keys, cell_order
 from monovoc_ros.core.follow.map_motion import MapMotion, estimate_motion, kabsch, worst_block_plane_residual
 from monovoc_ros.core.follow.map_updater import (
     MapMotionError,
@@ -208,6 +208,28 @@ def test_kernels_equal_their_plain_twins():
     g = scene.gaussians
     plain_cov = covariances_reference(g.quats, g.scales)
     np.testing.assert_allclose(g.covariances, plain_cov, rtol=0, atol=1e-6 * np.abs(plain_cov).max())  # float32 ulps
+
+
+def test_cells_numbered_on_their_box_sort_as_the_packed_keys():
+    """cell_order's compact keys order the points exactly as a stable sort of `_key`'s 63-bit keys (cells x-major),
+    negative coordinates, a single point and a 80 km wide box included; NaN falls back to the packed keys."""
+    rng = np.random.default_rng(11)
+    cases = [
+        rng.uniform(-3.0, 4.0, (5000, 3)),
+        rng.normal(0.0, 0.02, (3000, 3)) - 7.0,  # a few cells, far below zero
+        np.array([[0.31, -0.2, 5.0]]),
+        np.array([[0.0, 0.0, 0.0], [4e4, 0.0, 0.0], [0.0, -4e4, 4e4]]),  # keys of ~59 bits: four passes
+        np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [0.2, 0.1, 0.0]]),
+    ]
+    for points in cases:
+        for cell in (0.05, 0.3):
+            keys = _cell_keys(points, cell)
+            order, sorted_keys = cell_order(points, cell)
+            np.testing.assert_array_equal(order, np.argsort(keys, kind="stable"))
+            same_cell = keys[order][1:] == keys[order][:-1]
+            np.testing.assert_array_equal(sorted_keys[1:] == sorted_keys[:-1], same_cell)
+    grid = PointGrid.build(np.zeros((0, 3)), 0.1)  # an empty grid finds nothing
+    assert grid.nearest(np.zeros((2, 3)), 1.0).tolist() == [-1, -1]
 
 
 def test_gaussians_with_non_finite_means_neither_take_nor_give_evidence():

@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from monovoc_ros.core.map.gaussians import gather_rows
-from monovoc_ros.core.map.sorting import argsort_keys
+from monovoc_ros.core.map.sorting import argsort_keys, radix_argsort
 
 # Grid keys pack three 21-bit cell coordinates (2M cells per axis: 40 km at 2 cm).
 _BITS = 21
@@ -120,6 +120,65 @@ def _cell_keys(points, cell):  # pragma: no cover - numba
         iz = int(np.floor(points[i, 2] / cell))
         keys[i] = _key(ix, iy, iz)
     return keys
+
+
+_BOX_BLOCKS = 64  # work items of `_cell_box`
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _cell_box(points, cell):  # pragma: no cover - numba
+    """The smallest and largest cell coordinate per axis, (3,) int64 each, of the points (N, 3) (N > 0)."""
+    n = points.shape[0]
+    lows = np.empty((_BOX_BLOCKS, 3), np.int64)
+    highs = np.empty((_BOX_BLOCKS, 3), np.int64)
+    for b in numba.prange(_BOX_BLOCKS):
+        start, stop = b * n // _BOX_BLOCKS, (b + 1) * n // _BOX_BLOCKS
+        for a in range(3):
+            lo = hi = int(np.floor(points[min(start, n - 1), a] / cell))
+            for i in range(start, stop):
+                c = int(np.floor(points[i, a] / cell))
+                lo = min(lo, c)
+                hi = max(hi, c)
+            lows[b, a] = lo
+            highs[b, a] = hi
+    low = lows[0].copy()
+    high = highs[0].copy()
+    for b in range(1, _BOX_BLOCKS):
+        for a in range(3):
+            low[a] = min(low[a], lows[b, a])
+            high[a] = max(high[a], highs[b, a])
+    return low, high
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _box_cell_keys(points, cell, low, span):  # pragma: no cover - numba
+    """(N,) int64 cell keys numbered on the cells' own box (low, span (3,) int64): x-major, as `_key` orders cells."""
+    n = points.shape[0]
+    keys = np.empty(n, np.int64)
+    for i in numba.prange(n):
+        ix = int(np.floor(points[i, 0] / cell)) - low[0]
+        iy = int(np.floor(points[i, 1] / cell)) - low[1]
+        iz = int(np.floor(points[i, 2] / cell)) - low[2]
+        keys[i] = (ix * span[1] + iy) * span[2] + iz
+    return keys
+
+
+def cell_order(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """The points (N, 3) float64 sorted by cell: (order (N,) int64, stable, cells in `_key`'s order; sorted keys (N,)
+    int64, equal within a cell). The cells are numbered on their own box, so a building's keys take ~24 bits and
+    sort in two radix passes, where `_key`'s 63 bits took four (1M points: 33 -> 15 ms)."""
+    low, high = _cell_box(points, float(cell))
+    span = high - low + 1
+    # Absurd extents, or a non-finite point (its cell coordinate is then anything): `_key`'s packed keys.
+    if float(np.prod(high.astype(np.float64) - low.astype(np.float64) + 1.0)) >= 2.0**62:
+        keys = _cell_keys(points, float(cell))
+        order = argsort_keys(keys)
+        return order, keys[order]
+    keys = _box_cell_keys(points, float(cell), low, span)
+    bits = max(1, (int(np.prod(span)) - 1).bit_length())
+    passes = -(-bits // 16)
+    order = radix_argsort(keys.copy(), np.arange(len(keys), dtype=np.int64), -(-bits // passes), bits)
+    return order, keys[order]
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -241,12 +300,16 @@ class PointGrid:
     @classmethod
     def build(cls, points: np.ndarray, cell: float) -> PointGrid:
         points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
-        keys = _cell_keys(points, float(cell))
-        order = argsort_keys(keys)  # stable; the order within a cell is free anyway: ties go to the lower row
-        sorted_keys = keys[order]
+        if not len(points):
+            empty = np.zeros(0, np.int64)
+            return cls(float(cell), points, empty, *_cell_table(empty), np.zeros(1, np.int64))
+        # Stable; the order within a cell is free anyway: ties go to the lower row.
+        order, sorted_keys = cell_order(points, cell)
         cell_starts = _run_starts(sorted_keys)
-        table_keys, table_values = _cell_table(sorted_keys[cell_starts[:-1]])
-        return cls(float(cell), gather_rows(points, order), order, table_keys, table_values, cell_starts)
+        sorted_points = gather_rows(points, order)
+        # The table holds `_key`'s keys, which the search computes for any cell (beyond the box too).
+        table_keys, table_values = _cell_table(_cell_keys(sorted_points[cell_starts[:-1]], float(cell)))
+        return cls(float(cell), sorted_points, order, table_keys, table_values, cell_starts)
 
     def nearest(self, queries: np.ndarray, radius: np.ndarray) -> np.ndarray:
         """(Q,) int64: per query (Q, 3) the row of the nearest point within its radius (Q,) (ties: the lower
@@ -257,11 +320,10 @@ class PointGrid:
         queries = np.ascontiguousarray(queries, np.float64)
         # Queries grouped by cell: each group looks its 27 neighbour cells up once, and neighbouring groups read
         # neighbouring memory.
-        q_keys = _cell_keys(queries, self.cell)
-        q_order = argsort_keys(q_keys)
+        q_order, q_keys = cell_order(queries, self.cell)
         found = _search(
             self.sorted_points, self.order, self.table_keys, self.table_values, self.cell_starts,
-            gather_rows(queries, q_order), _run_starts(q_keys[q_order]), radius[q_order], self.cell,
+            gather_rows(queries, q_order), _run_starts(q_keys), radius[q_order], self.cell,
         )  # fmt: skip
         out = np.empty(len(queries), np.int64)
         out[q_order] = found
