@@ -29,41 +29,46 @@ _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _corner(frac, base, d, size):  # pragma: no cover - numba
+    """Weight and index of one trilinear corner along one axis (d: 0 lower, 1 upper)."""
+    return (frac if d else 1.0 - frac), min(base + d, size - 1)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cell_of(q, origin, spacing, size):  # pragma: no cover - numba
+    g = min(max((q - origin) / spacing, 0.0), size - 1.0)
+    b = min(int(np.floor(g)), max(size - 2, 0))
+    return b, g - b
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def move_points(points, rotation, translation, offsets, origin, spacing):  # pragma: no cover - numba
-    """(N, 3) float64: points (N, 3) moved by R p + t + trilinear(offsets) at R p + t (grid clamped)."""
+    """(N, 3) float64: points (N, 3) moved by R p + t + trilinear(offsets) at R p + t (grid clamped). Scalars only:
+    four scratch arrays per point took 3/4 of its time."""
     n = points.shape[0]
     out = np.empty((n, 3))
     gx, gy, gz = offsets.shape[0], offsets.shape[1], offsets.shape[2]
     for i in numba.prange(n):
-        q = np.empty(3)
-        for a in range(3):
-            q[a] = (
-                rotation[a, 0] * points[i, 0] + rotation[a, 1] * points[i, 1] + rotation[a, 2] * points[i, 2]
-                + translation[a]
-            )  # fmt: skip
-        base = np.empty(3, np.int64)
-        frac = np.empty(3)
-        for a, size in enumerate((gx, gy, gz)):
-            g = min(max((q[a] - origin[a]) / spacing, 0.0), size - 1.0)
-            b = min(int(np.floor(g)), max(size - 2, 0))
-            base[a] = b
-            frac[a] = g - b
-        acc = np.zeros(3)
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        q0 = rotation[0, 0] * px + rotation[0, 1] * py + rotation[0, 2] * pz + translation[0]
+        q1 = rotation[1, 0] * px + rotation[1, 1] * py + rotation[1, 2] * pz + translation[1]
+        q2 = rotation[2, 0] * px + rotation[2, 1] * py + rotation[2, 2] * pz + translation[2]
+        b0, f0 = _cell_of(q0, origin[0], spacing, gx)
+        b1, f1 = _cell_of(q1, origin[1], spacing, gy)
+        b2, f2 = _cell_of(q2, origin[2], spacing, gz)
+        a0 = a1 = a2 = 0.0
         for c in range(8):
-            di, dj, dk = (c >> 2) & 1, (c >> 1) & 1, c & 1
-            w = (
-                (frac[0] if di else 1.0 - frac[0])
-                * (frac[1] if dj else 1.0 - frac[1])
-                * (frac[2] if dk else 1.0 - frac[2])
-            )
-            ii = min(base[0] + di, gx - 1)
-            jj = min(base[1] + dj, gy - 1)
-            kk = min(base[2] + dk, gz - 1)
-            for a in range(3):
-                acc[a] += w * offsets[ii, jj, kk, a]
-        for a in range(3):
-            out[i, a] = q[a] + acc[a]
+            w0, ii = _corner(f0, b0, (c >> 2) & 1, gx)
+            w1, jj = _corner(f1, b1, (c >> 1) & 1, gy)
+            w2, kk = _corner(f2, b2, c & 1, gz)
+            w = w0 * w1 * w2
+            a0 += w * offsets[ii, jj, kk, 0]
+            a1 += w * offsets[ii, jj, kk, 1]
+            a2 += w * offsets[ii, jj, kk, 2]
+        out[i, 0] = q0 + a0
+        out[i, 1] = q1 + a1
+        out[i, 2] = q2 + a2
     return out
 
 
