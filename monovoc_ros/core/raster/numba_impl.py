@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from monovoc_ros.core.map.gaussians import GaussianMap, gather_rows
+from monovoc_ros.core.map.gaussians import MAP_CHUNK, GaussianMap, gather_rows
 from monovoc_ros.core.raster import numba_kernels as nk
 from monovoc_ros.core.raster.constants import NEAR_PLANE, TILE
 from monovoc_ros.core.raster.inputs import View
@@ -142,9 +142,9 @@ def bin_view(gmap: GaussianMap, view: View, colors: np.ndarray | None, workers: 
     placed = gmap.placed  # the Gaussians in chunk order: u, v, conic, depth and rect are by place too
     nk.project(
         placed.means, placed.covariances, view.world_to_cam, float(k.fx), float(k.fy), float(k.cx), float(k.cy),
-        lims, float(view.far), k.width, k.height, u, v, conic, depth, rect, live, workers,
+        lims, float(view.far), k.width, k.height, u, v, conic, depth, rect, live, MAP_CHUNK, workers,
     )  # fmt: skip
-    by_depth = nk.visible_by_depth(depth, rect, placed.members, live)
+    by_depth = nk.visible_by_depth(depth, rect, placed.members, live, MAP_CHUNK)
     order = placed.members[by_depth]
     rows = ws.get("rows", (len(by_depth), nk.ROW_WIDTH), np.float32)
     rects = ws.get("rects", (len(by_depth), 4), np.int32)

@@ -27,7 +27,6 @@ from numba import njit, prange
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-from monovoc_ros.core.map.gaussians import MAP_CHUNK
 from monovoc_ros.core.map.sorting import radix_argsort
 from monovoc_ros.core.raster.constants import (
     ALPHA_MAX,
@@ -189,23 +188,25 @@ def _project_one(i, means, cov6, R, fx, fy, cx, cy, lims, far, gx, gy, u, v, con
 
 @njit(cache=True, nogil=True, parallel=True)
 def project(
-    means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, width, height, u, v, conic, depth, rect, live, n_workers
+    means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, width, height, u, v, conic, depth, rect, live, chunk,
+    n_workers,
 ):  # fmt: skip
     """EWA projection in float64 (see projection.py); rect = (0, 0, 0, 0) marks a culled Gaussian (before the
     near plane, beyond `far`, or touching no tile) and
     conic holds the factored form (A, R, S) of the inverse 2D covariance (see _project_one). Only the chunks of
-    MAP_CHUNK consecutive Gaussians that `live` (n_chunks,) keeps are projected: the others' outputs are left as
-    they were. The map's arrays come in the order of its chunks (GaussianMap.placed)."""
+    `chunk` consecutive Gaussians that `live` (n_chunks,) keeps are projected: the others' outputs are left as
+    they were. The map's arrays come in the order of its chunks (GaussianMap.placed; `chunk` is MAP_CHUNK, an argument:
+    numba's cache would keep another module's constant as it was compiled)."""
     n = means.shape[0]
     gx = (width + TILE - 1) // TILE
     gy = (height + TILE - 1) // TILE
-    n_chunks = (n + MAP_CHUNK - 1) // MAP_CHUNK
+    n_chunks = (n + chunk - 1) // chunk
     counter = np.zeros(1, np.int64)
     for _ in prange(n_workers):
         c = _fetch_add(counter, 0)
         while c < n_chunks:
             if live[c]:
-                for i in range(c * MAP_CHUNK, min(n, (c + 1) * MAP_CHUNK)):
+                for i in range(c * chunk, min(n, (c + 1) * chunk)):
                     _project_one(
                         i, means, cov6, world_to_cam, fx, fy, cx, cy, lims, far, gx, gy, u, v, conic, depth, rect
                     )  # fmt: skip
@@ -216,7 +217,7 @@ def project(
 
 
 @njit(cache=True, nogil=True)
-def visible_by_depth(depth, rect, members, live):
+def visible_by_depth(depth, rect, members, live, chunk):
     """Place indices (into the map's arrays in chunk order, see `project`) of the visible Gaussians of the `live`
     chunks, sorted by depth, ties in map order (`members`: each place's map index, GaussianMap.chunk_members):
     LSD radix sorts, first on the map index, then, stable, on the float32 depth's bit pattern (which orders like
@@ -225,7 +226,7 @@ def visible_by_depth(depth, rect, members, live):
     count = 0
     for c in range(live.shape[0]):
         if live[c]:
-            for i in range(c * MAP_CHUNK, min(n, (c + 1) * MAP_CHUNK)):
+            for i in range(c * chunk, min(n, (c + 1) * chunk)):
                 if rect[i, 1] > rect[i, 0]:
                     count += 1
     idx = np.empty(count, np.int32)
@@ -233,7 +234,7 @@ def visible_by_depth(depth, rect, members, live):
     m = 0
     for c in range(live.shape[0]):
         if live[c]:
-            for i in range(c * MAP_CHUNK, min(n, (c + 1) * MAP_CHUNK)):
+            for i in range(c * chunk, min(n, (c + 1) * chunk)):
                 if rect[i, 1] > rect[i, 0]:
                     idx[m] = i
                     keys[m] = members[i]
