@@ -717,18 +717,13 @@ def tile_slots(labels, gx, gy, slot_map, tile_labels, n_workers):
 
 @njit(cache=True, nogil=True)
 def ranks_by_index(order, n):
-    """(V,) int64 the depth ranks of `order` ((V,) map index per depth rank, distinct, < n) sorted by map
-    index: a mark per Gaussian, O(n + V), where an argsort would cost several times more."""
-    rank_of = np.full(n, -1, np.int64)
-    for r in range(order.shape[0]):
-        rank_of[order[r]] = r
-    out = np.empty(order.shape[0], np.int64)
-    m = 0
-    for i in range(n):
-        if rank_of[i] >= 0:
-            out[m] = rank_of[i]
-            m += 1
-    return out
+    """(V,) int64 the depth ranks of `order` ((V,) map index per depth rank, distinct, < n) sorted by map index: a
+    radix sort of the visible Gaussians' indices (two passes over V), where a mark per Gaussian of the map cost
+    O(n) (1M: 1.2 ms and an 8 MB array per keyframe for ~94k visible)."""
+    bits = 1
+    while (1 << bits) < n:
+        bits += 1
+    return radix_argsort(order.astype(np.int64), np.arange(order.shape[0]), (bits + 1) // 2, bits)
 
 
 @njit(cache=True, nogil=True, parallel=True)
