@@ -466,8 +466,14 @@ def worst_block_plane_residual(
     flat = np.any(normals != 0, axis=1)
     off_plane = np.abs(np.einsum("ni,ni->n", residuals[flat], normals[flat]))
     cells = np.floor(points[flat] / block).astype(np.int64)
-    _, which, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    which = which.ravel()
+    if not len(cells):
+        return 0.0
+    # One integer per block (numbered on the blocks' own box): np.unique of rows (axis=0) sorts a structured
+    # copy and held the interpreter ~8 ms for the 12k sample.
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    _, which, counts = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2], return_inverse=True,
+                                 return_counts=True)  # fmt: skip
     worst = 0.0
     for b in np.flatnonzero(counts >= min_points):
         worst = max(worst, float(np.median(off_plane[which == b])))
