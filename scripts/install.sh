@@ -103,6 +103,13 @@ done
 "$venv/bin/python" -m monovoc_ros.embed.export --quiet
 "$venv/bin/python" -m monovoc_ros.segment.export --quiet
 # The numba kernels compiled into their on-disk cache now, so that no node pays it on its first keyframe
-# (~20-40 s on 2 cores; ~2 s when already cached).
+# (~20-40 s on 2 cores; ~2 s when already cached). numba keys a kernel's cache on its own file only: a constant it
+# takes from another module (MAP_CHUNK, the raster constants) would stay as first compiled, so when any source
+# changed since the last warm-up, every cached kernel goes first.
+src_stamp=$(stamp $(find monovoc_ros msg_adapters -name '*.py' | sort))
+if [ "$(cat "$venv/.numba_stamp" 2>/dev/null)" != "$src_stamp" ]; then
+  find monovoc_ros msg_adapters -path '*/__pycache__/*' \( -name '*.nbi' -o -name '*.nbc' \) -delete
+fi
 "$venv/bin/monovoc" warm-up
+echo "$src_stamp" > "$venv/.numba_stamp"
 echo "[install] done: $venv"
