@@ -202,7 +202,7 @@ def plan_map_update(
     before the transfer (a live worker may integrate keyframes meanwhile: nodes/worker.py)."""
     # The rasterizer's per-map values, cached with the map: here, beside a live worker, and not in its first
     # keyframe after the update (1M Gaussians: the chunks, and the covariances and other arrays in their order,
-    # ~0.1-0.2 s). They read the new map only, so the `_BESIDE` pool computes them during the registration, whose
+    # ~70 ms). They read the new map only, so the `_BESIDE` pool computes them during the registration, whose
     # serial Python leaves a core idle (1M in process: the plan 600-660 -> 520-570 ms; during the transfer too,
     # 490-510 ms, but its memory on top of theirs raised the 2M node's peak RSS by 0.45 GB).
     arrays = _BESIDE.submit(lambda: (new.chunk_bounds, new.placed))

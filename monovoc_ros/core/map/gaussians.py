@@ -126,9 +126,9 @@ class GaussianMap:
         of consecutive Gaussians relied on the SLAM's order, which a map update need not keep (the churn
         generator's re-orders it all, as a SLAM without stable storage may; densification appends the Gaussians
         it splits or clones from all over the map): office_0 tiled to 1M after five such updates had all of its
-        257 chunks live in every view, 38-128 by place. The order is the Z-order curve of the means on a 2**21
-        grid over the map's box (radix sort; with `placed` ~0.1 s at 1M, once per map, beside the worker for
-        a live map update)."""
+        257 chunks (of 4096) live in every view, 38-128 by place. The order is the Z-order curve of the means on a
+        2**_MORTON_BITS grid over the map's box (radix sort; with `placed` ~70 ms at 1M, once per map, beside the
+        worker for a live map update)."""
         return chunk_members_of(self.means)
 
     @property
@@ -150,7 +150,7 @@ class GaussianMap:
     @cached_property
     def _placement(self) -> tuple[PlacedArrays, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """`placed` and `chunk_bounds` in one pass over the Gaussians in chunk order (`place_kernel`; plain twins
-        `gather_rows` with `covariances_kernel`, and `chunk_bounds_reference`): 1M Gaussians 75 -> ~25 ms, where
+        `gather_rows` with `covariances_kernel`, and `chunk_bounds_reference`): 1M Gaussians 75 -> ~40 ms, where
         the four gathers and the bounds each read the map in that scattered order."""
         members = self.chunk_members
         means, covariances, opacities, lower, upper, reach = place_kernel(
