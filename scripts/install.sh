@@ -103,9 +103,10 @@ done
 "$venv/bin/python" -m monovoc_ros.embed.export --quiet
 "$venv/bin/python" -m monovoc_ros.segment.export --quiet
 # The numba kernels compiled into their on-disk cache now, so that no node pays it on its first keyframe
-# (~20-40 s on 2 cores; ~2 s when already cached). numba keys a kernel's cache on its own file only: a constant it
-# takes from another module (MAP_CHUNK, the raster constants) would stay as first compiled, so when any source
-# changed since the last warm-up, every cached kernel goes first.
+# (~20-40 s on 2 cores; ~2 s when already cached). numba keys a kernel's cache on its own file only: a constant or
+# a kernel it takes from another module (the raster constants, sorting's radix_argsort) would stay as first
+# compiled, so when any source changed since the last warm-up, every cached kernel goes first. (A test or benchmark
+# run straight after editing such a module, without this script, can still load the stale kernel.)
 src_stamp=$(stamp $(find monovoc_ros msg_adapters -name '*.py' | sort))
 if [ "$(cat "$venv/.numba_stamp" 2>/dev/null)" != "$src_stamp" ]; then
   find monovoc_ros msg_adapters -path '*/__pycache__/*' \( -name '*.nbi' -o -name '*.nbc' \) -delete

@@ -212,7 +212,8 @@ def test_kernels_equal_their_plain_twins():
 
 def test_cells_numbered_on_their_box_sort_as_the_packed_keys():
     """cell_order's compact keys order the points exactly as a stable sort of `_key`'s 63-bit keys (cells x-major),
-    negative coordinates, a single point and a 80 km wide box included; NaN falls back to the packed keys."""
+    negative coordinates, a single point and a 80 km wide box included; NaN and cells beyond the packing's reach fall
+    back to the packed keys."""
     rng = np.random.default_rng(11)
     cases = [
         rng.uniform(-3.0, 4.0, (5000, 3)),
@@ -220,6 +221,8 @@ def test_cells_numbered_on_their_box_sort_as_the_packed_keys():
         np.array([[0.31, -0.2, 5.0]]),
         np.array([[0.0, 0.0, 0.0], [4e4, 0.0, 0.0], [0.0, -4e4, 4e4]]),  # keys of ~59 bits: four passes
         np.array([[0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [0.2, 0.1, 0.0]]),
+        # Cells beyond the packing's +-2**20 (52 km at 5 cm): distinct cells share a packed key, the table's key.
+        np.array([[0.01, 0.01, 2**20 * 0.05 + 0.01], [0.01, 0.06, -(2**20) * 0.05 + 0.01], [0.0, 0.0, 0.0]]),
     ]
     for points in cases:
         for cell in (0.05, 0.3):
@@ -230,6 +233,9 @@ def test_cells_numbered_on_their_box_sort_as_the_packed_keys():
             np.testing.assert_array_equal(sorted_keys[1:] == sorted_keys[:-1], same_cell)
     grid = PointGrid.build(np.zeros((0, 3)), 0.1)  # an empty grid finds nothing
     assert grid.nearest(np.zeros((2, 3)), 1.0).tolist() == [-1, -1]
+    assert [len(a) for a in cell_order(np.zeros((0, 3)), 0.05)] == [0, 0]
+    far = cases[-1][:2]  # two points whose cells share a packed key: both found, as with the packed keys alone
+    assert PointGrid.build(far, 0.05).nearest(far, 0.01).tolist() == [0, 1]
 
 
 def test_gaussians_with_non_finite_means_neither_take_nor_give_evidence():

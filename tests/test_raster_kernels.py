@@ -140,12 +140,14 @@ def test_chunk_bounds_equal_their_plain_twin():
     means[::997] = np.nan
     low, scale = np.full(3, -2.0), np.full(3, ((1 << _MORTON_BITS) - 1) / 8.0)  # a box smaller than the points: clamped
     np.testing.assert_array_equal(morton_keys(means, low, scale), morton_keys_reference(means, low, scale))
-    for rows in (slice(None), slice(0, 1), slice(0, 0)):  # the finite means' box, NaN and inf rows left out
+    means[5] = (np.inf, 0.0, 0.0)
+    means[9] = (-0.0, 1.0, -np.inf)
+    # The finite means' box (NaN and inf rows left out): whole, fewer rows than work items, one NaN row, none.
+    for rows in (slice(None), slice(1, 40), slice(0, 1), slice(0, 0)):
         want = finite_box_reference(means[rows])
         for got, w in zip(finite_box(means[rows]), want, strict=True):
             np.testing.assert_array_equal(got, w)
-    means[5] = (np.inf, 0.0, 0.0)
-    assert finite_box(means)[1][0] < 7.0 and finite_box(means[:1])[0][0] == np.inf
+    assert finite_box(means[1:40])[0][0] > -3.0 and finite_box(means[:1])[0][0] == np.inf
     order = rng.permutation(20000)
     grouped = group_by_chunk(order, 4096)
     for c in range(0, 20000, 4096):
@@ -167,6 +169,19 @@ def test_chunk_bounds_equal_their_plain_twin():
         np.testing.assert_array_equal(got, w)
     view = check_view(part, Intrinsics(80.0, 75.0, 47.0, 41.0, 96, 80), np.eye(4))
     assert ni.live_chunks(bad, view)[-1]  # a chunk with a non-finite mean is never dropped
+    # An infinite scale or mean makes its chunk's bounds NaN, as in the twin; the placed rows stay the gathered ones.
+    scales = part.scales.copy()
+    scales[members[3]] = (np.inf, 0.01, 0.01)
+    means = part.means.copy()
+    means[members[MAP_CHUNK + 7]] = (1.0, np.inf, 0.0)
+    odd = GaussianMap(means, scales, part.quats, part.opacities)
+    placed_at = odd.chunk_members
+    assert members[MAP_CHUNK + 7] in placed_at[2 * MAP_CHUNK :]  # the infinite mean went to the last chunk
+    assert np.isnan(odd.chunk_bounds[2]).sum() == 2 and np.isnan(odd.chunk_bounds[2][-1])
+    for got, w in zip(odd.chunk_bounds, chunk_bounds_reference(means, scales, placed_at, MAP_CHUNK), strict=True):
+        np.testing.assert_array_equal(got, w)
+    np.testing.assert_array_equal(odd.placed.means, means[placed_at])
+    np.testing.assert_array_equal(odd.placed.covariances, odd.covariances[placed_at])
 
 
 def test_argsort_keys_equals_numpys_stable_argsort():

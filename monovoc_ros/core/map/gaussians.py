@@ -157,7 +157,7 @@ class GaussianMap:
             members, self.means, self.quats, self.scales, self.opacities, MAP_CHUNK
         )
         placed = PlacedArrays(members, _read_only(means), _read_only(covariances), _read_only(opacities))
-        return placed, (lower, upper, reach)
+        return placed, (_read_only(lower), _read_only(upper), _read_only(reach))
 
     @cached_property
     def digest(self) -> str:
