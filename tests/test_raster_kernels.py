@@ -148,6 +148,8 @@ def test_chunk_bounds_equal_their_plain_twin():
         for got, w in zip(finite_box(means[rows]), want, strict=True):
             np.testing.assert_array_equal(got, w)
     assert finite_box(means[1:40])[0][0] > -3.0 and finite_box(means[:1])[0][0] == np.inf
+    # How many rows are finite: all but the NaN rows and rows 5 and 9.
+    assert finite_box(means)[2] == 20000 - len(range(0, 20000, 997)) - 2 and finite_box(means[1:40])[2] == 37
     order = rng.permutation(20000)
     grouped = group_by_chunk(order, 4096)
     for c in range(0, 20000, 4096):

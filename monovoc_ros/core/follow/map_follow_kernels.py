@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from monovoc_ros.core.map.gaussians import gather_rows
+from monovoc_ros.core.map.gaussians import finite_box, gather_rows
 from monovoc_ros.core.map.sorting import argsort_keys, radix_argsort
 
 # Grid keys pack three 21-bit cell coordinates (2M cells per axis: 40 km at 2 cm).
@@ -127,34 +127,6 @@ def _cell_keys(points, cell):  # pragma: no cover - numba
     return keys
 
 
-_BOX_BLOCKS = 64  # work items of `_cell_box`
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _cell_box(points, cell):  # pragma: no cover - numba
-    """The smallest and largest cell coordinate per axis, (3,) int64 each, of the points (N, 3) (N > 0)."""
-    n = points.shape[0]
-    lows = np.empty((_BOX_BLOCKS, 3), np.int64)
-    highs = np.empty((_BOX_BLOCKS, 3), np.int64)
-    for b in numba.prange(_BOX_BLOCKS):
-        start, stop = b * n // _BOX_BLOCKS, (b + 1) * n // _BOX_BLOCKS
-        for a in range(3):
-            lo = hi = int(np.floor(points[min(start, n - 1), a] / cell))
-            for i in range(start, stop):
-                c = int(np.floor(points[i, a] / cell))
-                lo = min(lo, c)
-                hi = max(hi, c)
-            lows[b, a] = lo
-            highs[b, a] = hi
-    low = lows[0].copy()
-    high = highs[0].copy()
-    for b in range(1, _BOX_BLOCKS):
-        for a in range(3):
-            low[a] = min(low[a], lows[b, a])
-            high[a] = max(high[a], highs[b, a])
-    return low, high
-
-
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _box_cell_keys(points, cell, low, span):  # pragma: no cover - numba
     """(N,) int64 cell keys numbered on the cells' own box (low, span (3,) int64): x-major, as `_key` orders cells."""
@@ -175,11 +147,14 @@ def cell_order(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]
     passes, where the 63-bit packed keys took four (1M points: 33 -> 15 ms)."""
     if not len(points):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    low, high = _cell_box(points, float(cell))
+    # The cells' box from the points' (floor of p / cell is monotonic in p: the same cells as per point).
+    lower, upper, finite = finite_box(points)
+    # A non-finite point (its cell coordinate is then anything), or cells beyond `_key`'s packing (there distinct
+    # cells share a packed key, as the search's table does): the packed keys themselves.
+    low = np.floor(lower / cell).astype(np.int64) if finite else np.zeros(3, np.int64)
+    high = np.floor(upper / cell).astype(np.int64) if finite else np.zeros(3, np.int64)
     span = high - low + 1
-    # Cells beyond `_key`'s packing (there distinct cells share a packed key, as the search's table does), or a
-    # non-finite point (its cell coordinate is then anything): the packed keys themselves.
-    if int(low.min()) < -_OFFSET or int(high.max()) >= _OFFSET:
+    if finite < len(points) or int(low.min()) < -_OFFSET or int(high.max()) >= _OFFSET:
         keys = _cell_keys(points, float(cell))
         order = argsort_keys(keys)
         return order, keys[order]
