@@ -18,6 +18,8 @@ from monovoc_ros.core.map.gaussians import (
     group_by_chunk,
     morton_keys,
     morton_keys_reference,
+    quat_norms,
+    quat_norms_reference,
 )
 from monovoc_ros.core.map.sorting import argsort_keys
 from monovoc_ros.core.raster import accumulate
@@ -184,6 +186,31 @@ def test_chunk_bounds_equal_their_plain_twin():
         np.testing.assert_array_equal(got, w)
     np.testing.assert_array_equal(odd.placed.means, means[placed_at])
     np.testing.assert_array_equal(odd.placed.covariances, odd.covariances[placed_at])
+
+
+def test_quat_norms_equal_numpys_bit_for_bit():
+    """A map's quaternions are renormalized only where their numpy norm is off unit: the kernel's norms are
+    numpy's to the bit, over magnitudes where the squares lose precision, underflow or overflow."""
+    rng = np.random.default_rng(3)
+    for scale in (1.0, 1e-20, 3e-38, 1e19):
+        quats = (rng.standard_normal((5000, 4)) * scale).astype(np.float32)
+        quats[5, 2], quats[9, 1], quats[11] = np.nan, np.inf, 0.0
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+            quats[::7] /= np.linalg.norm(quats[::7], axis=-1, keepdims=True).clip(1e-30)
+            want = quat_norms_reference(quats)
+        np.testing.assert_array_equal(quat_norms(quats), want)
+    assert quat_norms(np.zeros((0, 4), np.float32)).shape == (0,)
+    # The map keeps unit quaternions as given and normalizes the others with those norms.
+    quats = rng.standard_normal((300, 4)).astype(np.float32)
+    quats[::2] /= np.linalg.norm(quats[::2], axis=-1, keepdims=True)
+    given = quats.copy()
+    scales = np.full((300, 3), 0.1, np.float32)
+    gmap = GaussianMap(np.zeros((300, 3), np.float32), scales, quats, np.full(300, 0.5, np.float32))
+    norms = np.linalg.norm(given, axis=-1)
+    off = np.abs(norms - 1.0) > 1e-6
+    np.testing.assert_array_equal(gmap.quats[~off], given[~off])
+    np.testing.assert_array_equal(gmap.quats[off], given[off] / norms[off, None])
+    assert off.sum() >= 140
 
 
 def test_argsort_keys_equals_numpys_stable_argsort():

@@ -65,8 +65,8 @@ class GaussianMap:
     def __post_init__(self) -> None:
         means = _frozen(self.means, np.float32, (3,), "means", None)
         n = means.shape[0]
-        quats = np.asarray(self.quats, dtype=np.float32)
-        norms = np.linalg.norm(quats, axis=-1, keepdims=True) if quats.ndim == 2 else None
+        quats = np.ascontiguousarray(self.quats, dtype=np.float32)
+        norms = quat_norms(_read_only(quats.view()))[:, None] if quats.ndim == 2 and quats.shape[1:] == (4,) else None
         if norms is not None and np.any(~np.isfinite(norms) | (norms <= 0)):
             raise ValueError("GaussianMap.quats: zero or non-finite quaternion")
         if norms is not None:
@@ -206,6 +206,27 @@ def chunk_members_of(means: np.ndarray) -> np.ndarray:
     members = group_by_chunk(order, MAP_CHUNK)
     members.setflags(write=False)
     return members
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def quat_norms(quats):  # pragma: no cover - numba
+    """(N,) float32 norms of quaternions (N, 4) float32, summed in numpy's order: np.linalg.norm(quats, axis=-1) bit
+    for bit (its twin, `quat_norms_reference`), in one pass where numpy's temporaries took ~36 ms at 2M (every map
+    message: in the map reader and again in the node)."""
+    n = quats.shape[0]
+    out = np.empty(n, np.float32)
+    for i in numba.prange(n):
+        s = quats[i, 0] * quats[i, 0]
+        s += quats[i, 1] * quats[i, 1]
+        s += quats[i, 2] * quats[i, 2]
+        s += quats[i, 3] * quats[i, 3]
+        out[i] = np.sqrt(s)
+    return out
+
+
+def quat_norms_reference(quats: np.ndarray) -> np.ndarray:
+    """Plain twin of `quat_norms`."""
+    return np.linalg.norm(np.asarray(quats, np.float32), axis=-1)
 
 
 _BOX_BLOCKS = 64  # work items of `finite_box`
