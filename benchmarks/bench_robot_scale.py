@@ -140,7 +140,8 @@ def run(
     query_rate_hz: float = 5.0, viewer: bool = True,
 ) -> dict:  # fmt: skip
     """One run of the node on `bag` (`keyframes` keyframes, `maps` map messages, the first included);
-    `node_params`: the node's parameters the command line chose (map_update_ahead, map_reader_process);
+    `node_params`: the node's parameters the command line chose (map_update_ahead, map_reader_process,
+    interpreter_hold_trace_ms);
     `viewer`: whether the fast run subscribes to the semantic cloud."""
     mask_topic = topic_names()["mask"]
     stamps = [m.log_time_ns for m in iter_messages(bag, topics=[mask_topic])]
@@ -248,8 +249,13 @@ def run(
                 a: round(1e3 * float(values[f"worker_s_{a}"]) / max(1, int(values["publishes"])), 1)
                 for a in ("labels", "objects", "publish")
             },
-            # The longest time any thread of the node held the interpreter (nodes/interpreter_watch.py), and when.
-            **{k: float(v) for k, v in values.items() if k.startswith("interpreter_hold")},
+            # The longest time any thread of the node held the interpreter (nodes/interpreter_watch.py), and when; with
+            # --hold-trace-ms, the file of the holders' stacks.
+            **{
+                k: v if k.endswith("_file") else float(v)
+                for k, v in values.items()
+                if k.startswith("interpreter_hold")
+            },
             "node_peak_rss_mb": round(peak_rss_mb(node.pid)),
             "map_reader_peak_rss_mb": [
                 round(peak_rss_mb(c.pid))
@@ -294,6 +300,10 @@ def main() -> int:
     parser.add_argument(
         "--fastdds-profile", type=Path, help="a Fast DDS XML profile for every process (node, replay, clients)"
     )
+    parser.add_argument(
+        "--hold-trace-ms", type=float, default=0.0,
+        help="the node's interpreter_hold_trace_ms: stacks of holds longer than this, in the node's ROS log directory",
+    )  # fmt: skip
     args = parser.parse_args()
     if args.fastdds_profile is not None:
         if not args.fastdds_profile.is_file():
@@ -302,7 +312,11 @@ def main() -> int:
         # The replay's and the node's 50 ms writer heartbeat (monovoc_ros/fastdds_profile.py) then applies only if
         # the profile sets it.
         os.environ[PROFILES_ENV] = str(args.fastdds_profile.resolve())
-    node_params = {"map_update_ahead": args.map_update_ahead, "map_reader_process": not args.map_in_node}
+    node_params = {
+        "map_update_ahead": args.map_update_ahead,
+        "map_reader_process": not args.map_in_node,
+        "interpreter_hold_trace_ms": args.hold_trace_ms,
+    }
     if not (REPLICA / "traj.txt").exists():
         print(f"{REPLICA} not present: nothing to measure", file=sys.stderr)
         return 1

@@ -6,6 +6,8 @@ from __future__ import annotations
 import ctypes
 import time
 
+import pytest
+
 from monovoc_ros.nodes.interpreter_watch import LONG_HOLD_MS, InterpreterWatch
 
 LONG = f"interpreter_holds_over_{LONG_HOLD_MS:.0f}ms"
@@ -42,3 +44,31 @@ def test_the_longest_hold_and_when_it_ended_are_kept():
     assert values["interpreter_hold_max_at"] == 5.0
     watch.reset()
     assert watch.diagnostics() == {"interpreter_hold_ms_max": 0.0, "interpreter_hold_max_at": 0.0, LONG: 0}
+
+
+def _held_by_this_function(seconds: float) -> None:
+    _hold_interpreter(seconds)
+
+
+def test_a_traced_hold_names_its_holder(tmp_path):
+    """interpreter_hold_trace_ms: a hold longer than the threshold writes every thread's stack, the holder's
+    call included, while it holds; a shorter one writes nothing."""
+    path = tmp_path / "logs" / "holds.txt"
+    watch = InterpreterWatch(trace_after_ms=150.0, trace_path=str(path))
+    watch.start()
+    try:
+        time.sleep(0.05)
+        _hold_interpreter(0.02)
+        time.sleep(0.05)
+        assert path.read_text() == ""
+        _held_by_this_function(0.4)
+        time.sleep(0.05)
+    finally:
+        watch.stop()
+    text = path.read_text()
+    assert text.count("Timeout") == 1 and "_held_by_this_function" in text, text
+    assert watch.diagnostics()["interpreter_hold_trace_file"] == str(path)
+    for bad in ({"trace_after_ms": 5.0, "trace_path": str(path)}, {"trace_after_ms": 60.0}):
+        with pytest.raises(ValueError, match="trace_after_ms"):
+            InterpreterWatch(**bad)
+    assert "interpreter_hold_trace_file" not in InterpreterWatch().diagnostics()

@@ -7,6 +7,7 @@ keyframe after a pause of 100 s and of 1 h is integrated."""
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import pytest
 
@@ -24,7 +25,8 @@ def test_a_far_future_pose_does_not_block_mapping(tmp_path):
     outlier = copy.deepcopy(messages[3]["pose"])
     outlier.header.stamp = ma.ns_to_time((2**31 - 1) * 1_000_000_000)
     env = ros_environment(tmp_path)
-    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
+    # With the interpreter's holds traced (what a user sets to find what stalls the node): the watch's file.
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "interpreter_hold_trace_ms": 250.0}
     with (
         NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
         ClientNode(env) as client,
@@ -46,6 +48,9 @@ def test_a_far_future_pose_does_not_block_mapping(tmp_path):
         node.check_running()
     assert done["rejected.stamp_out_of_order"] == "0" and done["rejected_total"] == "1"
     assert done["stamp_epochs"] == "0" and done["stamps_held"] == "0"
+    trace = Path(done["interpreter_hold_trace_file"])
+    assert trace.parent == Path(env["ROS_LOG_DIR"]) and trace.name.startswith("monovoc_interpreter_holds_")
+    assert trace.is_file()
 
 
 def restamped(msgs: dict, shift_ns: int) -> dict:
@@ -60,7 +65,8 @@ def restamped(msgs: dict, shift_ns: int) -> dict:
 def test_keyframes_after_a_pause_of_100_s_and_of_1_h_are_all_integrated(tmp_path):
     scene, messages = small_scene(), scene_messages()
     env = ros_environment(tmp_path)
-    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
+    # With the interpreter's holds traced (what a user sets to find what stalls the node): the watch's file.
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "interpreter_hold_trace_ms": 250.0}
     with (
         NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
         ClientNode(env) as client,

@@ -6,23 +6,39 @@ without ``nogil``, rclpy's (de)serialization of a big message) stops all of them
 waits for it. The watch sleeps PERIOD_S at a time; whatever it wakes late by is the longest anyone held the
 interpreter (or kept the CPU) meanwhile, as an event-loop lag monitor measures a server's loop.
 benchmarks/bench_interpreter_holds.py measures the same for each mapping task alone.
+
+Who held it (`trace_after_ms`, the node's ``interpreter_hold_trace_ms``): at every wake the watch re-arms
+faulthandler's watchdog, a C thread that needs no interpreter; when a hold outlasts it, the watchdog writes every
+thread's Python stack to `trace_path` while the holder is still in its call. That is how the 0.12-0.3 s holds of
+1M robot runs were found: the node's /diagnostics ``publish()`` waiting inside Fast DDS (rclpy keeps the
+interpreter while it publishes). faulthandler has one watchdog per process: while tracing, nothing else in the
+process may use ``dump_traceback_later``.
 """
 
 from __future__ import annotations
 
+import faulthandler
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from monovoc_ros.nodes.diagnostics import Longest
 
 PERIOD_S = 0.005  # 200 wakes a second: too few to cost anything, fine enough for holds of 10 ms and more
 LONG_HOLD_MS = 50.0  # holds longer than this are counted (a query's whole budget, issue 25)
+# Shortest hold traced (ms): a wake is due every PERIOD_S and the scheduler may run it a slice late.
+MIN_HOLD_TRACE_MS = 20.0
 
 
 class InterpreterWatch:
-    def __init__(self, period_s: float = PERIOD_S) -> None:
+    def __init__(self, period_s: float = PERIOD_S, trace_after_ms: float = 0.0, trace_path: str | None = None) -> None:
+        """`trace_after_ms` > 0: holds longer than that write every thread's stack to `trace_path` (appended)."""
+        if trace_after_ms and (trace_after_ms < MIN_HOLD_TRACE_MS or not trace_path):
+            raise ValueError(f"trace_after_ms: 0, or >= {MIN_HOLD_TRACE_MS:g} with a trace_path")
         self.period_s = period_s
+        self.trace_path = trace_path if trace_after_ms else None
+        self._trace_after_s = trace_after_ms / 1e3
         # The time kept is when the longest hold ended (the wake that saw it).
         keys = ("interpreter_hold_ms_max", "interpreter_hold_max_at", f"interpreter_holds_over_{LONG_HOLD_MS:.0f}ms")
         self._longest = Longest(keys, LONG_HOLD_MS)
@@ -38,11 +54,22 @@ class InterpreterWatch:
             self._thread.join(1.0)
 
     def _run(self) -> None:
-        last = time.perf_counter()
-        while not self._stop.wait(self.period_s):
-            now = time.perf_counter()
-            self.record(1e3 * (now - last - self.period_s), time.time())
-            last = now
+        trace = None
+        if self.trace_path is not None:
+            Path(self.trace_path).parent.mkdir(parents=True, exist_ok=True)
+            trace = open(self.trace_path, "a")  # open as long as the watch runs
+        try:
+            last = time.perf_counter()
+            while not self._stop.wait(self.period_s):
+                if trace is not None:  # replaces the watchdog armed at the last wake
+                    faulthandler.dump_traceback_later(self._trace_after_s, file=trace)
+                now = time.perf_counter()
+                self.record(1e3 * (now - last - self.period_s), time.time())
+                last = now
+        finally:
+            if trace is not None:
+                faulthandler.cancel_dump_traceback_later()
+                trace.close()
 
     def reset(self) -> None:
         """Forgets what was recorded (benchmarks/bench_interpreter_holds.py: one task at a time)."""
@@ -53,4 +80,7 @@ class InterpreterWatch:
         self._longest.add(late_ms, at)
 
     def diagnostics(self) -> dict[str, Any]:
-        return self._longest.values()
+        values = self._longest.values()
+        if self.trace_path is not None:
+            values["interpreter_hold_trace_file"] = self.trace_path
+        return values

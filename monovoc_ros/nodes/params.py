@@ -21,6 +21,7 @@ from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
 from monovoc_ros.core.segments.association import MASK_ID_MODES
 from monovoc_ros.ingest import FRAME_CONVENTIONS, POSE_TYPES, IngestConfig
+from monovoc_ros.nodes.interpreter_watch import MIN_HOLD_TRACE_MS
 from monovoc_ros.nodes.param_spec import Param, ParameterError, defaults, validate
 from monovoc_ros.nodes.worker import WorkerSettings
 
@@ -74,6 +75,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("labels_define_palette", False, "vote mode: labels_file's colors are the objects; every mask pixel is one of them or snaps to one (lossy masks)"),
     Param("marker_up", [0.0, 0.0, 1.0], "up direction of the map frame, for marker labels ([0, -1, 0] for a y-down SLAM world)"),
     Param("diagnostics_period_s", 1.0, "period of /diagnostics messages (s)", above=0),
+    Param("interpreter_hold_trace_ms", 0.0, "whenever the Python interpreter is held longer than this (ms), every thread's stack is written to monovoc_interpreter_holds_<pid>.txt in the ROS log directory: what kept queries and keyframes waiting (0 = off; at least 20)", low=0),
     # Persistence and services
     Param("map_directory", _WORKER.map_directory, "snapshot directory for save_map / load_map defaults, periodic and final saves"),
     Param("save_period_s", _WORKER.save_period_s, "periodic snapshot when there is new evidence (s); 0 = off", low=0),
@@ -105,6 +107,7 @@ class NodeParams:
     labels_file: str
     marker_up: tuple[float, float, float]
     diagnostics_period_s: float
+    interpreter_hold_trace_ms: float
     map_directory: str
     save_period_s: float
     resume: bool
@@ -158,6 +161,12 @@ class NodeParams:
         except ValueError as exc:  # the settings that only fail together (e.g. per_frame ids in scd mode)
             raise ParameterError(str(exc).replace(" must be", ": must be", 1)) from None
         need(bool(v["frame_id"].strip()), "frame_id", "must not be empty")
+        trace_ms = v["interpreter_hold_trace_ms"]
+        need(
+            trace_ms == 0 or trace_ms >= MIN_HOLD_TRACE_MS,
+            "interpreter_hold_trace_ms",
+            f"must be 0 or >= {MIN_HOLD_TRACE_MS:g}",
+        )
         up = v["marker_up"]
         need(len(up) == 3 and any(up), "marker_up", "must be a non-zero 3-vector")
         need(not v["map_ply"] or Path(v["map_ply"]).is_file(), "map_ply", "file not found")
@@ -183,6 +192,7 @@ class NodeParams:
             labels_file=v["labels_file"],
             marker_up=(up[0], up[1], up[2]),
             diagnostics_period_s=v["diagnostics_period_s"],
+            interpreter_hold_trace_ms=v["interpreter_hold_trace_ms"],
             map_directory=map_directory,
             save_period_s=v["save_period_s"],
             resume=v["resume"],
