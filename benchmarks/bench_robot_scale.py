@@ -252,9 +252,7 @@ def run(
             # The longest time any thread of the node held the interpreter (nodes/interpreter_watch.py), and when; with
             # --hold-trace-ms, the file of the holders' stacks.
             **{
-                k: v if k.endswith("_file") else float(v)
-                for k, v in values.items()
-                if k.startswith("interpreter_hold")
+                k: v if k.endswith("_file") else float(v) for k, v in values.items() if k.startswith("interpreter_hold")
             },
             "node_peak_rss_mb": round(peak_rss_mb(node.pid)),
             "map_reader_peak_rss_mb": [
