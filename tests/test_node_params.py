@@ -121,6 +121,8 @@ def test_descriptors_carry_ranges_and_constraints():
         ("publish_rate_hz", float("nan")),
         ("save_period_s", "often"),
         ("diagnostics_period_s", 0.0),
+        ("interpreter_hold_trace_ms", 5.0),  # under MIN_HOLD_TRACE_MS: the watch's own wakes would trace
+        ("interpreter_hold_trace_ms", -1.0),
         ("marker_up", [0.0, 0.0, 0.0]),
         ("frame_id", ""),
         ("map_ply", "/nonexistent/map.ply"),

@@ -44,6 +44,11 @@ class InterpreterWatch:
         self._longest = Longest(keys, LONG_HOLD_MS)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="monovoc-interpreter-watch", daemon=True)
+        # Opened here: a trace file that cannot be written fails the node's start (OSError), as the user asked for it.
+        self._trace = None
+        if self.trace_path is not None:
+            Path(self.trace_path).parent.mkdir(parents=True, exist_ok=True)
+            self._trace = open(self.trace_path, "a")  # closed when the watch ends
 
     def start(self) -> None:
         self._thread.start()
@@ -54,10 +59,7 @@ class InterpreterWatch:
             self._thread.join(1.0)
 
     def _run(self) -> None:
-        trace = None
-        if self.trace_path is not None:
-            Path(self.trace_path).parent.mkdir(parents=True, exist_ok=True)
-            trace = open(self.trace_path, "a")  # open as long as the watch runs
+        trace = self._trace
         try:
             last = time.perf_counter()
             while not self._stop.wait(self.period_s):
