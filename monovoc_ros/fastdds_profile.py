@@ -17,12 +17,9 @@ process's first ``create_node`` (``writer_heartbeat``), and is gone afterwards: 
 (``FASTRTPS_DEFAULT_PROFILES_FILE``, or DEFAULT_FASTRTPS_PROFILES.xml in the working directory unless
 ``SKIP_DEFAULT_XML=1``: what Jazzy's Fast DDS 2.14 reads) or another middleware wins: nothing is changed then.
 
-The mapping node publishes asynchronously (``asynchronous_publication``) unless the user sets
-RMW_FASTRTPS_PUBLICATION_MODE (rmw_fastrtps's own default in Jazzy is synchronous); the node's log says which.
-rclpy keeps the interpreter while it publishes, and a synchronous write can wait inside Fast DDS: in 1M robot runs
-the node's /diagnostics ``publish()`` held the interpreter 0.1-0.33 s (every hold over 100 ms that the node's
-``interpreter_hold_trace_ms`` caught, 3 of 3), and every query that arrived meanwhile waited for it. An
-asynchronous write only queues the sample for Fast DDS's sending thread (docs/results.md, seventeenth session).
+The publication mode is left as rmw_fastrtps sets it (synchronous in Jazzy) unless the user sets
+RMW_FASTRTPS_PUBLICATION_MODE; the node's log says which. Asynchronous publication took away the interpreter
+holds of a blocked ``publish()`` in 1M-Gaussian runs but not the query tails (docs/results.md, twelfth session).
 """
 
 from __future__ import annotations
@@ -83,23 +80,13 @@ def writer_heartbeat(period_ms: int | None) -> Iterator[bool]:
         Path(name).unlink(missing_ok=True)
 
 
-def asynchronous_publication() -> bool:
-    """Before ``rclpy.init``: this process's writers publish asynchronously unless the user chose a mode (or another
-    middleware runs); returns whether it set that. Its children inherit it (the map reader publishes nothing)."""
-    fast_dds = os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") == "rmw_fastrtps_cpp"
-    if os.environ.get(PUBLICATION_MODE_ENV) or not fast_dds:
-        return False
-    os.environ[PUBLICATION_MODE_ENV] = "ASYNCHRONOUS"
-    return True
-
-
 def publication_mode() -> str:
     """The rmw_fastrtps publication mode this process and its children run under (the user's, or Jazzy's default)."""
     return os.environ.get(PUBLICATION_MODE_ENV) or "SYNCHRONOUS (rmw_fastrtps default)"
 
 
-def describe(applied: bool, asynchronous: bool = False) -> str:
-    """What the process's participant runs under, for its log (`asynchronous`: `asynchronous_publication` set it)."""
+def describe(applied: bool) -> str:
+    """What the process's participant runs under, for its log."""
     user = _users_profile()
     if applied:
         line = f"Fast DDS: reliable writers' heartbeat {WRITER_HEARTBEAT_MS} ms (monovoc_ros.fastdds_profile)"
@@ -107,8 +94,7 @@ def describe(applied: bool, asynchronous: bool = False) -> str:
         line = f"Fast DDS: the user's profile {user}, as it is"
     else:
         return f"DDS: {os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')} as configured"
-    ours = " (monovoc_ros.fastdds_profile)" if asynchronous else ""
-    return line + f"; publication mode {publication_mode()}{ours}"
+    return line + f"; publication mode {publication_mode()}"
 
 
 def child_environment() -> dict[str, str]:

@@ -57,7 +57,7 @@ from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_def
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.core.session import KeyframeListener
 from monovoc_ros.core.warm_up import kernels_cached, warm_up
-from monovoc_ros.fastdds_profile import WRITER_HEARTBEAT_MS, asynchronous_publication, writer_heartbeat
+from monovoc_ros.fastdds_profile import WRITER_HEARTBEAT_MS, writer_heartbeat
 from monovoc_ros.fastdds_profile import describe as describe_dds
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.component import Component, MappingHost
@@ -641,13 +641,11 @@ def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component
     node = None
     try:
         # The participant comes with the first node: its reliable writers (the query's answers among them)
-        # repair a lost sample within 50 ms, not Fast DDS's 3 s, and publish without waiting inside Fast DDS with
-        # the interpreter held (monovoc_ros.fastdds_profile).
-        asynchronous = asynchronous_publication()
+        # repair a lost sample within 50 ms, not Fast DDS's 3 s (monovoc_ros.fastdds_profile).
         with writer_heartbeat(WRITER_HEARTBEAT_MS) as ours:
             rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
             node = MappingNode(stop=stop.requested)
-        node.get_logger().info(describe_dds(ours, asynchronous))
+        node.get_logger().info(describe_dds(ours))
         components = compose(node) if compose is not None else []
         check_stop(stop.requested, "starting components")
     except StartupAborted as exc:
