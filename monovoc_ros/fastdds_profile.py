@@ -19,7 +19,8 @@ process's first ``create_node`` (``writer_heartbeat``), and is gone afterwards: 
 
 The publication mode is left as rmw_fastrtps sets it (synchronous in Jazzy) unless the user sets
 RMW_FASTRTPS_PUBLICATION_MODE; the node's log says which. Asynchronous publication took away the interpreter
-holds of a blocked ``publish()`` in 1M-Gaussian runs but not the query tails (docs/results.md, twelfth session).
+holds of a blocked ``publish()`` in 1M-Gaussian runs but not the query tails (docs/results.md, twelfth and
+seventeenth sessions).
 """
 
 from __future__ import annotations
