@@ -65,8 +65,7 @@ def restamped(msgs: dict, shift_ns: int) -> dict:
 def test_keyframes_after_a_pause_of_100_s_and_of_1_h_are_all_integrated(tmp_path):
     scene, messages = small_scene(), scene_messages()
     env = ros_environment(tmp_path)
-    # With the interpreter's holds traced (what a user sets to find what stalls the node): the watch's file.
-    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "interpreter_hold_trace_ms": 250.0}
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
     with (
         NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
         ClientNode(env) as client,

@@ -111,10 +111,12 @@ class MappingNode(Node):
         self._warned_frame: set[str] = set()
         self._map_reader: MapReaderProcess | None = None
         self._diagnostics_sources: list[Callable[[], dict[str, Any]]] = []
-        trace_ms = self.params.interpreter_hold_trace_ms
-        trace = Path(rclpy.logging.get_logging_directory()) / f"monovoc_interpreter_holds_{os.getpid()}.txt"
         # What keeps every thread of the node waiting (and, when asked, who).
-        self._interpreter_watch = InterpreterWatch(trace_after_ms=trace_ms, trace_path=str(trace) if trace_ms else None)
+        trace_ms = self.params.interpreter_hold_trace_ms
+        trace = None
+        if trace_ms:
+            trace = str(Path(rclpy.logging.get_logging_directory()) / f"monovoc_interpreter_holds_{os.getpid()}.txt")
+        self._interpreter_watch = InterpreterWatch(trace_after_ms=trace_ms, trace_path=trace)
         self._diagnostics_sources.append(self._interpreter_watch.diagnostics)
         # Named so that plugins can put their own callbacks beside ours.
         # One group per input topic: each topic's messages are handled one at a time, in order (what the
