@@ -20,6 +20,7 @@ the benchmarks and the tests.
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -415,18 +416,29 @@ class KeyframePublishTimes:
             self.at[log_time_ns] = time.monotonic()
 
 
-def cloud_latencies_ms(published: Mapping[int, float], arrivals: Mapping[int, float]) -> list[float]:
+def cloud_latencies_ms(
+    published: Mapping[int, float], arrivals: Mapping[int, float], *, after: float = -math.inf
+) -> list[float]:
     """Per keyframe stamp of `published` (stamp ns -> when it was published: `KeyframePublishTimes.at`) the ms
     until the first cloud holding it arrived (`CloudMonitor.arrivals`): one stamped with it or with a later
     keyframe's stamp. Keyframes no cloud held are left out; so are clouds stamped after the last keyframe (the
-    node's own, on a map alone)."""
+    node's own, on a map alone), and keyframes published before `after` (`first_cloud_at`: those that waited for
+    the node's first map)."""
     last = max(published, default=0)
     out = []
     for stamp, at in sorted(published.items()):
         holding = [t for s, t in arrivals.items() if stamp <= s <= last]
-        if holding:
+        if holding and at >= after:
             out.append(1e3 * (min(holding) - at))
     return out
+
+
+def first_cloud_at(published: Mapping[int, float], arrivals: Mapping[int, float]) -> float | None:
+    """When the first cloud holding a keyframe of `published` arrived (as `cloud_latencies_ms`), None if none did:
+    the keyframes published before it waited for the node's start (its first map), not for their integration."""
+    first, last = min(published, default=0), max(published, default=0)
+    holding = [t for s, t in arrivals.items() if first <= s <= last]
+    return min(holding) if holding else None
 
 
 class CloudMonitor:

@@ -28,6 +28,7 @@ from monovoc_ros.ros_harness import (
     MessageCollector,
     NodeProcess,
     cloud_latencies_ms,
+    first_cloud_at,
     wait_until,
 )
 from tests.rosutil import ros_environment
@@ -240,6 +241,9 @@ def test_cloud_latencies_count_from_each_keyframes_publication() -> None:
     arrivals = {100: 10.08, 300: 11.2, 900: 10.9}
     assert np.allclose(cloud_latencies_ms(published, arrivals), [80.0, 700.0, 200.0])
     assert cloud_latencies_ms({}, arrivals) == [] and cloud_latencies_ms(published, {}) == []
+    # The first cloud holding a keyframe came at 10.08: keyframes published from then on are the running ones.
+    assert first_cloud_at(published, arrivals) == 10.08 and first_cloud_at(published, {900: 10.9}) is None
+    assert np.allclose(cloud_latencies_ms(published, arrivals, after=10.08), [700.0, 200.0])
 
 
 def test_record_stops_on_ctrl_c_and_on_duration(tmp_path: Path, monkeypatch) -> None:
