@@ -2,7 +2,7 @@
 
     scripts/with_env.sh python benchmarks/bench_robot_scale.py                       # 1M and 2M Gaussians
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
-    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead-s 0
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
     RMW_FASTRTPS_PUBLICATION_MODE=ASYNCHRONOUS scripts/with_env.sh python benchmarks/bench_robot_scale.py --runs robot
 
@@ -60,6 +60,7 @@ from bench_map_churn import REPLICA, tiled  # noqa: E402
 from monovoc_ros.bags import iter_messages, replay, sequence_to_bag, topic_names  # noqa: E402
 from monovoc_ros.core.evaluation.datasets import Sequence, open_sequence  # noqa: E402
 from monovoc_ros.core.evidence.palette import VOID_ID, pack_rgb, unpack_rgb  # noqa: E402
+from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S  # noqa: E402
 from monovoc_ros.core.keyframe import Keyframe  # noqa: E402
 from monovoc_ros.core.map.gaussians import GaussianMap  # noqa: E402
 from monovoc_ros.fastdds_profile import PROFILES_ENV, publication_mode  # noqa: E402
@@ -143,7 +144,7 @@ def run(
     query_rate_hz: float = 5.0, viewer: bool = True,
 ) -> dict:  # fmt: skip
     """One run of the node on `bag` (`keyframes` keyframes, `maps` map messages, the first included);
-    `node_params`: the node's parameters the command line chose (map_update_ahead, map_reader_process,
+    `node_params`: the node's parameters the command line chose (map_update_ahead_s, map_reader_process,
     interpreter_hold_trace_ms);
     `viewer`: whether the fast run subscribes to the semantic cloud."""
     mask_topic = topic_names()["mask"]
@@ -305,7 +306,9 @@ def main() -> int:
     parser.add_argument("--fast-keyframes", type=int, default=120, help="stamped at 10/s")
     parser.add_argument("--fast-rate", type=float, default=1.0, help="replay rate of the fast run (1: 10 keyframes/s)")
     parser.add_argument("--update-period-s", type=float, default=2.0)
-    parser.add_argument("--map-update-ahead", action="store_true", help="the node's map_update_ahead")
+    parser.add_argument(
+        "--map-update-ahead-s", type=float, default=DEFAULT_AHEAD_S, help="the node's map_update_ahead_s (0: in line)"
+    )
     parser.add_argument("--map-in-node", action="store_true", help="map_reader_process false: the node takes the map")
     parser.add_argument("--fast-without-viewer", action="store_true", help="nothing subscribes to the fast run's cloud")
     parser.add_argument(
@@ -324,7 +327,7 @@ def main() -> int:
         # the profile sets it.
         os.environ[PROFILES_ENV] = str(args.fastdds_profile.resolve())
     node_params = {
-        "map_update_ahead": args.map_update_ahead,
+        "map_update_ahead_s": args.map_update_ahead_s,
         "map_reader_process": not args.map_in_node,
         "interpreter_hold_trace_ms": args.hold_trace_ms,
     }

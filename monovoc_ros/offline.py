@@ -3,7 +3,8 @@
 The live node's worker is a thread around the same session (monovoc_ros.core.session), and bags go
 through the same KeyframeAssembler (via `monovoc_ros.bags.bag_events`), so `monovoc map --bag` and a live
 replay give the same semantic map: keyframes wait for the first map, unchanged maps are skipped, maps
-removing more than `max_shrink` of the Gaussians refused, duplicate stamps refused, all counted alike.
+removing more than `max_shrink` of the Gaussians refused, duplicate stamps refused, all counted alike, and the
+keyframes stamped within `ahead_s` after a map update go ahead of it (core.follow.map_ahead).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from tqdm import tqdm
 
 from monovoc_ros.core.evaluation.datasets import Sequence, open_sequence
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
+from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MapAhead
+from monovoc_ros.core.follow.map_updater import MapUpdatePlan
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
@@ -80,15 +83,17 @@ def map_events(
     *,
     max_keyframes: int | None = None,
     max_shrink: float = DEFAULT_MAX_SHRINK,
+    ahead_s: float = DEFAULT_AHEAD_S,
     progress: bool = False,
     on_keyframe: KeyframeListener | None = None,
 ) -> tuple[SemanticMapper, RunStats]:
     """Drives a MappingSession with bag events (GaussianMap, Keyframe or rejection objects) in order, as the
     live node's worker does: the first map creates the mapper, later maps are SLAM updates (unchanged ones
     skipped, those removing more than `max_shrink` of the Gaussians refused), keyframes before any map wait
-    for it. `max_keyframes` stops after that many integrated.
+    for it, those stamped within `ahead_s` after a map update go ahead of it (the node's map_update_ahead_s).
+    `max_keyframes` stops after that many integrated.
     """
-    return _run(events, config, max_shrink, max_keyframes, progress, None, on_keyframe)
+    return _run(events, config, max_shrink, max_keyframes, progress, None, on_keyframe, ahead_s)
 
 
 def map_bag(path: str, config: MapperConfig | None = None, ingest_config=None, **kwargs):
@@ -105,22 +110,39 @@ def _run(
     progress: bool,
     total: int | None,
     on_keyframe: KeyframeListener | None,
+    ahead_s: float = DEFAULT_AHEAD_S,
 ) -> tuple[SemanticMapper, RunStats]:
     stats = RunStats()
-    session = MappingSession(config, max_shrink=max_shrink, stats=stats)
+    session = MappingSession(config, max_shrink=max_shrink, ahead_s=ahead_s, stats=stats)
     if on_keyframe is not None:
         session.add_keyframe_listener(on_keyframe)
 
     def room() -> bool:
         return max_keyframes is None or stats.keyframes_processed < max_keyframes
 
+    # A map update the keyframes after it go ahead of (core.follow.map_ahead, the live worker's rule), its plan.
+    ahead: tuple[MapAhead, MapUpdatePlan] | None = None
+
+    def apply_ahead() -> None:
+        nonlocal ahead
+        if ahead is not None:
+            (pending, plan), ahead = ahead, None
+            session.add_map(pending.gaussians, plan=plan, taken_back=frozenset(pending.taken_back))
+
     start = time.perf_counter()
     with _progress(total, progress, "SCD") as bar:
         for event in events:
+            if ahead is not None and not (isinstance(event, Keyframe) and not ahead[0].applies_before(event)):
+                apply_ahead()
             if isinstance(event, GaussianMap):
-                session.add_map(event)
+                until = session.ahead_until(event)
+                plan = session.plan_map(None, event) if until is not None else None
+                if until is not None and plan is not None and not plan.refusal:
+                    ahead = session.start_ahead(event, plan.follow.motion, until), plan
+                else:
+                    session.add_map(event, plan=plan)
             elif isinstance(event, Keyframe):
-                session.add_keyframe(event)
+                session.add_keyframe(event if ahead is None else ahead[0].posed(event))
             elif isinstance(event, KeyframePoses):
                 session.add_keyframe_poses(event)
             else:
@@ -134,6 +156,7 @@ def _run(
                     bar.update()
             if not room():  # stop reading: a map update after the last keyframe must not apply either
                 break
+    apply_ahead()  # the keyframes that went ahead of it expect it
     if session.mapper is None:
         raise ValueError(f"no Gaussian map was given, or every one was refused (rejected: {dict(stats.rejected)})")
     stats.wall_seconds = time.perf_counter() - start

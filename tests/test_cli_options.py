@@ -35,3 +35,10 @@ def test_options_a_bag_cannot_use_are_refused(tmp_path, extra, problem):
             main([*command, *extra])
         assert problem in str(info.value)
     assert not (tmp_path / "m").exists()
+
+
+def test_a_negative_map_update_window_is_refused(tmp_path):
+    with pytest.raises(SystemExit) as info:
+        main(["map", "--bag", str(BAG), "-o", str(tmp_path / "m"), "--map-update-ahead-s", "-1"])
+    assert "--map-update-ahead-s must be >= 0, got -1.0" in str(info.value)
+    assert not (tmp_path / "m").exists()

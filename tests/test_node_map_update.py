@@ -46,10 +46,11 @@ def changed_map(old: GaussianMap, seed: int = 0) -> GaussianMap:
     return gmap.subset(rng.permutation(len(gmap)))
 
 
-@pytest.mark.parametrize(("ahead", "reader_process"), [(False, True), (True, True), (False, False)])
+@pytest.mark.parametrize(("ahead", "reader_process"), [(0.0, True), (2.0, True), (2.0, False)])
 def test_map_update_carries_evidence_by_id(tmp_path, ahead, reader_process):
-    """With `map_update_ahead` too: no keyframe comes between the map and its update here, so the node ends as
-    offline mapping does either way; and with the map topic read in the node's own process."""
+    """With `map_update_ahead_s` 0 and 2 s: no keyframe comes after the map until its update is applied here (with
+    the window, once the worker had no input for it), so the node ends as offline mapping does either way; and with
+    the map topic read in the node's own process."""
     from monovoc_interfaces.srv import SaveMap
 
     scene, messages = small_scene(), scene_messages()
@@ -70,7 +71,7 @@ def test_map_update_carries_evidence_by_id(tmp_path, ahead, reader_process):
         "publish_rate_hz": 0.0,
         "diagnostics_period_s": 0.2,
         "reintegrate_below": 0.0,
-        "map_update_ahead": ahead,
+        "map_update_ahead_s": ahead,
         "map_reader_process": reader_process,
     }
     with running_mapper(tmp_path, params) as mapper:

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
+from monovoc_ros.core.follow.map_ahead import MapAhead
 from monovoc_ros.core.follow.map_follow import FollowConfig
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
@@ -23,7 +24,6 @@ from monovoc_ros.core.object_geometry import object_geometry
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
 from monovoc_ros.nodes.worker import (
-    AHEAD_KEYFRAMES_WHEN_READY,
     KEYFRAMES_PER_REINTEGRATION_STEP,
     MapWorker,
     Preparation,
@@ -33,6 +33,7 @@ from monovoc_ros.nodes.worker import (
     _Ahead,
     _Task,
 )
+from monovoc_ros.offline import map_events
 from monovoc_ros.ros_harness import wait_until
 from tests.evidence import assert_same_evidence
 from tests.geometry import assert_same_geometry
@@ -721,14 +722,18 @@ def moved_map(first: GaussianMap) -> tuple[GaussianMap, np.ndarray]:
 
 
 @pytest.mark.parametrize("ahead", [False, True])
-def test_keyframes_after_a_map_update_go_ahead_into_the_map_in_use_only_when_asked(ahead):
-    """map_update_ahead: keyframes posed in a map whose plan is not ready go into the map in use, their poses
-    taken back by its motion, and the update then moves their logged poses to where they were sent; without
-    it they wait for the update (as offline mapping integrates them)."""
-    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=ahead)
+def test_keyframes_after_a_map_update_go_ahead_into_the_map_in_use_within_the_window(ahead):
+    """map_update_ahead_s: keyframes stamped within it after a map go into the map in use while its plan is made,
+    their poses taken back by its motion, and the update then moves their logged poses to where they were sent;
+    the first keyframe stamped after the window applies the update first (waiting for its plan). With 0 they all
+    wait for the update (as offline mapping with ahead_s 0 integrates them)."""
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0,
+                              map_update_ahead_s=2.0 if ahead else 0.0)  # fmt: skip
     worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
-    first = plane_map()
+    first = replace(plane_map(), stamp_ns=1)
     second, shift = moved_map(first)
+    second = replace(second, stamp_ns=4)
+    late = 4 + 2 * 10**9  # the window's end
     seen: list[tuple[int, bool, np.ndarray]] = []  # (stamp, integrated into the first map, pose)
     worker.add_keyframe_listener(lambda kf, m: seen.append((kf.stamp_ns, m.gaussians is first, kf.cam_to_world)))
     worker.start()
@@ -739,33 +744,70 @@ def test_keyframes_after_a_map_update_go_ahead_into_the_map_in_use_only_when_ask
         drain(worker)
         worker.submit_map(second)
         sent = {}
-        for stamp in range(4, 7):
+        for stamp in (4, 5, 6, late):
             kf = keyframe(stamp)
             sent[stamp] = shift @ kf.cam_to_world
             worker.submit_keyframe(replace(kf, cam_to_world=sent[stamp]))
         if ahead:
             wait_until(lambda: len(seen) == 6, 10.0, "the keyframes after the map", process=None)
-            assert worker.session.mapper.gaussians is first  # the update still waits for its plan
+            time.sleep(0.1)
+            assert len(seen) == 6  # the one stamped after the window waits for the update, and it for its plan
+            assert worker.session.mapper.gaussians is first
         worker.release.set()
         drain(worker)
         logged = {e.stamp_ns: e.cam_to_world for e in worker.session.mapper.keyframe_log.entries}
     finally:
         worker.stop(final_snapshot=False)
     assert worker.session.mapper.gaussians is second
-    assert [stamp for stamp, _, _ in seen] == [1, 2, 3, 4, 5, 6]
-    assert [into_first for stamp, into_first, _ in seen if stamp >= 4] == [ahead] * 3
+    assert [stamp for stamp, _, _ in seen] == [1, 2, 3, 4, 5, 6, late]
+    assert [into_first for stamp, into_first, _ in seen if stamp >= 4] == [ahead] * 3 + [False]
     for stamp, _, pose in seen[3:]:
         # Ahead: integrated 5 cm back, into the first map; the update moved the logged pose to where it was sent.
-        np.testing.assert_allclose(pose[2, 3], sent[stamp][2, 3] - (0.05 if ahead else 0.0), atol=1e-6)
+        back = 0.05 if ahead and stamp < late else 0.0
+        np.testing.assert_allclose(pose[2, 3], sent[stamp][2, 3] - back, atol=1e-6)
         np.testing.assert_allclose(logged[stamp], sent[stamp], atol=1e-6)
     assert worker.stats.map_updates_ahead == int(ahead) and worker.stats.map_updates == 1
+
+
+def test_keyframes_go_ahead_of_a_map_update_live_as_they_do_offline():
+    """The rule is the input's (stamps and order), not the plan's speed: a worker whose plans are slow and offline
+    mapping of the same events end with the same evidence and logged poses."""
+    first = replace(plane_map(), stamp_ns=10**9)
+    second, shift = moved_map(first)
+    second = replace(second, stamp_ns=2 * 10**9)
+    events: list = [first]
+    for k in range(16):  # every 0.25 s from 1 s: the second map at 2 s, its window to 4 s
+        stamp = 10**9 + k * 250_000_000
+        if stamp == second.stamp_ns:
+            events.append(second)
+        kf = keyframe(stamp, shift=k % 5)
+        events.append(replace(kf, cam_to_world=shift) if stamp >= second.stamp_ns else kf)
+    offline, stats = map_events(events)
+    assert stats.map_updates == 1 and stats.map_updates_ahead == 1
+    settings = WorkerSettings(queue_size=32, publish_period_s=0.0, save_period_s=0.0)  # the default window
+    worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
+    worker.start()
+    try:
+        for event in events:
+            (worker.submit_map if isinstance(event, GaussianMap) else worker.submit_keyframe)(event)
+        wait_until(lambda: worker.stats.keyframes_processed == 12, 10.0, "the keyframes ahead", process=None)
+        worker.release.set()
+        drain(worker)
+    finally:
+        worker.stop(final_snapshot=False)
+    live = worker.session.mapper
+    assert live.gaussians is second and worker.stats.map_updates_ahead == 1
+    assert_same_evidence(live.state, offline.state)
+    a = {e.stamp_ns: e.cam_to_world for e in live.keyframe_log.entries}
+    b = {e.stamp_ns: e.cam_to_world for e in offline.keyframe_log.entries}
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
 
 
 def test_ahead_a_keyframe_stamped_before_the_map_update_is_not_taken_back():
     """With stamps: a keyframe stamped before the map update that it comes after is posed in the map in use (core.
     follow.map_frames): it goes ahead as sent, and the update moves its logged pose with the map; the keyframes
     stamped after the map are taken back and their logged poses end where they were sent."""
-    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=True)
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0)
     worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
     first = replace(plane_map(), stamp_ns=10)
     second, shift = moved_map(first)
@@ -812,11 +854,13 @@ def test_what_changed_is_published_while_the_worker_waits_for_a_map_updates_plan
     """A keyframe integrated right before a map whose plan is not ready gets its cloud while the worker waits for
     that plan (or, ahead, for its motion), not after the update; ahead, the update is applied once the keyframes
     integrated ahead of it are published."""
-    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=ahead)
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0,
+                              map_update_ahead_s=2.0 if ahead else 0.0)  # fmt: skip
     sink = MapSink()
     worker = HeldPlans(MapperConfig(), settings, sink=sink, log=RecordingLog())
-    first = plane_map()
+    first = replace(plane_map(), stamp_ns=1)
     second, shift = moved_map(first)
+    second = replace(second, stamp_ns=3)
     worker.start()
     try:
         worker.submit_map(first)
@@ -840,25 +884,26 @@ def test_what_changed_is_published_while_the_worker_waits_for_a_map_updates_plan
     assert sink.published[-1] == (second, 3 if ahead else 2)
 
 
-def test_a_map_update_applied_ahead_is_due_before_any_other_task_or_once_its_plan_is_ready_and_the_worker_idle():
-    plan, other = Future(), Future()
-    pending = _Ahead(_Task("map", plane_map(), plan=plan, motion=other), None)
-    kf, call = _Task("keyframe", keyframe(1)), _Task("call", lambda: None)
-    assert not pending.due(kf) and not pending.due(None)  # its plan is not ready
-    assert pending.due(call)  # only keyframes go ahead of it
+def test_a_map_update_keyframes_go_ahead_of_is_due_before_any_other_task_a_later_keyframe_or_a_long_idle():
+    plan = Future()
+    gaussians = replace(plane_map(), stamp_ns=10)
+    pending = _Ahead(_Task("map", gaussians, plan=plan, motion=Future()), MapAhead(gaussians, None, 30))
+    in_window, later = (_Task("keyframe", keyframe(s)) for s in (29, 30))
+    call = _Task("call", lambda: None)
+    assert not pending.due(in_window, 0.0, 2.0) and pending.due(later, 0.0, 2.0)  # by stamp
+    assert pending.due(call, 0.0, 2.0)  # only keyframes go ahead of it
+    assert pending.due(_Task("keyframe", keyframe(20 * 10**9)), 0.0, 2.0)  # a stamp that does not order: a clock
+    assert not pending.due(None, 5.0, 2.0)  # idle, but its plan is not ready
     plan.set_result(None)
-    assert pending.due(None)  # ready, and the worker idle
-    assert [pending.due(kf) for _ in range(AHEAD_KEYFRAMES_WHEN_READY + 1)] == [False] * AHEAD_KEYFRAMES_WHEN_READY + [
-        True
-    ]
+    assert not pending.due(None, 1.0, 2.0) and pending.due(None, 2.0, 2.0)  # ready, and idle for the window
 
 
 def test_a_stop_applies_the_map_update_applied_ahead_before_the_final_snapshot(tmp_path):
-    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead=True,
-                              map_directory=str(tmp_path / "m"))  # fmt: skip
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_directory=str(tmp_path / "m"))
     worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
-    first = plane_map()
+    first = replace(plane_map(), stamp_ns=1)
     second, shift = moved_map(first)
+    second = replace(second, stamp_ns=2)
     worker.start()
     worker.submit_map(first)
     worker.submit_keyframe(keyframe(1))

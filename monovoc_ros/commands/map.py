@@ -10,6 +10,7 @@ from pathlib import Path
 from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
 from monovoc_ros.core.evidence.palette import labels_from_entries
 from monovoc_ros.core.evidence.quantize import METRICS
+from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S
 from monovoc_ros.core.map_store import save_snapshot
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
@@ -160,6 +161,13 @@ def register(subparsers) -> None:
         help="also build the object database (objects.db: views, embeddings) as the live node does",
     )
     p.add_argument("--crop-mode", choices=("soft", "hard"), default="soft", help="object crops with --objects")
+    p.add_argument(
+        "--map-update-ahead-s",
+        type=float,
+        default=DEFAULT_AHEAD_S,
+        help="--bag: seconds of stamps after a map update whose keyframes go ahead of it into the map in use, as "
+        "the live node's map_update_ahead_s (docs/map_updates.md); give the node's value to get its map; 0 = in line",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -183,8 +191,15 @@ def run(args: argparse.Namespace) -> int:
     index = _object_index(args, labels)
     hook = index.keyframe_listener if index is not None else None
     if sequence is None:
+        if not args.map_update_ahead_s >= 0:
+            raise SystemExit(f"monovoc map: --map-update-ahead-s must be >= 0, got {args.map_update_ahead_s}")
         mapper, stats = offline.map_bag(
-            args.bag, config, max_keyframes=args.max_keyframes, progress=not args.quiet, on_keyframe=hook
+            args.bag,
+            config,
+            max_keyframes=args.max_keyframes,
+            progress=not args.quiet,
+            on_keyframe=hook,
+            ahead_s=args.map_update_ahead_s,
         )
     else:
         mapper, stats = offline.map_sequence(

@@ -32,6 +32,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
+from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MapAhead
+from monovoc_ros.core.follow.map_frames import update_stamp
 from monovoc_ros.core.follow.map_motion import MapMotion
 from monovoc_ros.core.follow.map_updater import (
     MapMotionError,
@@ -39,6 +41,7 @@ from monovoc_ros.core.follow.map_updater import (
     MapUpdater,
     checked_poses,
     plan_map_update,
+    pose_mover,
 )
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
@@ -93,6 +96,7 @@ class SessionStats:
     map_version: int = 0
     map_updates: int = 0  # map updates applied (core.follow.map_updater)
     map_updates_prepared: int = 0  # of them, applied with a plan prepared beforehand (`plan_map`)
+    map_updates_ahead: int = 0  # of them, with later keyframes gone ahead into the map in use (core.follow.map_ahead)
     # Keyframes integrated before the map they were posed in (stamped at or before them) reached the mapper: that
     # map's update left their logged poses; and keyframes posed in a map older than the one in use, moved into it
     # before they were integrated (core.follow.map_frames).
@@ -148,6 +152,7 @@ class MappingSession:
         config: MapperConfig | None = None,
         *,
         max_shrink: float = DEFAULT_MAX_SHRINK,
+        ahead_s: float = DEFAULT_AHEAD_S,
         max_waiting: int | None = None,
         stats: SessionStats | None = None,
         log: Logger | None = None,
@@ -156,7 +161,10 @@ class MappingSession:
     ) -> None:
         if max_waiting is not None and max_waiting < 1:
             raise ValueError(f"max_waiting must be >= 1, got {max_waiting}")
+        if not ahead_s >= 0:
+            raise ValueError(f"ahead_s must be >= 0, got {ahead_s}")
         self.config = config or MapperConfig()
+        self.ahead_s = ahead_s  # core.follow.map_ahead; 0: map updates are applied in line
         self.max_waiting = max_waiting
         self.stats = stats if stats is not None else SessionStats()
         self.log: Logger = log or _SilentLogger()
@@ -305,6 +313,26 @@ class MappingSession:
         many removed); None when it may take them."""
         return self._updates.refusal(self._mapper, gaussians)
 
+    def ahead_until(self, gaussians: GaussianMap) -> int | None:
+        """The stamp (ns) before which the keyframes after the map update to `gaussians` go ahead into the map in use
+        (core.follow.map_ahead), or None when it is applied in line: `ahead_s` 0, no map in use, a re-integration in
+        progress or the SLAM's corrected poses in play (they are in the new map's frame already), a map `add_map`
+        would refuse or skip, or stamps that do not order the map after the one in use."""
+        mapper = self._mapper
+        if self.ahead_s <= 0 or mapper is None or self.reintegrating or self.poses_corrected:
+            return None
+        if self.map_refusal(gaussians) is not None or same_geometry(mapper.gaussians, gaussians):
+            return None
+        stamp = update_stamp(mapper.gaussians, gaussians)
+        return stamp + round(self.ahead_s * 1e9) if stamp > 0 else None
+
+    def start_ahead(self, gaussians: GaussianMap, motion: MapMotion, until_ns: int) -> MapAhead:
+        """The map update to `gaussians` (of `ahead_until`, with its `motion` from the registration) that later
+        keyframes go ahead of (counted); `add_map` applies it with the stamps it took back."""
+        assert self._mapper is not None
+        self.stats.add(map_updates_ahead=1)
+        return MapAhead(gaussians, pose_mover(self._mapper.gaussians.means, motion), until_ns)
+
     def add_map(
         self,
         gaussians: GaussianMap,
@@ -315,7 +343,7 @@ class MappingSession:
         """The first map or a map update; returns whether the map changed (False: refused or unchanged).
         `plan`: the update prepared by `plan_map`, used when it is of the map in use and this one. `taken_back`:
         stamps of keyframes posed in this map whose poses were taken back into the map in use before they were
-        integrated (the live worker's map_update_ahead): their logged poses move with the update."""
+        integrated (`MapAhead.taken_back`): their logged poses move with the update."""
         refusal = self.map_refusal(gaussians)
         if refusal is not None:
             reason, detail = refusal

@@ -36,7 +36,6 @@ class MapperStats(SessionStats):
     objects: int = 0
     observed_gaussians: int = 0
     maps_coalesced: int = 0  # pending maps replaced by a newer one before being applied
-    map_updates_ahead: int = 0  # map updates whose later keyframes went ahead into the map in use (map_update_ahead)
     snapshot_errors: int = 0
     publishes: int = 0
     worker_errors: int = 0  # tasks, listeners or background calls that raised (logged with a traceback)

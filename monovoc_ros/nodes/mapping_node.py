@@ -143,7 +143,7 @@ class MappingNode(Node):
             map_directory=p.map_directory,
             save_period_s=p.save_period_s,
             map_update_max_shrink=p.map_update_max_shrink,
-            map_update_ahead=p.map_update_ahead,
+            map_update_ahead_s=p.map_update_ahead_s,
         )
         self.worker = MapWorker(
             p.mapper,

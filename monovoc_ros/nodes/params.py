@@ -66,7 +66,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("reintegrate_below", _MAPPER.reintegrate_below, "a map update carrying the evidence of less than this share of the labelled Gaussians, or bending the map by 2 cm or more, re-integrates the keyframe log (poses moved with the map); 0 = never", low=0, high=1),
     Param("keyframe_log_bytes", _MAPPER.keyframe_log_bytes, "bytes the keyframe log (masks, poses, segments kept for re-integration) may hold; the oldest are dropped beyond", low=0),
     Param("map_update_max_shrink", _WORKER.map_update_max_shrink, "map updates removing a larger share of the Gaussians are refused (counted); 1 = allow all", low=0, high=1),
-    Param("map_update_ahead", _WORKER.map_update_ahead, "keyframes after a map update whose plan is not ready go into the map in use, their poses taken back by its motion, instead of waiting (~0.4-0.7 s at 1M Gaussians); the state then differs slightly from offline mapping's"),
+    Param("map_update_ahead_s", _WORKER.map_update_ahead_s, "seconds of stamps after a map update whose keyframes go into the map in use, their poses taken back by its motion, while its update is prepared (~0.7 s at 1M Gaussians) instead of waiting for it; the update is applied before the first keyframe stamped later (offline mapping applies the same rule); 0 = they wait", low=0, high=10),
     Param("queue_size", _WORKER.queue_size, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)", low=1),
     # Outputs
     Param("frame_id", MAP_FRAME, "frame of the semantic cloud, markers and objects (the SLAM map frame)"),
@@ -99,7 +99,7 @@ class NodeParams:
     map_ply: str
     map_reader_process: bool
     map_update_max_shrink: float
-    map_update_ahead: bool
+    map_update_ahead_s: float
     queue_size: int
     frame_id: str
     publish_rate_hz: float
@@ -184,7 +184,7 @@ class NodeParams:
             map_ply=v["map_ply"],
             map_reader_process=v["map_reader_process"],
             map_update_max_shrink=v["map_update_max_shrink"],
-            map_update_ahead=v["map_update_ahead"],
+            map_update_ahead_s=v["map_update_ahead_s"],
             queue_size=v["queue_size"],
             frame_id=v["frame_id"],
             publish_rate_hz=v["publish_rate_hz"],

@@ -11,13 +11,11 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
   registration and evidence sources (~90% of an update without ids) are prepared at once on a planning
   thread against the map queued before it (`MappingSession.plan_map`), while the worker integrates the
   keyframes ahead of it; when its turn comes the worker applies the plan if that map is the one in use
-  (else the session computes the update itself: the same function, the same result). With `map_update_ahead`
-  the keyframes after a map whose plan is not ready do not wait for it: once the registration has the map's
-  motion (about half of the plan), they go into the map in use with their poses taken back by that motion
-  (`unmoved_pose`; not those stamped before the map, posed in an earlier map: core.follow.map_frames), and the
-  update, applied once its plan is ready and the worker idle (or after AHEAD_KEYFRAMES_WHEN_READY more
-  keyframes, and before any other task), carries their evidence with the rest and moves their logged poses back
-  to where they were sent. The session
+  (else the session computes the update itself: the same function, the same result). The keyframes stamped within
+  `map_update_ahead_s` after a map do not wait for its plan: once the registration has the map's motion (about half
+  of the plan) they go into the map in use, their poses taken back by that motion, and the update is applied
+  before the first keyframe stamped later, before any other task, or once the worker has had no task for that
+  long and the plan is ready (core.follow.map_ahead: the same rule as offline mapping's). The session
   skips unchanged maps and refuses (and counts) a map without Gaussians or one removing more than
   `map_update_max_shrink` of them: one empty cloud must not wipe the map.
 * calls (services, plugins): never dropped; run in arrival order with the rest, results via a Future.
@@ -45,13 +43,13 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ThreadPoolExecutor, wait
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
-from monovoc_ros.core.follow.map_frames import PoseMover, posed_before
-from monovoc_ros.core.follow.map_updater import MapUpdatePlan, pose_mover, unmoved_pose
+from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MapAhead
+from monovoc_ros.core.follow.map_updater import MapUpdatePlan
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import SnapshotInfo, write_snapshot
@@ -91,12 +89,9 @@ BUSY_PUBLISH_SHARE = 0.2
 # every keyframe took 36-40% of the worker, the same rebuild restarted or followed map after map. When nothing
 # waits it steps at full speed.
 KEYFRAMES_PER_REINTEGRATION_STEP = 3
-# How often the worker looks whether the plan of a map update applied ahead is ready (s).
-_AHEAD_POLL_S = 0.005
-# A map update applied ahead whose plan is ready waits for the worker to be idle (its ~0.2-0.3 s at 1M Gaussians
-# would delay the next keyframe and the cloud of those integrated ahead), but for at most this many keyframes:
-# a robot that never leaves the worker idle still gets its map.
-AHEAD_KEYFRAMES_WHEN_READY = 2
+# How often an idle worker looks whether the map update keyframes went ahead of is due (s): its plan ready and no
+# task for `map_update_ahead_s`.
+_AHEAD_POLL_S = 0.05
 # How often an idle worker looks whether the snapshot being written is done (s).
 _SNAPSHOT_POLL_S = 0.1
 # How long `stop` waits for the task in progress beyond its drain bound (a keyframe takes ~0.1 s).
@@ -137,9 +132,9 @@ class WorkerSettings:
     # A map update removing a larger share of the Gaussians (by id when both maps have ids, else by count) is
     # refused and counted (map_shrink): one empty or truncated cloud must not wipe the map. 1.0 = allow all.
     map_update_max_shrink: float = DEFAULT_MAX_SHRINK
-    # Keyframes that come after a map update whose plan is not ready yet are integrated into the map in use
-    # (their poses taken back by the update's motion) instead of waiting for it (module docstring).
-    map_update_ahead: bool = False
+    # Seconds of stamps after a map update whose keyframes go into the map in use while its plan is made, their poses
+    # taken back by its motion (core.follow.map_ahead); 0 = they wait for its plan.
+    map_update_ahead_s: float = DEFAULT_AHEAD_S
 
 
 @dataclass
@@ -155,24 +150,18 @@ class _Task:
 
 @dataclass
 class _Ahead:
-    """A map update whose later keyframes are integrated into the map in use while its plan is finished."""
+    """A map update whose later keyframes go into the map in use (core.follow.map_ahead) until it is applied."""
 
     task: _Task
-    mover: PoseMover | None  # how the update moves poses (None: they stay)
-    taken_back: set[int] = field(default_factory=set)  # stamps of the keyframes whose poses it took back
-    after_ready: int = 0  # keyframes integrated ahead since its plan was ready
+    ahead: MapAhead
 
-    def due(self, task: _Task | None) -> bool:
-        """Whether to apply it before `task` (None: the worker is idle): before any task but a keyframe; once its
-        plan is ready, when the worker is idle or after AHEAD_KEYFRAMES_WHEN_READY more keyframes."""
-        if task is not None and task.kind != "keyframe":
-            return True
-        if not self.task.plan.done():
-            return False
-        if task is None or self.after_ready >= AHEAD_KEYFRAMES_WHEN_READY:
-            return True
-        self.after_ready += 1
-        return False
+    def due(self, task: _Task | None, idle_s: float, window_s: float) -> bool:
+        """Whether to apply it before `task`: before any task but a keyframe, before a keyframe stamped at or after
+        the window's end; with no task (`idle_s` since the last one), once that lasted the window and its plan is
+        ready."""
+        if task is None:
+            return idle_s >= window_s and self.task.plan.done()
+        return task.kind != "keyframe" or self.ahead.applies_before(task.payload)
 
 
 class TaskQueue:
@@ -302,6 +291,7 @@ class MapWorker:
         self.session = MappingSession(
             config,
             max_shrink=settings.map_update_max_shrink,
+            ahead_s=settings.map_update_ahead_s,
             max_waiting=settings.queue_size,
             stats=self.stats,
             log=self.log,
@@ -321,7 +311,8 @@ class MapWorker:
         self._publish_s = 0.0  # the last publication's time
         self._published_s = 0.0  # every publication's time, summed (a task's time leaves out those within it)
         self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
-        self._ahead: _Ahead | None = None  # a map update applied once its plan is ready (map_update_ahead)
+        self._ahead: _Ahead | None = None  # a map update later keyframes go ahead of (map_update_ahead_s)
+        self._last_task = time.monotonic()  # when the worker last took a task
         self._last_save = time.monotonic()
         # The last snapshot's time, save listeners included, and its map's size (stop's estimate).
         self._save_timed: tuple[float, int] | None = None
@@ -601,7 +592,7 @@ class MapWorker:
             # Keyframes the session holds are older than anything queued: they go first.
             ready = self.session.keyframes_ready
             # A re-integration in progress advances between tasks: the queue is only polled meanwhile; a map update
-            # applied ahead is looked at every _AHEAD_POLL_S (for its plan).
+            # keyframes went ahead of is looked at every _AHEAD_POLL_S (whether it is due while idle).
             if self.session.reintegrating:
                 timeout = 0.0
             else:
@@ -609,12 +600,16 @@ class MapWorker:
             task = None if ready else self.queue.take(timeout)
             if task is None and self.queue.closed:
                 return
+            now = time.monotonic()
+            idle_s = now - self._last_task
+            if task is not None:
+                self._last_task = now
             try:
                 # Applied when due (`_Ahead.due`: only keyframes go ahead of it), but never while the session holds
                 # keyframes: they are posed in the map in use. When idle, what the keyframes integrated ahead
                 # changed is published first if a publication is due.
                 ahead = self._ahead
-                if ahead is not None and not ready and ahead.due(task):
+                if ahead is not None and not ready and ahead.due(task, idle_s, self.settings.map_update_ahead_s):
                     if task is None:
                         self._maybe_publish()
                     self._apply_ahead()
@@ -647,11 +642,7 @@ class MapWorker:
 
     def _execute(self, task: _Task) -> None:
         if task.kind == "keyframe":
-            keyframe, ahead = task.payload, self._ahead
-            # Posed in the map not applied yet, unless stamped before it.
-            if ahead is not None and ahead.mover is not None and not posed_before(ahead.task.payload, keyframe):
-                keyframe = replace(keyframe, cam_to_world=unmoved_pose(ahead.mover, keyframe.cam_to_world))
-                ahead.taken_back.add(keyframe.stamp_ns)
+            keyframe = task.payload if self._ahead is None else self._ahead.ahead.posed(task.payload)
             self.session.add_keyframe(keyframe)
         elif task.kind == "map":
             if not self._start_ahead(task):
@@ -671,30 +662,27 @@ class MapWorker:
             self._changed()
 
     def _start_ahead(self, task: _Task) -> bool:
-        """With `map_update_ahead`, when the plan of this map update is not ready: waits for its motion only and
-        lets the keyframes after it into the map in use, their poses taken back by that motion (`unmoved_pose`);
-        the update is applied, moving the logged poses with the map, when `_Ahead.due` says. Not when the SLAM's
-        corrected poses are in play (they are in the new map's frame) or a re-integration runs."""
+        """When the keyframes after this map update may go ahead of it (`MappingSession.ahead_until`): waits for its
+        motion only and lets them into the map in use (core.follow.map_ahead); the update is applied, moving their
+        logged poses with the map, when `_Ahead.due` says. Not for a map not prepared beside the worker, nor while
+        stopping (`_drain` applies maps in line, within its deadline)."""
         mapper = self.session.mapper
+        until = self.session.ahead_until(task.payload)
         if (
-            not self.settings.map_update_ahead
+            until is None
             or task.plan is None
             or task.motion is None
-            or task.plan.done()
             or mapper is None
             or task.base is not mapper.gaussians
-            or self.session.reintegrating
-            or self.session.poses_corrected
-            or self.queue.closed  # stopping: `_drain` applies maps in line, within its deadline
-            or self.session.map_refusal(task.payload) is not None
+            or self.queue.closed
         ):
             return False
         self._publish_before_waiting(task.motion)
         wait([task.motion, task.plan], return_when=FIRST_COMPLETED)
-        if not task.motion.done() or task.motion.result() is None:  # cancelled, refused, or nothing to prepare
+        motion = task.motion.result() if task.motion.done() else None
+        if motion is None:  # cancelled, refused, or nothing to prepare: `_apply_map` says why
             return False
-        self._ahead = _Ahead(task, pose_mover(mapper.gaussians.means, task.motion.result()))
-        self.stats.add(map_updates_ahead=1)
+        self._ahead = _Ahead(task, self.session.start_ahead(task.payload, motion, until))
         return True
 
     def _apply_ahead(self) -> None:
@@ -705,7 +693,7 @@ class MapWorker:
             return
         start, published = time.perf_counter(), self._published_s
         try:
-            self._apply_map(ahead.task, frozenset(ahead.taken_back))
+            self._apply_map(ahead.task, frozenset(ahead.ahead.taken_back))
         except Exception as exc:
             self.stats.add(worker_errors=1)
             self.log.error(f"map {ahead.task.name}: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")

@@ -269,8 +269,8 @@ def move_logged_poses(
     """A map update stamped `stamp_ns` (0: unknown): the logged poses moved by `mover` (`pose_mover`; None: they
     stay), unless the SLAM gave corrected poses since the last update, but for the keyframes stamped at or after
     the map (core.follow.map_frames.in_new_frame): they are in its frame already. `taken_back`: stamps of
-    keyframes stamped after it whose poses were taken back into the map before it (a live worker's
-    map_update_ahead): they move. Returns how many poses stayed for their stamps."""
+    keyframes stamped after it whose poses were taken back into the map before it (core.follow.map_ahead): they
+    move. Returns how many poses stayed for their stamps."""
     if log.poses_given:  # in the frame of this map already
         log.poses_given = False
         return 0
