@@ -2,7 +2,7 @@
 
     scripts/with_env.sh python benchmarks/bench_robot_scale.py                       # 1M and 2M Gaussians
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
-    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead-s 0
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead-s 2
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
     RMW_FASTRTPS_PUBLICATION_MODE=ASYNCHRONOUS scripts/with_env.sh python benchmarks/bench_robot_scale.py --runs robot
 

@@ -782,9 +782,9 @@ def test_keyframes_go_ahead_of_a_map_update_live_as_they_do_offline():
             events.append(second)
         kf = keyframe(stamp, shift=k % 5)
         events.append(replace(kf, cam_to_world=shift) if stamp >= second.stamp_ns else kf)
-    offline, stats = map_events(events)
+    offline, stats = map_events(events, ahead_s=2.0)
     assert stats.map_updates == 1 and stats.map_updates_ahead == 1
-    settings = WorkerSettings(queue_size=32, publish_period_s=0.0, save_period_s=0.0)  # the default window
+    settings = WorkerSettings(queue_size=32, publish_period_s=0.0, save_period_s=0.0, map_update_ahead_s=2.0)
     worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
     worker.start()
     try:
@@ -807,7 +807,7 @@ def test_ahead_a_keyframe_stamped_before_the_map_update_is_not_taken_back():
     """With stamps: a keyframe stamped before the map update that it comes after is posed in the map in use (core.
     follow.map_frames): it goes ahead as sent, and the update moves its logged pose with the map; the keyframes
     stamped after the map are taken back and their logged poses end where they were sent."""
-    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0)
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead_s=2.0)
     worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
     first = replace(plane_map(), stamp_ns=10)
     second, shift = moved_map(first)
@@ -899,7 +899,8 @@ def test_a_map_update_keyframes_go_ahead_of_is_due_before_any_other_task_a_later
 
 
 def test_a_stop_applies_the_map_update_applied_ahead_before_the_final_snapshot(tmp_path):
-    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_directory=str(tmp_path / "m"))
+    settings = WorkerSettings(queue_size=16, publish_period_s=0.0, save_period_s=0.0, map_update_ahead_s=2.0,
+                              map_directory=str(tmp_path / "m"))  # fmt: skip
     worker = HeldPlans(MapperConfig(), settings, sink=Sink(), log=RecordingLog())
     first = replace(plane_map(), stamp_ns=1)
     second, shift = moved_map(first)

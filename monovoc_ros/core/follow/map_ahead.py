@@ -27,9 +27,11 @@ from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
 
 # Seconds of stamps after a map update whose keyframes go into the map in use (MappingSession's `ahead_s`, the
-# node's map_update_ahead_s). At 1M Gaussians a map reaches the node ~0.5-0.9 s after its stamp and its plan takes
-# ~0.7 s more there: a keyframe stamped 2 s after the map finds it ready (robot-scale bench, docs/results.md).
-DEFAULT_AHEAD_S = 2.0
+# node's map_update_ahead_s, `monovoc map --map-update-ahead-s`): 0, in line. At 1M Gaussians a window of 2 s (a map
+# reaches the node 0.5-0.9 s after its stamp, its plan takes ~0.7 s more there) did not lower the robot-scale
+# bench's latency and cost its fast run 8-13% of its keyframes/s (docs/results.md, eighteenth session): keyframes
+# integrated beside the plan slow each other down, where in line the worker waits and the plan has the cores.
+DEFAULT_AHEAD_S = 0.0
 
 
 @dataclass
