@@ -132,7 +132,12 @@ def _run(
     start = time.perf_counter()
     with _progress(total, progress, "SCD") as bar:
         for event in events:
-            if ahead is not None and not (isinstance(event, Keyframe) and not ahead[0].applies_before(event)):
+            # Before any input but a keyframe within the window (rejections are no input: live they never reach
+            # the worker).
+            if ahead is not None and (
+                isinstance(event, (GaussianMap, KeyframePoses))
+                or (isinstance(event, Keyframe) and ahead[0].applies_before(event))
+            ):
                 apply_ahead()
             if isinstance(event, GaussianMap):
                 until = session.ahead_until(event)

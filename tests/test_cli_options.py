@@ -37,8 +37,16 @@ def test_options_a_bag_cannot_use_are_refused(tmp_path, extra, problem):
     assert not (tmp_path / "m").exists()
 
 
-def test_a_negative_map_update_window_is_refused(tmp_path):
+@pytest.mark.parametrize(
+    ("source", "window", "problem"),
+    [
+        (["--bag", str(BAG)], "-1", "--map-update-ahead-s must be in [0, 10], got -1.0"),
+        (["--bag", str(BAG)], "inf", "--map-update-ahead-s must be in [0, 10], got inf"),
+        (["synthetic"], "2", "--map-update-ahead-s needs --bag"),
+    ],
+)
+def test_a_map_update_window_out_of_range_or_without_a_bag_is_refused(tmp_path, source, window, problem):
     with pytest.raises(SystemExit) as info:
-        main(["map", "--bag", str(BAG), "-o", str(tmp_path / "m"), "--map-update-ahead-s", "-1"])
-    assert "--map-update-ahead-s must be >= 0, got -1.0" in str(info.value)
+        main(["map", *source, "-o", str(tmp_path / "m"), "--map-update-ahead-s", window])
+    assert problem in str(info.value)
     assert not (tmp_path / "m").exists()

@@ -10,7 +10,7 @@ from pathlib import Path
 from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
 from monovoc_ros.core.evidence.palette import labels_from_entries
 from monovoc_ros.core.evidence.quantize import METRICS
-from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S
+from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MAX_AHEAD_S
 from monovoc_ros.core.map_store import save_snapshot
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
@@ -177,6 +177,12 @@ def run(args: argparse.Namespace) -> int:
 
     if bool(args.source) == bool(args.bag):
         raise SystemExit("monovoc map: give either SOURCE or --bag BAG")
+    if not 0 <= args.map_update_ahead_s <= MAX_AHEAD_S:
+        raise SystemExit(
+            f"monovoc map: --map-update-ahead-s must be in [0, {MAX_AHEAD_S:g}], got {args.map_update_ahead_s}"
+        )
+    if not args.bag and args.map_update_ahead_s != DEFAULT_AHEAD_S:
+        raise SystemExit("monovoc map: --map-update-ahead-s needs --bag (a dataset folder has one map)")
     check_source_options(args)
     if args.bag:
         from monovoc_ros.bags import bag_labels
@@ -191,8 +197,6 @@ def run(args: argparse.Namespace) -> int:
     index = _object_index(args, labels)
     hook = index.keyframe_listener if index is not None else None
     if sequence is None:
-        if not args.map_update_ahead_s >= 0:
-            raise SystemExit(f"monovoc map: --map-update-ahead-s must be >= 0, got {args.map_update_ahead_s}")
         mapper, stats = offline.map_bag(
             args.bag,
             config,

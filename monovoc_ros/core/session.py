@@ -32,7 +32,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
-from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MapAhead
+from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MAX_AHEAD_S, MapAhead
 from monovoc_ros.core.follow.map_frames import update_stamp
 from monovoc_ros.core.follow.map_motion import MapMotion
 from monovoc_ros.core.follow.map_updater import (
@@ -96,7 +96,7 @@ class SessionStats:
     map_version: int = 0
     map_updates: int = 0  # map updates applied (core.follow.map_updater)
     map_updates_prepared: int = 0  # of them, applied with a plan prepared beforehand (`plan_map`)
-    map_updates_ahead: int = 0  # of them, with later keyframes gone ahead into the map in use (core.follow.map_ahead)
+    map_updates_ahead: int = 0  # map updates later keyframes went ahead of into the map in use, counted as they start
     # Keyframes integrated before the map they were posed in (stamped at or before them) reached the mapper: that
     # map's update left their logged poses; and keyframes posed in a map older than the one in use, moved into it
     # before they were integrated (core.follow.map_frames).
@@ -161,8 +161,8 @@ class MappingSession:
     ) -> None:
         if max_waiting is not None and max_waiting < 1:
             raise ValueError(f"max_waiting must be >= 1, got {max_waiting}")
-        if not ahead_s >= 0:
-            raise ValueError(f"ahead_s must be >= 0, got {ahead_s}")
+        if not 0 <= ahead_s <= MAX_AHEAD_S:
+            raise ValueError(f"ahead_s must be in [0, {MAX_AHEAD_S:g}], got {ahead_s}")
         self.config = config or MapperConfig()
         self.ahead_s = ahead_s  # core.follow.map_ahead; 0: map updates are applied in line
         self.max_waiting = max_waiting

@@ -17,6 +17,7 @@ from typing import Any
 from monovoc_ros.contract import IMAGE_MESSAGE_TYPES, MAP_FRAME
 from monovoc_ros.core.evidence.palette import read_labels
 from monovoc_ros.core.evidence.quantize import METRICS
+from monovoc_ros.core.follow.map_ahead import MAX_AHEAD_S
 from monovoc_ros.core.mapping import SEMANTIC_MODES, VOID_POLICIES, MapperConfig
 from monovoc_ros.core.raster import IMPLEMENTATIONS, WEIGHT_POWERS
 from monovoc_ros.core.segments.association import MASK_ID_MODES
@@ -66,7 +67,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("reintegrate_below", _MAPPER.reintegrate_below, "a map update carrying the evidence of less than this share of the labelled Gaussians, or bending the map by 2 cm or more, re-integrates the keyframe log (poses moved with the map); 0 = never", low=0, high=1),
     Param("keyframe_log_bytes", _MAPPER.keyframe_log_bytes, "bytes the keyframe log (masks, poses, segments kept for re-integration) may hold; the oldest are dropped beyond", low=0),
     Param("map_update_max_shrink", _WORKER.map_update_max_shrink, "map updates removing a larger share of the Gaussians are refused (counted); 1 = allow all", low=0, high=1),
-    Param("map_update_ahead_s", _WORKER.map_update_ahead_s, "seconds of stamps after a map update whose keyframes go into the map in use, their poses taken back by its motion, while its update is prepared (~0.7 s at 1M Gaussians) instead of waiting for it; the update is applied before the first keyframe stamped later (offline mapping applies the same rule, monovoc map --map-update-ahead-s); 0 = they wait (in line)", low=0, high=10),
+    Param("map_update_ahead_s", _WORKER.map_update_ahead_s, "seconds of stamps after a map update whose keyframes go into the map in use, their poses taken back by its motion, while its update is prepared (~0.7 s at 1M Gaussians) instead of waiting for it; the update is applied before the first keyframe stamped later (offline mapping applies the same rule, monovoc map --map-update-ahead-s); 0 = they wait (in line)", low=0, high=MAX_AHEAD_S),
     Param("queue_size", _WORKER.queue_size, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)", low=1),
     # Outputs
     Param("frame_id", MAP_FRAME, "frame of the semantic cloud, markers and objects (the SLAM map frame)"),

@@ -90,7 +90,7 @@ BUSY_PUBLISH_SHARE = 0.2
 # waits it steps at full speed.
 KEYFRAMES_PER_REINTEGRATION_STEP = 3
 # How often an idle worker looks whether the map update keyframes went ahead of is due (s): its plan ready and no
-# task for `map_update_ahead_s`.
+# task for `map_update_ahead_s` since the last one ended.
 _AHEAD_POLL_S = 0.05
 # How often an idle worker looks whether the snapshot being written is done (s).
 _SNAPSHOT_POLL_S = 0.1
@@ -312,7 +312,7 @@ class MapWorker:
         self._published_s = 0.0  # every publication's time, summed (a task's time leaves out those within it)
         self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
         self._ahead: _Ahead | None = None  # a map update later keyframes go ahead of (map_update_ahead_s)
-        self._last_task = time.monotonic()  # when the worker last took a task
+        self._last_task = time.monotonic()  # when the worker last finished a task
         self._last_save = time.monotonic()
         # The last snapshot's time, save listeners included, and its map's size (stop's estimate).
         self._save_timed: tuple[float, int] | None = None
@@ -519,9 +519,9 @@ class MapWorker:
                 longest = max(longest, time.monotonic() - start)
 
         def settle_ahead(drop: bool) -> None:
-            """A map update applied ahead is applied while the deadline allows (the keyframes the session holds,
-            posed in the map in use, first); else queued keyframes keep being taken back into the map in use until
-            it is dropped as a queued map would be (the SLAM sends its map again)."""
+            """The map update keyframes went ahead of is applied while the deadline allows (the keyframes the session
+            holds, posed in the map in use, first); else queued keyframes keep being taken back into the map in use
+            until it is dropped as a queued map would be (the SLAM sends its map again)."""
             if self._ahead is None:
                 return
             integrate_ready()
@@ -596,14 +596,13 @@ class MapWorker:
             if self.session.reintegrating:
                 timeout = 0.0
             else:
-                timeout = _AHEAD_POLL_S if self._ahead is not None else self._wait_time()
+                timeout = self._wait_time()
+                if self._ahead is not None:
+                    timeout = _AHEAD_POLL_S if timeout is None else min(timeout, _AHEAD_POLL_S)
             task = None if ready else self.queue.take(timeout)
             if task is None and self.queue.closed:
                 return
-            now = time.monotonic()
-            idle_s = now - self._last_task
-            if task is not None:
-                self._last_task = now
+            idle_s = time.monotonic() - self._last_task
             try:
                 # Applied when due (`_Ahead.due`: only keyframes go ahead of it), but never while the session holds
                 # keyframes: they are posed in the map in use. When idle, what the keyframes integrated ahead
@@ -623,6 +622,8 @@ class MapWorker:
                     published = self._published_s
                     self._execute(task)
                     self.stats.add(**{_ACTIVITY[task.kind]: self._task_seconds(start, published)})
+                if ready or task is not None:
+                    self._last_task = time.monotonic()
                 if self.session.reintegrating and (
                     self.keyframes_waiting == 0 or self._keyframes_since_step >= KEYFRAMES_PER_REINTEGRATION_STEP
                 ):
@@ -686,8 +687,8 @@ class MapWorker:
         return True
 
     def _apply_ahead(self) -> None:
-        """Applies the map update applied ahead, if any; a failure is logged and counted, never lets it stand in
-        the way of the task behind it."""
+        """Applies the map update keyframes went ahead of, if any; a failure is logged and counted, never lets it stand
+        in the way of the task behind it."""
         ahead, self._ahead = self._ahead, None
         if ahead is None:
             return

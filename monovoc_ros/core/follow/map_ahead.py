@@ -13,15 +13,18 @@ evidence with the rest and moving their logged poses to where they were sent:
   stopped still gets its map).
 
 What goes ahead is decided by stamps and the order of the input, never by how fast the plan was made, so offline
-mapping of a bag ends with the same map as the live node that received it (a pause in the input of more than the
-window within it aside).
+mapping of a bag ends with the same map as the live node that received it. Where they can still differ: a pause in
+the input longer than the window right after a map (live applies the update during it); a map arriving while a
+re-integration still runs live (offline finishes each before the next input; live applies that map in line); a
+map prepared against one the node then refused (live applies it in line); a stop (live applies the update before
+the keyframes still queued); maps the node coalesced and its service calls (only live).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from monovoc_ros.core.follow.map_frames import PoseMover, posed_before, stamps_order
+from monovoc_ros.core.follow.map_frames import FRAME_WINDOW_NS, PoseMover, posed_before, stamps_order
 from monovoc_ros.core.follow.map_updater import unmoved_pose
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
@@ -32,6 +35,8 @@ from monovoc_ros.core.map.gaussians import GaussianMap
 # bench's latency and cost its fast run 8-13% of its keyframes/s (docs/results.md, eighteenth session): keyframes
 # integrated beside the plan slow each other down, where in line the worker waits and the plan has the cores.
 DEFAULT_AHEAD_S = 0.0
+# The longest window: stamps further apart are taken as clocks that do not agree (map_frames.FRAME_WINDOW_NS).
+MAX_AHEAD_S = FRAME_WINDOW_NS / 1e9
 
 
 @dataclass
