@@ -132,13 +132,10 @@ def _run(
     start = time.perf_counter()
     with _progress(total, progress, "SCD") as bar:
         for event in events:
-            # Before any input but a keyframe within the window (rejections are no input: live they never reach
-            # the worker).
-            if ahead is not None and (
-                isinstance(event, (GaussianMap, KeyframePoses))
-                or (isinstance(event, Keyframe) and ahead[0].applies_before(event))
-            ):
-                apply_ahead()
+            # Rejections are no input: live they never reach the worker.
+            if ahead is not None and isinstance(event, (GaussianMap, KeyframePoses, Keyframe)):
+                if ahead[0].applies_before(event if isinstance(event, Keyframe) else None):
+                    apply_ahead()
             if isinstance(event, GaussianMap):
                 until = session.ahead_until(event)
                 plan = session.plan_map(None, event) if until is not None else None

@@ -427,18 +427,21 @@ def cloud_latencies_ms(
     last = max(published, default=0)
     out = []
     for stamp, at in sorted(published.items()):
-        holding = [t for s, t in arrivals.items() if stamp <= s <= last]
-        if holding and at >= after:
-            out.append(1e3 * (min(holding) - at))
+        held = _first_holding(stamp, last, arrivals)
+        if held is not None and at >= after:
+            out.append(1e3 * (held - at))
     return out
 
 
 def first_cloud_at(published: Mapping[int, float], arrivals: Mapping[int, float]) -> float | None:
     """When the first cloud holding a keyframe of `published` arrived (as `cloud_latencies_ms`), None if none did:
     the keyframes published before it waited for the node's start (its first map), not for their integration."""
-    first, last = min(published, default=0), max(published, default=0)
-    holding = [t for s, t in arrivals.items() if first <= s <= last]
-    return min(holding) if holding else None
+    return _first_holding(min(published, default=0), max(published, default=0), arrivals)
+
+
+def _first_holding(stamp: int, last: int, arrivals: Mapping[int, float]) -> float | None:
+    """The first arrival of a cloud holding the keyframe stamped `stamp` (stamped from it to `last`), or None."""
+    return min((t for s, t in arrivals.items() if stamp <= s <= last), default=None)
 
 
 class CloudMonitor:

@@ -161,7 +161,7 @@ class _Ahead:
         ready."""
         if task is None:
             return idle_s >= window_s and self.task.plan.done()
-        return task.kind != "keyframe" or self.ahead.applies_before(task.payload)
+        return self.ahead.applies_before(task.payload if task.kind == "keyframe" else None)
 
 
 class TaskQueue:

@@ -48,9 +48,12 @@ class MapAhead:
     until_ns: int  # keyframes stamped at or after this apply the update first
     taken_back: set[int] = field(default_factory=set)  # stamps of the keyframes whose poses were taken back
 
-    def applies_before(self, keyframe: Keyframe) -> bool:
-        """Whether the update is applied before `keyframe`: stamped at or after the window's end, or with a stamp
+    def applies_before(self, keyframe: Keyframe | None) -> bool:
+        """Whether the update is applied before the next input: `keyframe`, or None for any other input (a map,
+        corrected poses, a service call). Before a keyframe stamped at or after the window's end, or with a stamp
         that does not order against the map's (a clock that does not agree)."""
+        if keyframe is None:
+            return True
         return keyframe.stamp_ns >= self.until_ns or not stamps_order(self.gaussians.stamp_ns, keyframe.stamp_ns)
 
     def posed(self, keyframe: Keyframe) -> Keyframe:
