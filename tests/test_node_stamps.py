@@ -82,3 +82,38 @@ def test_keyframes_after_a_pause_of_100_s_and_of_1_h_are_all_integrated(tmp_path
             done = diagnostics.wait_for(lambda v, n=n: v["keyframes_processed"] == str(4 * n), 30.0, process=node)
         node.check_running()
     assert done["rejected_total"] == "0" and done["stamp_epochs"] == "2" and done["stamps_held"] == "0"
+
+
+def test_inputs_held_for_a_silent_topic_are_released_after_reorder_wait_s_each_time(tmp_path):
+    """The flush of held inputs is armed only while something is held: a keyframe whose pose is late is handed
+    on after `reorder_wait_s` with no other traffic to push it, then completed by its pose, twice (the flush is
+    armed again after it went quiet)."""
+    scene, messages = small_scene(), scene_messages()
+    env = ros_environment(tmp_path)
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "reorder_wait_s": 0.5}
+    with (
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
+        ClientNode(env) as client,
+    ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        publisher = KeyframePublisher(client.node)
+        for pub in publisher.all_publishers():
+            wait_for_subscribers(pub, timeout=20.0, process=node)
+        publisher.publish_map(scene.gaussians)
+        for msgs in messages[:3]:
+            publisher.publish_messages(msgs)
+        diagnostics.wait_for(lambda v: v["keyframes_processed"] == "3", 30.0, process=node)
+        for k in (3, 4):
+            publisher.publish_messages({role: msg for role, msg in messages[k].items() if role != "pose"})
+            # Held while the pose topic is behind; nothing else arrives, so only the flush hands them on.
+            released = diagnostics.wait_for(
+                lambda v, k=k: v["messages_received.mask"] == str(k + 1) and v["inputs_waiting"] == "0",
+                10.0,
+                process=node,
+            )  # fmt: skip
+            assert released["keyframes_processed"] == str(k)
+            publisher.publish_messages({"pose": messages[k]["pose"]})
+            done = diagnostics.wait_for(lambda v, k=k: v["keyframes_processed"] == str(k + 1), 10.0, process=node)
+        node.check_running()
+    # The two keyframes' image, mask and camera_info, handed on by the wait limit.
+    assert done["rejected_total"] == "0" and done["inputs_released_early"] == "6"

@@ -42,6 +42,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.task import Future
 
 import msg_adapters as ma
 from monovoc_ros.contract import (
@@ -67,7 +68,7 @@ from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal,
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.param_spec import ParameterError, declare
 from monovoc_ros.nodes.params import PARAMETERS, NodeParams
-from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos
+from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos, output_events
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.startup import StartupAborted, check_stop, compile_kernels
@@ -169,14 +170,23 @@ class MappingNode(Node):
             raise
         self._create_subscriptions()
         self._create_services()
-        self._diagnostics = self.create_publisher(_diagnostic_array_type(), "/diagnostics", DIAGNOSTICS_QOS)
+        self._diagnostics = self.create_publisher(
+            _diagnostic_array_type(), "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=output_events()
+        )
         timers = self.callback_groups["timers"]
         # Wall-clock (steady) timers: with use_sim_time, ROS-time timers stop when /clock stops (a bag's end)
         # or never start (no /clock yet), and with them diagnostics and the flush of held inputs.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(p.diagnostics_period_s, self._publish_diagnostics, callback_group=timers, clock=steady)
+        # Armed only while inputs are held (`_on_input`): ticking at 10 Hz with nothing to release, it woke the
+        # executor twenty times a second (the tick and its callback's end), each wake-up Python holding the
+        # interpreter while the worker waited for it between its kernels.
+        self._flush_timer = None
         if p.reorder_wait_s > 0:
-            self.create_timer(min(0.1, p.reorder_wait_s), self._flush_stale_inputs, callback_group=timers, clock=steady)
+            self._flush_timer = self.create_timer(
+                min(0.1, p.reorder_wait_s), self._flush_stale_inputs, callback_group=timers, clock=steady,
+                autostart=False,
+            )  # fmt: skip
 
     # ------------------------------------------------------------------ hooks for other components
 
@@ -427,12 +437,16 @@ class MappingNode(Node):
     def _on_input(self, role: str, msg: Any) -> None:
         with self._ingest_lock:  # topics arrive on several threads; the assembler takes them one at a time
             self._push(self._reorder.add(role, msg))
+            if len(self._reorder) and self._flush_timer is not None and self._flush_timer.is_canceled():
+                self._flush_timer.reset()
 
     def _flush_stale_inputs(self) -> None:
         # Messages held for a topic that went quiet are released after reorder_wait_s even without traffic.
         with self._ingest_lock:
             if len(self._reorder):
                 self._push(self._reorder.due())
+            if not len(self._reorder):
+                self._flush_timer.cancel()
 
     def _push(self, messages: list[tuple[str, Any]]) -> None:
         """Assembler -> worker queue, in stamp order (called with the ingest lock held)."""
@@ -697,13 +711,32 @@ class StopSignals:
             signal.signal(signum, self)
 
     def spin(self, executor: Any) -> None:
-        """Spins ``executor`` until a stop is asked or the context shuts down: in slices, so that a signal is
-        only noticed between waits and never lands inside the executor."""
-        try:
-            while not self.requested.is_set() and rclpy.ok():
-                executor.spin_once(timeout_sec=STOP_POLL_S)
-        except ExternalShutdownException:
-            pass
+        """Spins ``executor`` until a stop is asked or the context shuts down, on a thread of its own while this
+        (the main) thread sleeps in slices: a signal lands in the sleep, never inside the executor, and is noticed
+        within STOP_POLL_S. The executor then waits without a timeout, so it wakes only for work: spinning in
+        0.1 s slices on this thread made ten more wake-ups a second, each building a timeout timer and the wait
+        set in Python, holding the interpreter while the worker waited for it between its kernels. Once it
+        returns, no callback runs until the executor spins again (none does: the node stops). A callback's
+        exception is raised here, as the executor raises it."""
+        stopped = Future()
+        failure: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                executor.spin_until_future_complete(stopped)
+            except ExternalShutdownException:
+                pass
+            except BaseException as exc:  # raised again on the main thread
+                failure.append(exc)
+
+        thread = threading.Thread(target=run, name="monovoc-executor", daemon=True)
+        thread.start()
+        while thread.is_alive() and not self.requested.is_set():
+            time.sleep(STOP_POLL_S)
+        stopped.set_result(None)  # wakes the executor (its done callback), which returns
+        thread.join()
+        if failure:
+            raise failure[0]
 
     def __call__(self, signum: int, _frame: Any) -> None:
         if not self.requested.is_set():

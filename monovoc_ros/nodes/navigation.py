@@ -27,7 +27,7 @@ from typing import Any
 import msg_adapters as ma
 from monovoc_ros.nodes.component import MappingHost
 from monovoc_ros.nodes.outputs import semantic_objects
-from monovoc_ros.nodes.qos import SERVICE_QOS, latched_qos
+from monovoc_ros.nodes.qos import SERVICE_QOS, latched_qos, output_events
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.objects import approach as ap
 from monovoc_ros.objects.records import QueryError
@@ -101,7 +101,9 @@ class NavigationComponent:
         self._goal_publisher = (
             host.create_publisher(PoseStamped, settings.goal_topic, 10) if settings.mode == "goal_topic" else None
         )
-        self.marker = host.create_publisher(MarkerArray, "approach/marker", latched_qos())
+        self.marker = host.create_publisher(
+            MarkerArray, "approach/marker", latched_qos(), event_callbacks=output_events()
+        )
         self._grid_lock = threading.Lock()
         self._grid: tuple[Any, ap.FreeSpaceGrid] | None = None  # (the Gaussian map it was built from, grid)
         self.goals = {"succeeded": 0, "failed": 0, "canceled": 0, "rejected": 0}

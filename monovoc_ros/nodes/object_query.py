@@ -154,7 +154,7 @@ class ObjectQueryComponent:
         from visualization_msgs.msg import MarkerArray
 
         from monovoc_interfaces.srv import Ask, TextQuery
-        from monovoc_ros.nodes.qos import latched_qos
+        from monovoc_ros.nodes.qos import latched_qos, output_events
 
         self.host = host
         self.settings = settings
@@ -186,8 +186,12 @@ class ObjectQueryComponent:
         self.ask_service = host.create_service(Ask, "ask", self.handler_times.timed(handler), SERVICE_QOS)
         self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
         self.save_errors = 0  # objects.db writes that failed (logged; the next save writes what the file lacks)
-        self.highlight = host.create_publisher(PointCloud2, "query/highlight", latched_qos())
-        self.markers = host.create_publisher(MarkerArray, "query/markers", latched_qos())
+        self.highlight = host.create_publisher(
+            PointCloud2, "query/highlight", latched_qos(), event_callbacks=output_events()
+        )
+        self.markers = host.create_publisher(
+            MarkerArray, "query/markers", latched_qos(), event_callbacks=output_events()
+        )
         self._thread = threading.Thread(target=self._run, name="monovoc-object-index", daemon=True)
         # Highlights are published off the service callback, so the answer goes out first (a big
         # object's cloud takes a few ms to build and send), and at a bounded rate: the newest wins.

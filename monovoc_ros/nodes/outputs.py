@@ -31,7 +31,7 @@ from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
 from monovoc_ros.core.object_geometry import ObjectSummary
 from monovoc_ros.core.segments.object_labels import ObjectLabel, display, label_fields, resolve
-from monovoc_ros.nodes.qos import latched_qos
+from monovoc_ros.nodes.qos import latched_qos, output_events
 
 # fn() -> object id -> label, consulted after labels_file and segment labels (called on the worker thread).
 LabelProvider = Callable[[], Mapping[int, ObjectLabel]]
@@ -51,7 +51,6 @@ class SemanticOutputs:
     ):
         """`on_cloud_subscriber()`: called (executor thread) when a cloud was left out and a subscriber appears;
         it should have `publish` called again soon (the node queues a publication on its worker)."""
-        from rclpy.event_handler import PublisherEventCallbacks
         from sensor_msgs.msg import PointCloud2
         from visualization_msgs.msg import MarkerArray
 
@@ -68,10 +67,14 @@ class SemanticOutputs:
         self._cloud_left_out = False
         self.clouds_skipped = 0
         self.cloud = node.create_publisher(
-            PointCloud2, "semantic_cloud", latched_qos(), event_callbacks=PublisherEventCallbacks(matched=self._matched)
+            PointCloud2, "semantic_cloud", latched_qos(), event_callbacks=output_events(matched=self._matched)
         )
-        self.markers = node.create_publisher(MarkerArray, "objects/markers", latched_qos())
-        self.objects = node.create_publisher(SemanticObjectArray, "objects", latched_qos())
+        self.markers = node.create_publisher(
+            MarkerArray, "objects/markers", latched_qos(), event_callbacks=output_events()
+        )
+        self.objects = node.create_publisher(
+            SemanticObjectArray, "objects", latched_qos(), event_callbacks=output_events()
+        )
         self._label_provider: LabelProvider | None = None
         # (summaries, observations, header, segment labels) of the last publication, for republish_objects.
         self._last: tuple[list[ObjectSummary], np.ndarray, dict, Mapping[int, str]] | None = None

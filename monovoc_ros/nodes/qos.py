@@ -9,6 +9,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 
@@ -32,6 +36,19 @@ def latched_qos() -> QoSProfile:
 
 
 DIAGNOSTICS_QOS = QoSProfile(depth=10)
+
+
+def output_events(matched: Callable[[Any], None] | None = None) -> PublisherEventCallbacks:
+    """Event callbacks of an output publisher (`latched_qos`, /diagnostics): `matched` only, without rclpy's
+    default handlers. Those (incompatible QoS, incompatible type: two per publisher) are waitables the executor
+    enters, counts, adds to its wait set and checks on every wake-up, in Python holding the interpreter: the
+    node's 27 event handlers made each of its ~80 wake-ups a second cost ~0.6 ms there, while the worker waited
+    for the interpreter between its kernels. They would tell nothing here: a reliable publisher offers the most
+    a reader can request (no reader's QoS is incompatible with the latched outputs; /diagnostics' readers are
+    volatile), and a reader of another type is told on its own side. The inputs' subscriptions keep them: a
+    sensor's best-effort publisher is the usual reason a node hears nothing."""
+    return PublisherEventCallbacks(matched=matched, use_default_callbacks=False)
+
 
 # Services (query, save_map, load_map, reset, publish): reliable, keep-last 1000. With rclpy's default
 # (keep-last 10) requests that arrived while the callbacks were busy overwrote each other: at 100 queries/s
