@@ -34,6 +34,12 @@ def bytes_view(data: object, what: str = "data") -> np.ndarray:
     raise AdapterError(f"{what}: unsupported payload type {type(data).__name__}")
 
 
+def byte_array(nbytes: int) -> array.array:
+    """A zeroed ``array.array('B')`` of ``nbytes`` to fill in place through ``np.frombuffer`` (a writable view):
+    a message's uint8[] field built without `to_byte_array`'s copy of a filled NumPy array."""
+    return array.array("B", b"\0") * nbytes
+
+
 def to_byte_array(a: np.ndarray) -> array.array:
     """The bytes of ``a`` (C order) as the ``array.array('B')`` rclpy stores without per-element checks."""
     out = array.array("B")
