@@ -14,7 +14,7 @@ import pytest
 import msg_adapters as ma
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, ros_args, wait_for_subscribers
-from tests.node_scene import NODE, scene_messages, small_scene
+from tests.node_scene import NODE, running_mapper, scene_messages, small_scene
 from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
@@ -89,31 +89,25 @@ def test_inputs_held_for_a_silent_topic_are_released_after_reorder_wait_s_each_t
     on after `reorder_wait_s` with no other traffic to push it, then completed by its pose, twice (the flush is
     armed again after it went quiet)."""
     scene, messages = small_scene(), scene_messages()
-    env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "reorder_wait_s": 0.5}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        publisher = KeyframePublisher(client.node)
-        for pub in publisher.all_publishers():
-            wait_for_subscribers(pub, timeout=20.0, process=node)
-        publisher.publish_map(scene.gaussians)
+    with running_mapper(tmp_path, params) as run:
+        run.publisher.publish_map(scene.gaussians)
         for msgs in messages[:3]:
-            publisher.publish_messages(msgs)
-        diagnostics.wait_for(lambda v: v["keyframes_processed"] == "3", 30.0, process=node)
+            run.publisher.publish_messages(msgs)
+        run.diagnostics.wait_for(lambda v: v["keyframes_processed"] == "3", 30.0, process=run.node)
         for k in (3, 4):
-            publisher.publish_messages({role: msg for role, msg in messages[k].items() if role != "pose"})
+            run.publisher.publish_messages({role: msg for role, msg in messages[k].items() if role != "pose"})
             # Held while the pose topic is behind; nothing else arrives, so only the flush hands them on.
-            released = diagnostics.wait_for(
+            released = run.diagnostics.wait_for(
                 lambda v, k=k: v["messages_received.mask"] == str(k + 1) and v["inputs_waiting"] == "0",
                 10.0,
-                process=node,
+                process=run.node,
             )  # fmt: skip
             assert released["keyframes_processed"] == str(k)
-            publisher.publish_messages({"pose": messages[k]["pose"]})
-            done = diagnostics.wait_for(lambda v, k=k: v["keyframes_processed"] == str(k + 1), 10.0, process=node)
-        node.check_running()
+            run.publisher.publish_messages({"pose": messages[k]["pose"]})
+            done = run.diagnostics.wait_for(
+                lambda v, k=k: v["keyframes_processed"] == str(k + 1), 10.0, process=run.node
+            )
+        run.node.check_running()
     # The two keyframes' image, mask and camera_info, handed on by the wait limit.
     assert done["rejected_total"] == "0" and done["inputs_released_early"] == "6"

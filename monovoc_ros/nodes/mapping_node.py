@@ -733,7 +733,8 @@ class StopSignals:
         thread.start()
         while thread.is_alive() and not self.requested.is_set():
             time.sleep(STOP_POLL_S)
-        stopped.set_result(None)  # wakes the executor (its done callback), which returns
+        if thread.is_alive():  # else the context shut down
+            stopped.set_result(None)  # wakes the executor (its done callback), which returns
         thread.join()
         if failure:
             raise failure[0]
