@@ -63,7 +63,7 @@ from monovoc_ros.fastdds_profile import describe as describe_dds
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.component import Component, MappingHost
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog, diagnostic_status
-from monovoc_ros.nodes.interpreter_watch import InterpreterWatch
+from monovoc_ros.nodes.interpreter_watch import InterpreterWatch, freeze_startup_objects
 from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal, supported
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.param_spec import ParameterError, declare
@@ -678,6 +678,7 @@ def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component
         return 1
     executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
     executor.add_node(node)
+    freeze_startup_objects()
     for component in components:
         component.start()
     node.start()
