@@ -13,6 +13,9 @@ thread's Python stack to `trace_path` while the holder is still in its call. Tha
 1M robot runs were found: the node's /diagnostics ``publish()`` waiting inside Fast DDS (rclpy keeps the
 interpreter while it publishes). faulthandler has one watchdog per process: while tracing, nothing else in the
 process may use ``dump_traceback_later``.
+
+One holder the node removes at start (`freeze_startup_objects`): the garbage collector's full collections, which
+walked every object start-up built.
 """
 
 from __future__ import annotations
