@@ -41,7 +41,9 @@ def byte_array(nbytes: int) -> array.array:
 
 
 def to_byte_array(a: np.ndarray) -> array.array:
-    """The bytes of ``a`` (C order) as the ``array.array('B')`` rclpy stores without per-element checks."""
+    """The bytes of ``a`` (C order) as an ``array.array('B')``, which rclpy's uint8[] setters take without
+    per-element checks (a message built with ``check_fields=True`` keeps it as it is; unchecked, the setter copies
+    it once more: `byte_array` for big payloads)."""
     out = array.array("B")
     out.frombytes(memoryview(np.ascontiguousarray(a)).cast("B"))
     return out
