@@ -4,6 +4,7 @@
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead-s 2
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --param query.highlight=false
     RMW_FASTRTPS_PUBLICATION_MODE=ASYNCHRONOUS scripts/with_env.sh python benchmarks/bench_robot_scale.py --runs robot
 
 The scene: Replica office_0's 204k-Gaussian map tiled side by side to the size (benchmarks/bench_map_churn.py's
@@ -318,7 +319,14 @@ def main() -> int:
         "--hold-trace-ms", type=float, default=0.0,
         help="the node's interpreter_hold_trace_ms: stacks of holds longer than this, in the node's ROS log directory",
     )  # fmt: skip
+    parser.add_argument(
+        "--param", action="append", default=[], metavar="NAME=VALUE",
+        help="another parameter of the node (repeatable), e.g. --param objects.description_weight=0.0 (typed as on a ROS command line)",
+    )  # fmt: skip
     args = parser.parse_args()
+    extra = dict(p.split("=", 1) for p in args.param if "=" in p)
+    if len(extra) != len(args.param):
+        parser.error("--param: expected NAME=VALUE")
     if args.fastdds_profile is not None:
         if not args.fastdds_profile.is_file():
             parser.error(f"--fastdds-profile: no file {args.fastdds_profile}")
@@ -330,6 +338,7 @@ def main() -> int:
         "map_update_ahead_s": args.map_update_ahead_s,
         "map_reader_process": not args.map_in_node,
         "interpreter_hold_trace_ms": args.hold_trace_ms,
+        **extra,
     }
     if not (REPLICA / "traj.txt").exists():
         print(f"{REPLICA} not present: nothing to measure", file=sys.stderr)
