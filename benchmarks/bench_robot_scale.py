@@ -4,7 +4,7 @@
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead-s 2
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
-    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --param query.highlight=false
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --param query.top_k=3
     RMW_FASTRTPS_PUBLICATION_MODE=ASYNCHRONOUS scripts/with_env.sh python benchmarks/bench_robot_scale.py --runs robot
 
 The scene: Replica office_0's 204k-Gaussian map tiled side by side to the size (benchmarks/bench_map_churn.py's
@@ -321,7 +321,7 @@ def main() -> int:
     )  # fmt: skip
     parser.add_argument(
         "--param", action="append", default=[], metavar="NAME=VALUE",
-        help="another parameter of the node (repeatable), e.g. --param objects.description_weight=0.0 (typed as on a ROS command line)",
+        help="another node parameter (repeatable), typed as on a ROS command line: objects.description_weight=0.0",
     )  # fmt: skip
     args = parser.parse_args()
     extra = dict(p.split("=", 1) for p in args.param if "=" in p)
