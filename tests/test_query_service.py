@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 import subprocess
@@ -28,6 +29,7 @@ from monovoc_ros.objects.database import DB_NAME, ObjectDatabase
 from monovoc_ros.ros_harness import (
     ClientNode,
     DiagnosticsMonitor,
+    HarnessError,
     MessageCollector,
     NodeProcess,
     call_service,
@@ -71,11 +73,12 @@ def test_query_service_on_a_resumed_map(tmp_path):
         "resume": True,
         "labels_file": str(directory / "labels.json"),
         "query.top_k": 4,
-        "diagnostics_period_s": 5.0,
+        "diagnostics_period_s": 1.0,
     }
     with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
         highlight, markers = MessageCollector(), MessageCollector()
-        client.node.create_subscription(PointCloud2, "/monovoc/query/highlight", highlight, latched_qos())
+        diagnostics = DiagnosticsMonitor(client.node, "semantic mapping")
+        subscribed = client.node.create_subscription(PointCloud2, "/monovoc/query/highlight", highlight, latched_qos())
         client.node.create_subscription(MarkerArray, "/monovoc/query/markers", markers, latched_qos())
         service = client.node.create_client(TextQuery, "/monovoc/query")
         wait_for_service(service, 30.0, process=node)
@@ -161,6 +164,27 @@ def test_query_service_on_a_resumed_map(tmp_path):
         assert table.returncode == 0 and "lamp" in table.stdout and "rank" in table.stdout
         bad = subprocess.run([*CLI, " ", "--timeout", "20"], env=env, capture_output=True, text=True)
         assert bad.returncode == 1 and "empty query" in bad.stderr
+
+        # Nobody subscribes to the highlight: its cloud is left out (counted), and a late subscriber gets it.
+        def skipped() -> int:
+            return int(diagnostics.values().get("queries.highlights_skipped", -1))
+
+        wait_until(lambda: skipped() == 0, 20.0, "diagnostics: no highlight left out while subscribed", process=node)
+        client.node.destroy_subscription(subscribed)
+        for _ in range(10):  # until the node's publisher has seen the subscriber go (DDS discovery)
+            assert _query(service, "a vase", top_k=1, process=node).objects[0].id == room_id("vase")
+            with contextlib.suppress(HarnessError):
+                wait_until(lambda: skipped() >= 1, 3.0, "a highlight left out", process=node)
+                break
+        assert skipped() >= 1
+        late = MessageCollector()
+        client.node.create_subscription(PointCloud2, "/monovoc/query/highlight", late, latched_qos())
+
+        def vase_highlighted() -> bool:
+            clouds = [ma.semantic_cloud_to_arrays(m) for m in late.messages]
+            return any(c.object_ids.size and set(c.object_ids.tolist()) == {room_id("vase")} for c in clouds)
+
+        wait_until(vase_highlighted, 20.0, "the vase's highlight for the late subscriber", process=node)
         node.check_running()
 
 
