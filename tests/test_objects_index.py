@@ -5,6 +5,7 @@ config/queries/synthetic_room.json): with the room's labels, top-1 0.90 (class 0
 top-3 0.97. The bounds below leave two to three queries of margin.
 """
 
+import dataclasses
 import threading
 
 import numpy as np
@@ -13,7 +14,15 @@ import pytest
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.embed.attributes import combine
 from monovoc_ros.objects.evaluation import evaluate_index, load_queries
-from monovoc_ros.objects.index import EMBED_CHUNK_VIEWS, IndexConfig, ObjectIndex, backend_identity, lazy_backend
+from monovoc_ros.objects.index import (
+    EMBED_CHUNK_VIEWS,
+    QUOTE_MIN_M,
+    QUOTE_TOLERANCE,
+    IndexConfig,
+    ObjectIndex,
+    backend_identity,
+    lazy_backend,
+)
 from monovoc_ros.objects.records import QueryError
 from tests.object_room import (
     SYNTHETIC_QUERIES,
@@ -74,6 +83,51 @@ def test_refresh_embeds_only_what_changed():
     weight = index.config.description_weight
     for r, text in zip(records, texts, strict=True):
         np.testing.assert_allclose(r.embedding, combine(r.image_embedding, text, weight), atol=1e-6)
+
+
+def test_descriptions_keep_their_numbers_through_small_map_changes():
+    """A SLAM map update moves objects by millimetres: the descriptions, and so their text embeddings, stay while
+    the records carry the exact geometry; a real change of size re-quotes them."""
+    scene = room()
+    counting = CountingBackend(backend())
+    mapper = SemanticMapper(scene.gaussians)
+    index = ObjectIndex(counting, IndexConfig(labels=room_labels()))
+    for i in range(0, 8, 2):
+        keyframe = scene.keyframe(i)
+        mapper.integrate(keyframe)
+        index.keyframe_listener(keyframe, mapper)
+    index.refresh(mapper)
+    before = {r.id: r for r in index.records()}
+    result = mapper.result()
+
+    def scaled(factor: float):
+        g = mapper.gaussians
+        centre = g.means.mean(axis=0)
+        return dataclasses.replace(g, means=(centre + factor * (g.means - centre)).astype(np.float32))
+
+    def check(report, previous):
+        """Each description kept its numbers while they are within the tolerance of the current ones, else quotes
+        the current ones; only the changed texts were encoded. Returns the records whose description stayed."""
+        kept, changed = [], set()
+        for r in index.records():
+            if r.description == previous[r.id].description:
+                was = np.append(previous[r.id].upright_extent, previous[r.id].height_above_floor)
+                now = np.append(r.upright_extent, r.height_above_floor)
+                assert np.all(np.abs(now - was) <= np.maximum(QUOTE_TOLERANCE * np.abs(was), QUOTE_MIN_M) + 1e-9)
+                kept.append(r)
+            else:
+                assert r.label_source == "given" and r.description == index.describe(r.id, r.label)
+                changed.add(r.description)
+        assert report.embedded_descriptions == len(changed)
+        return kept
+
+    texts = counting.texts
+    kept = check(index.refresh(gaussians=scaled(1.03), result=result), before)
+    # Most objects moved (the records' numbers are the current ones), and kept their description and its embedding.
+    assert len([r for r in kept if not np.allclose(r.upright_extent, before[r.id].upright_extent)]) > len(before) // 2
+    assert counting.texts - texts < len(before) // 4
+    quoted = {r.id: r for r in index.records()}
+    assert len(check(index.refresh(gaussians=scaled(1.5), result=result), quoted)) < len(before) // 4
 
 
 def test_refresh_stops_between_chunks_of_views_and_keeps_what_it_embedded():

@@ -7,8 +7,12 @@ above the floor from the map). A text query embeds the text and ranks objects by
 
 Incremental: ``refresh`` re-embeds only objects whose view set changed since they were last embedded
 (and, among those, only the views not embedded before), and re-embeds a description only when its text
-changed. ``max_objects`` bounds the image-embedding work of one call so a node can refresh after every
-keyframe. Queries read an immutable snapshot swapped in atomically, so they never wait for a refresh.
+changed. A description's numbers are re-quoted only when the object's size or height moved by more than
+QUOTE_TOLERANCE from those it quotes (the records keep the exact ones): a SLAM map update shifts every
+object by millimetres and its floor by a few centimetres, which re-wrote half the descriptions of a 1M
+map every 2 s (~0.1 of a core in the text encoder). ``max_objects`` bounds the image-embedding work of one
+call so a node can refresh after every keyframe. Queries read an immutable snapshot swapped in atomically,
+so they never wait for a refresh.
 
 Frames: sizes, heights and the floor (a low percentile of the Gaussians' height) are measured along
 ``up_axis``. The synthetic scene and REP-103 maps have z up ("+z"). Replica's traj.txt world is
@@ -52,6 +56,10 @@ LIVE_OBJECTS_PER_REFRESH = 8
 # New views embedded between two looks at refresh's should_stop (~70 ms on 2 cores, several times that on
 # the niced indexing thread of a busy node): a stopping node waits for one chunk, not for a whole call.
 EMBED_CHUNK_VIEWS = 4
+# A description keeps the size and height it quotes while each current value stays within this share of it (or
+# QUOTE_MIN_M): its text, and so its embedding, does not move with millimetres of SLAM map updates.
+QUOTE_TOLERANCE = 0.1
+QUOTE_MIN_M = 0.01
 
 
 @dataclass
@@ -200,6 +208,8 @@ class ObjectIndex:
         # last _publish: most objects change neither between two refreshes (1M Gaussians, 170 objects: combining
         # took 9% of a refresh).
         self._combined: dict[int, tuple[np.ndarray, str, float, np.ndarray]] = {}
+        # object id -> (extent with height last, height above the floor) its description quotes (`_quoted`)
+        self._quoted: dict[int, tuple[np.ndarray, float]] = {}
         self._restored_backend_info: dict | None = None
 
     # ------------------------------------------------------------------ backend
@@ -398,21 +408,37 @@ class ObjectIndex:
         """Object id -> label of the queryable objects (what the answers and objects.db carry)."""
         return {r.id: ObjectLabel(r.label, r.label_source, r.label_confidence) for r in self._snapshot[0] if r.label}
 
-    def describe(self, oid: int, label: str) -> str:
-        """The attribute description of a listed, embedded object under ``label``."""
-        extent, height = self._upright[oid]
+    def describe(self, oid: int, label: str, quoted: tuple[np.ndarray, float] | None = None) -> str:
+        """The attribute description of a listed, embedded object under ``label``, quoting its current size and
+        height above the floor, or ``quoted`` ones (`_quoted`)."""
+        extent, height = self._upright[oid] if quoted is None else quoted
         return describe(
             noun(label) or "object", color=self._color[oid], extent=extent, height_above_floor=height, up_axis=2
         )
+
+    def _quoted_geometry(self, oid: int) -> tuple[np.ndarray, float]:
+        """The size and height an object's description quotes: those it quoted last while every current value is
+        within QUOTE_TOLERANCE (or QUOTE_MIN_M) of them, else the current ones."""
+        extent, height = self._upright[oid]
+        last = self._quoted.get(oid)
+        if last is not None:
+            was = np.append(last[0], last[1])
+            now = np.append(extent, height)
+            if np.all(np.abs(now - was) <= np.maximum(QUOTE_TOLERANCE * np.abs(was), QUOTE_MIN_M)):
+                return last
+        return extent, height
 
     def _publish(self, ready: list[int], backend) -> int:
         c = self.config
         now = time.time()
         rows = []
+        quoted = {}
         for oid in sorted(ready):
             label = self._label(oid, backend)
             subject = c.unlabeled_noun if label.is_guess and c.unlabeled_noun != "imagenet" else label.name
-            rows.append((oid, label, self.describe(oid, subject)))
+            quoted[oid] = self._quoted_geometry(oid)
+            rows.append((oid, label, self.describe(oid, subject, quoted[oid])))
+        self._quoted = quoted
         embedded = 0
         if c.description_weight > 0:
             new = sorted({d for *_, d in rows if d not in self._text_cache})
