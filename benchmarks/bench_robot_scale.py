@@ -6,6 +6,9 @@
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --param query.top_k=3
     RMW_FASTRTPS_PUBLICATION_MODE=ASYNCHRONOUS scripts/with_env.sh python benchmarks/bench_robot_scale.py --runs robot
+    # interleaved A/B on one bag: revision R for the even runs, the checked-out HEAD for the odd ones
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --repeat 6 \
+        --before-run 'git checkout -q $([ $((RUN_INDEX % 2)) = 0 ] && echo R || echo HEAD) -- monovoc_ros msg_adapters'
 
 The scene: Replica office_0's 204k-Gaussian map tiled side by side to the size (benchmarks/bench_map_churn.py's
 `tiled`, per-Gaussian ids dropped: most SLAM front-ends have none), its 81 RGB keyframes replayed in every tile
@@ -44,6 +47,7 @@ import math
 import os
 import random
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -238,6 +242,9 @@ def run(
             "maps_coalesced": int(values["maps_coalesced"]),
             "gaussians_at_end": int(values["gaussians"]),
             "objects": int(values["objects"]),
+            # The object index when the last keyframe was integrated: objects queryable, and waiting to be embedded.
+            "objects_indexed": int(done.get("objects.indexed", -1)),
+            "objects_pending": int(done.get("objects.pending", -1)),
             "keyframes_per_s_sent": round(rate * (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9), 2),
             "wall_s": round(wall, 1),
             "keyframes_per_s": round(int(done["keyframes_processed"]) / wall, 2),
@@ -319,6 +326,11 @@ def main() -> int:
         "--hold-trace-ms", type=float, default=0.0,
         help="the node's interpreter_hold_trace_ms: stacks of holds longer than this, in the node's ROS log directory",
     )  # fmt: skip
+    parser.add_argument("--repeat", type=int, default=1, help="runs of the node on each bag (built once)")
+    parser.add_argument(
+        "--before-run", metavar="CMD",
+        help="a shell command run before each run (RUN_INDEX in its environment): e.g. a checkout, for A/B runs",
+    )  # fmt: skip
     parser.add_argument(
         "--param", action="append", default=[], metavar="NAME=VALUE",
         help="another node parameter (repeatable), typed as on a ROS command line: objects.description_weight=0.0",
@@ -367,17 +379,22 @@ def main() -> int:
                 "bag_build_s": round(built),
             }
             replay_rate = 1.0 if kind == "robot" else args.fast_rate
-            row.update(
-                run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, node_params,
-                    viewer=not args.fast_without_viewer)
-            )  # fmt: skip
+            for repeat in range(args.repeat):
+                if args.before_run:  # e.g. another version of the code checked out, for interleaved A/B runs
+                    env = {**os.environ, "RUN_INDEX": str(repeat)}
+                    subprocess.run(args.before_run, shell=True, check=True, env=env)
+                measured = dict(row, repeat=repeat)
+                measured.update(
+                    run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, node_params,
+                        viewer=not args.fast_without_viewer)
+                )  # fmt: skip
+                # The node's snapshots (~1 GB at 1M): a run left them behind and repeated runs filled the disk. The
+                # logs (mapper_*.log, query_load_*.log, cloud_viewer_*.log) stay in the work folder.
+                shutil.rmtree(work / f"map_{kind}", ignore_errors=True)
+                report["rows"].append(measured)
+                print(json.dumps(measured), file=sys.stderr)
             seq.updates.clear()
             bag.unlink()
-            # The node's snapshots (~1 GB at 1M): a run left them behind and repeated runs filled the disk. The logs
-            # (mapper_*.log, query_load_*.log, cloud_viewer_*.log) stay in the work folder.
-            shutil.rmtree(work / f"map_{kind}", ignore_errors=True)
-            report["rows"].append(row)
-            print(json.dumps(row), file=sys.stderr)
     report["loadavg"] = [round(x, 2) for x in os.getloadavg()]
     print(json.dumps(report, indent=1))
     return 0
