@@ -517,6 +517,23 @@ def test_calls_run_in_order_and_fail_after_stop(tmp_path):
         worker.call(lambda: None).result(1)
 
 
+def test_the_worker_is_busy_while_on_a_task_so_background_work_waits():
+    """`busy` (what the object index defers its embedding on): keyframes queued, or the worker on a task."""
+    worker, _, _ = make_worker()
+    worker.submit_map(plane_map())
+    started, release = threading.Event(), threading.Event()
+    worker.start()
+    try:
+        wait_until(lambda: not worker.busy(), 5.0, "the map taken, the worker idle")
+        done = worker.call(lambda: (started.set(), release.wait(5)))
+        assert started.wait(5) and worker.busy() and worker.keyframes_waiting == 0  # on a task, nothing queued
+        release.set()
+        done.result(5)
+        wait_until(lambda: not worker.busy(), 5.0, "the worker idle again")
+    finally:
+        worker.stop()
+
+
 def test_service_waits_do_not_block_other_threads():
     # A call waiting behind a slow task; another thread meanwhile can still queue and count keyframes.
     worker, _, _ = make_worker()

@@ -59,7 +59,7 @@ class MappingHost:
     resume: bool
     # The mapper: before the worker starts, the resumed one (or None); afterwards read it on the worker thread.
     mapper: Callable[[], SemanticMapper | None]
-    busy: Callable[[], bool]  # keyframes wait for the worker (components defer heavy work)
+    busy: Callable[[], bool]  # keyframes wait or the worker is on a task (components defer heavy work)
     add_keyframe_listener: Callable[[KeyframeListener], None]  # fn(keyframe, mapper) after each keyframe
     add_result_listener: Callable[[ResultListener], None]  # fn(mapper, result) before each publication
     add_reset_listener: Callable[[Callable[[], None]], None]  # fn() after a reset

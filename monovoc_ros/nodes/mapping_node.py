@@ -227,7 +227,7 @@ class MappingNode(Node):
             map_directory=p.map_directory,
             resume=p.resume,
             mapper=lambda: worker.mapper,
-            busy=lambda: worker.keyframes_waiting > 0,
+            busy=worker.busy,
             add_keyframe_listener=self.add_keyframe_listener,
             add_result_listener=self.add_result_listener,
             add_reset_listener=worker.add_reset_listener,

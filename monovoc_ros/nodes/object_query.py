@@ -70,7 +70,9 @@ from monovoc_ros.objects.database import (
 from monovoc_ros.objects.index import IndexConfig, ObjectIndex, lazy_backend
 from monovoc_ros.objects.records import QueryError
 
-REFRESH_DEFER_S = 5.0  # longest time embedding waits while keyframes are queued for the worker
+REFRESH_DEFER_S = 5.0  # longest time embedding waits while the worker is busy
+IDLE_WAIT_S = 1.0  # the indexing thread's wait for a new result with nothing to embed
+YIELD_POLL_S = 0.05  # its wait while objects wait to be embedded: it looks for the worker's idle moments
 SLOW_ANSWER_MS = 50.0  # answers slower than this in the handler are counted (issue 25's query p99 target)
 # Added to the nice value of the indexing thread (and its encoder threads) and of the objects.db writer.
 BACKGROUND_NICENESS = 10
@@ -330,11 +332,14 @@ class ObjectQueryComponent:
             _ = self.index.backend  # load the models now, so the first query does not pay for it
         except (ModelMissingError, ValueError, OSError, ImportError) as exc:  # bad clip_onnx files: ValueError
             self._backend_failed(exc)
+        wait_s = IDLE_WAIT_S
         while not self._stopping.is_set():
-            self._wake.wait(1.0)
+            self._wake.wait(wait_s)
             self._wake.clear()
             if self._stopping.is_set():
                 break
+            # Work left for when the worker is idle is looked at again soon: that is when the objects catch up.
+            wait_s = YIELD_POLL_S
             if self._yield_to_mapping():
                 continue
             pending, self._pending = self._pending, None
@@ -344,6 +349,8 @@ class ObjectQueryComponent:
                 self._backend_failed(exc)
             except Exception as exc:  # one bad refresh must not end the indexing thread
                 self.log.error(f"object index refresh failed: {type(exc).__name__}: {exc}")
+            if not self.index.pending():
+                wait_s = IDLE_WAIT_S
 
     def _refresh(self, pending: tuple[Any, Any, Any, Any] | None) -> None:
         index = self.index
@@ -358,7 +365,11 @@ class ObjectQueryComponent:
             }
         if not geometry and index.pending() == 0:
             return
-        bounded = {"max_objects": self.settings.max_objects_per_refresh, "should_stop": self._stopping.is_set}
+        # Between chunks of views: stop for a stopping node, and leave the rest for later while the worker is busy.
+        bounded = {
+            "max_objects": self.settings.max_objects_per_refresh,
+            "should_stop": lambda: self._stopping.is_set() or self._yield_to_mapping(),
+        }
         report = index.refresh(**geometry, **bounded)
         self.backend_error = None
         self._last_refresh = time.monotonic()

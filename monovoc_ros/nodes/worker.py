@@ -313,6 +313,9 @@ class MapWorker:
         self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
         self._ahead: _Ahead | None = None  # a map update later keyframes go ahead of (map_update_ahead_s)
         self._last_task = time.monotonic()  # when the worker last finished a task
+        # Whether the worker is on a task (from taking it to the publications and saves after it): background
+        # components defer their heavy work meanwhile (`busy`).
+        self.working = False
         self._last_save = time.monotonic()
         # The last snapshot's time, save listeners included, and its map's size (stop's estimate).
         self._save_timed: tuple[float, int] | None = None
@@ -325,6 +328,10 @@ class MapWorker:
     def mapper(self) -> SemanticMapper | None:
         """The current mapper. Read or change it only on the worker thread (listeners, `submit`)."""
         return self.session.mapper
+
+    def busy(self) -> bool:
+        """Keyframes wait, or the worker is on a task (any thread): when background work should wait."""
+        return self.working or self.keyframes_waiting > 0
 
     @property
     def keyframes_waiting(self) -> int:
@@ -599,9 +606,11 @@ class MapWorker:
                 timeout = self._wait_time()
                 if self._ahead is not None:
                     timeout = _AHEAD_POLL_S if timeout is None else min(timeout, _AHEAD_POLL_S)
+            self.working = False
             task = None if ready else self.queue.take(timeout)
             if task is None and self.queue.closed:
                 return
+            self.working = True
             idle_s = time.monotonic() - self._last_task
             try:
                 # Applied when due (`_Ahead.due`: only keyframes go ahead of it), but never while the session holds
