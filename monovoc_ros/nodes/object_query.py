@@ -25,7 +25,7 @@ Its parameters (PARAMETERS) are declared on the mapping node, beside the node's 
 Threads: the keyframe hook (worker thread) only offers views (~5-10 ms); the result hook (worker thread)
 only hands the newest result over; this component's own thread refreshes summaries and re-embeds dirty
 objects in bounded chunks (``objects.max_objects_per_refresh``), so the worker never waits for the image
-encoder. A reset clears the objects; a load_map restores those saved with that map (if any). Geometry
+encoder, and only while the worker is idle (at least one chunk every REFRESH_DEFER_S). A reset clears the objects; a load_map restores those saved with that map (if any). Geometry
 (centroids, boxes) is the mapping result's own (``SemanticResult.objects``): the objects topic, its markers
 and the answers agree. So do labels (core.segments.object_labels): this component gives the host the labels its
 records carry (``MappingHost.set_label_provider``: restored names and the embedding model's guesses, which
@@ -374,7 +374,7 @@ class ObjectQueryComponent:
         self.backend_error = None
         self._last_refresh = time.monotonic()
         self._update_labels(index)
-        # Keep going in bounded chunks until everything is embedded, a newer result arrives or keyframes wait.
+        # Keep going in bounded chunks until everything is embedded, a newer result arrives or the worker is busy.
         while report.pending and not self._stopping.is_set() and self._pending is None and index is self.index:
             if self._yield_to_mapping():
                 return
@@ -393,9 +393,10 @@ class ObjectQueryComponent:
         self.host.republish_objects()
 
     def _yield_to_mapping(self) -> bool:
-        """True while keyframes wait for the worker, for up to REFRESH_DEFER_S since the last refresh: on two
-        cores the encoder halved the mapping rate (62 -> 130-150 ms per keyframe) during a burst, so the
-        backlog goes first and the objects catch up after it."""
+        """True while the worker is busy (keyframes wait, or it is on a task), for up to REFRESH_DEFER_S since the
+        last refresh: on two cores the encoder halved the mapping rate (62 -> 130-150 ms per keyframe) during a
+        burst, and beside a 1M robot run's keyframes it took a quarter of each (docs/results.md, twentieth
+        session), so mapping goes first and the objects catch up in the worker's idle moments."""
         return self.host.busy() and time.monotonic() - self._last_refresh < REFRESH_DEFER_S
 
     def _backend_failed(self, exc: Exception) -> None:
