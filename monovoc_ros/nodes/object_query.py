@@ -25,7 +25,8 @@ Its parameters (PARAMETERS) are declared on the mapping node, beside the node's 
 Threads: the keyframe hook (worker thread) only offers views (~5-10 ms); the result hook (worker thread)
 only hands the newest result over; this component's own thread refreshes summaries and re-embeds dirty
 objects in bounded chunks (``objects.max_objects_per_refresh``), so the worker never waits for the image
-encoder, and only while the worker is idle (at least one chunk every REFRESH_DEFER_S). A reset clears the objects; a load_map restores those saved with that map (if any). Geometry
+encoder, and only while the worker is idle (at least one chunk every REFRESH_DEFER_S). A reset clears the
+objects; a load_map restores those saved with that map (if any). Geometry
 (centroids, boxes) is the mapping result's own (``SemanticResult.objects``): the objects topic, its markers
 and the answers agree. So do labels (core.segments.object_labels): this component gives the host the labels its
 records carry (``MappingHost.set_label_provider``: restored names and the embedding model's guesses, which
