@@ -339,9 +339,12 @@ class ObjectQueryComponent:
             self._wake.clear()
             if self._stopping.is_set():
                 break
-            # Work left for when the worker is idle is looked at again soon: that is when the objects catch up.
-            wait_s = YIELD_POLL_S
+            wait_s = IDLE_WAIT_S
+            if self._pending is None and not self.index.pending():
+                continue
             if self._yield_to_mapping():
+                # Looked at again soon: the worker's idle moments are when the objects catch up.
+                wait_s = YIELD_POLL_S
                 continue
             pending, self._pending = self._pending, None
             try:
@@ -350,8 +353,9 @@ class ObjectQueryComponent:
                 self._backend_failed(exc)
             except Exception as exc:  # one bad refresh must not end the indexing thread
                 self.log.error(f"object index refresh failed: {type(exc).__name__}: {exc}")
-            if not self.index.pending():
-                wait_s = IDLE_WAIT_S
+            else:
+                if self.index.pending():  # left for the worker's idle moments
+                    wait_s = YIELD_POLL_S
 
     def _refresh(self, pending: tuple[Any, Any, Any, Any] | None) -> None:
         index = self.index

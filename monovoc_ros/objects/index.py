@@ -208,7 +208,7 @@ class ObjectIndex:
         # last _publish: most objects change neither between two refreshes (1M Gaussians, 170 objects: combining
         # took 9% of a refresh).
         self._combined: dict[int, tuple[np.ndarray, str, float, np.ndarray]] = {}
-        # object id -> (extent with height last, height above the floor) its description quotes (`_quoted`)
+        # object id -> (extent with height last, height above the floor) its description quotes (`_quoted_geometry`)
         self._quoted: dict[int, tuple[np.ndarray, float]] = {}
         self._restored_backend_info: dict | None = None
 
