@@ -85,9 +85,9 @@ def test_refresh_embeds_only_what_changed():
         np.testing.assert_allclose(r.embedding, combine(r.image_embedding, text, weight), atol=1e-6)
 
 
-def test_descriptions_keep_their_numbers_through_small_map_changes():
-    """A SLAM map update moves objects by millimetres: the descriptions, and so their text embeddings, stay while
-    the records carry the exact geometry; a real change of size re-quotes them."""
+def _fed_room_index() -> tuple[SemanticMapper, ObjectIndex, CountingBackend]:
+    """The room's mapper and an index with its labels, both fed every other of its first 8 keyframes, through a
+    backend that counts what it embeds."""
     scene = room()
     counting = CountingBackend(backend())
     mapper = SemanticMapper(scene.gaussians)
@@ -96,6 +96,13 @@ def test_descriptions_keep_their_numbers_through_small_map_changes():
         keyframe = scene.keyframe(i)
         mapper.integrate(keyframe)
         index.keyframe_listener(keyframe, mapper)
+    return mapper, index, counting
+
+
+def test_descriptions_keep_their_numbers_through_small_map_changes():
+    """A SLAM map update moves objects by millimetres: the descriptions, and so their text embeddings, stay while
+    the records carry the exact geometry; a real change of size re-quotes them."""
+    mapper, index, counting = _fed_room_index()
     index.refresh(mapper)
     before = {r.id: r for r in index.records()}
     result = mapper.result()
@@ -132,14 +139,7 @@ def test_descriptions_keep_their_numbers_through_small_map_changes():
 
 def test_refresh_stops_between_chunks_of_views_and_keeps_what_it_embedded():
     """A stopping node's indexing thread (should_stop) ends after one chunk of views, not a whole batch."""
-    scene = room()
-    counting = CountingBackend(backend())
-    mapper = SemanticMapper(scene.gaussians)
-    index = ObjectIndex(counting, IndexConfig(labels=room_labels()))
-    for i in range(0, 8, 2):
-        keyframe = scene.keyframe(i)
-        mapper.integrate(keyframe)
-        index.keyframe_listener(keyframe, mapper)
+    mapper, index, counting = _fed_room_index()
     asked = []
     first = index.refresh(mapper, should_stop=lambda: asked.append(counting.images) or True)
     most_views = max(len(index.views.views(oid)) for oid in index.views.versions())

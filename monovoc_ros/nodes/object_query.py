@@ -159,6 +159,7 @@ class ObjectQueryComponent:
 
         from monovoc_interfaces.srv import Ask, TextQuery
         from monovoc_ros.nodes.qos import latched_qos, output_events
+        from monovoc_ros.nodes.subscribed_output import SubscribedOutput
 
         self.host = host
         self.settings = settings
@@ -191,18 +192,13 @@ class ObjectQueryComponent:
         self.restore_errors = 0  # objects.db files that could not be read (kept aside, never overwritten)
         self.save_errors = 0  # objects.db writes that failed (logged; the next save writes what the file lacks)
         # The highlight cloud is built only while something subscribes (a 1M map's objects: the isin and the cloud
-        # took its thread 0.15 of a core at 5 queries/s with nobody to receive them); the newest request left out
-        # goes out when a subscriber appears, as the transient-local QoS promises. The lock orders the check of the
-        # subscriber count against the matched event (as for the semantic cloud: nodes/outputs.py).
-        self._highlight_lock = threading.Lock()
-        self._highlight_left_out: tuple[ObjectIndex, list] | None = None
-        self.highlights_skipped = 0
+        # took its thread 0.15 of a core at 5 queries/s with nobody to receive them); a late subscriber gets the
+        # newest answer's.
+        self._highlight_output = SubscribedOutput(self._highlight_subscribed)
         self.highlight = host.create_publisher(
-            PointCloud2,
-            "query/highlight",
-            latched_qos(),
-            event_callbacks=output_events(matched=self._highlight_matched),
+            PointCloud2, "query/highlight", latched_qos(), event_callbacks=self._highlight_output.events()
         )
+        self._highlight_output.publisher = self.highlight
         self.markers = host.create_publisher(
             MarkerArray, "query/markers", latched_qos(), event_callbacks=output_events()
         )
@@ -298,7 +294,7 @@ class ObjectQueryComponent:
             "objects.backend_error": self.backend_error or "",
             "queries.answered": self.queries_answered,
             "queries.failed": self.queries_failed,
-            "queries.highlights_skipped": self.highlights_skipped,
+            "queries.highlights_skipped": self._highlight_output.skipped,
             **self.handler_times.diagnostics(),
             "objects.restore_errors": self.restore_errors,
             "objects.save_errors": self.save_errors,
@@ -558,24 +554,10 @@ class ObjectQueryComponent:
             # (at 100 queries/s with a highlight each, the answer's p50 went from 10 to 22 ms).
             self._stopping.wait(1.0 / self.settings.highlight_rate_hz)
 
-    def _highlight_wanted(self, request: tuple[ObjectIndex, list]) -> bool:
-        """Whether anything subscribes to the highlight cloud (highlight thread); if not, `request` is kept for the
-        next subscriber and counted."""
-        with self._highlight_lock:
-            if self.highlight.get_subscription_count() > 0:
-                self._highlight_left_out = None
-                return True
-            self._highlight_left_out = request
-            self.highlights_skipped += 1
-            return False
-
-    def _highlight_matched(self, status: Any) -> None:
-        """The highlight publisher's matched event (executor thread): a new subscriber gets the cloud left out."""
-        if status.current_count_change <= 0:
-            return
-        with self._highlight_lock:
-            request, self._highlight_left_out = self._highlight_left_out, None
-        if request is not None and self._highlight_request is None:  # else a newer answer's highlight is coming
+    def _highlight_subscribed(self, request: tuple[ObjectIndex, list]) -> None:
+        """A subscriber appeared after a highlight was left out (executor thread): it is published now, unless a
+        newer answer's is on its way."""
+        if self._highlight_request is None:
             self._highlight_request = request
             self._highlight_wake.set()
 
@@ -583,7 +565,7 @@ class ObjectQueryComponent:
         ids = np.array([r.id for r, _ in matches], np.uint32)
         stamp = self.host.clock.now().nanoseconds
         gaussians, object_ids = self.labelled_map(index)
-        wanted = self._highlight_wanted((index, matches))
+        wanted = self._highlight_output.wanted((index, matches))
         if wanted and gaussians is not None and object_ids is not None and len(object_ids) == len(gaussians):
             pick = np.isin(object_ids, ids)
             picked = object_ids[pick]

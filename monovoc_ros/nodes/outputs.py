@@ -15,12 +15,12 @@ A publication leaves the cloud out while nothing subscribes to it (counted as `c
 it is the largest message (24 bytes a Gaussian: 24 MB at 1M), and building and serializing it took the worker
 ~16 ms at 1M and ~110 ms at 2M Gaussians with nobody to receive it. When a subscriber appears (the publisher's
 matched event, on the executor's thread) and a cloud was left out, `on_cloud_subscriber` asks the worker for a
-publication, so a viewer that starts late still gets the current cloud, as the transient-local QoS promises.
+publication (nodes/subscribed_output.py), so a viewer that starts late still gets the current cloud, as the
+transient-local QoS promises.
 """
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -32,6 +32,7 @@ from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
 from monovoc_ros.core.object_geometry import ObjectSummary
 from monovoc_ros.core.segments.object_labels import ObjectLabel, display, label_fields, resolve
 from monovoc_ros.nodes.qos import latched_qos, output_events
+from monovoc_ros.nodes.subscribed_output import SubscribedOutput
 
 # fn() -> object id -> label, consulted after labels_file and segment labels (called on the worker thread).
 LabelProvider = Callable[[], Mapping[int, ObjectLabel]]
@@ -60,15 +61,11 @@ class SemanticOutputs:
         self.frame_id = frame_id
         self.labels = labels
         self.up = up
-        self._on_cloud_subscriber = on_cloud_subscriber
-        # Whether the last publication left the cloud out; the lock orders the worker's check of the subscriber
-        # count against the matched event, so a subscriber that appears meanwhile is never missed.
-        self._cloud_lock = threading.Lock()
-        self._cloud_left_out = False
-        self.clouds_skipped = 0
+        self._cloud_output = SubscribedOutput(None if on_cloud_subscriber is None else lambda _: on_cloud_subscriber())
         self.cloud = node.create_publisher(
-            PointCloud2, "semantic_cloud", latched_qos(), event_callbacks=output_events(matched=self._matched)
+            PointCloud2, "semantic_cloud", latched_qos(), event_callbacks=self._cloud_output.events()
         )
+        self._cloud_output.publisher = self.cloud
         self.markers = node.create_publisher(
             MarkerArray, "objects/markers", latched_qos(), event_callbacks=output_events()
         )
@@ -108,7 +105,7 @@ class SemanticOutputs:
             self._last = ([], np.zeros(0, np.int64), header, {})
             return self._publish_objects(*self._last)
         header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)
-        if self._cloud_wanted():
+        if self._cloud_output.wanted():
             known = np.flatnonzero(result.object_ids != UNOBSERVED_ID)
             ids = result.object_ids[known]
             # An object's id is its packed palette color: the cloud's packed rgb (result.object_rgb, unpacked).
@@ -120,24 +117,10 @@ class SemanticOutputs:
         self._last = (list(geometry.objects), observations, header, mapper.object_labels())
         return self._publish_objects(*self._last)
 
-    def _cloud_wanted(self) -> bool:
-        """Whether anything subscribes to the cloud (worker thread); if not, the cloud is left out and counted."""
-        with self._cloud_lock:
-            if self.cloud.get_subscription_count() > 0:
-                self._cloud_left_out = False
-                return True
-            self._cloud_left_out = True
-            self.clouds_skipped += 1
-            return False
-
-    def _matched(self, status: Any) -> None:
-        """The cloud publisher's matched event (executor thread): a new subscriber gets the current cloud."""
-        if status.current_count_change <= 0:
-            return
-        with self._cloud_lock:
-            left_out, self._cloud_left_out = self._cloud_left_out, False
-        if left_out and self._on_cloud_subscriber is not None:
-            self._on_cloud_subscriber()
+    @property
+    def clouds_skipped(self) -> int:
+        """Publications that left the cloud out: nothing subscribed to it."""
+        return self._cloud_output.skipped
 
     def _known_labels(self) -> Mapping[int, ObjectLabel]:
         if self._label_provider is None:
