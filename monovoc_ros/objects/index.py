@@ -410,7 +410,7 @@ class ObjectIndex:
 
     def describe(self, oid: int, label: str, quoted: tuple[np.ndarray, float] | None = None) -> str:
         """The attribute description of a listed, embedded object under ``label``, quoting its current size and
-        height above the floor, or ``quoted`` ones (`_quoted`)."""
+        height above the floor, or ``quoted`` ones (`_quoted_geometry`)."""
         extent, height = self._upright[oid] if quoted is None else quoted
         return describe(
             noun(label) or "object", color=self._color[oid], extent=extent, height_above_floor=height, up_axis=2
