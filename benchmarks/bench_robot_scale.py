@@ -6,7 +6,9 @@
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --param query.top_k=3
     RMW_FASTRTPS_PUBLICATION_MODE=ASYNCHRONOUS scripts/with_env.sh python benchmarks/bench_robot_scale.py --runs robot
-    # interleaved A/B on one bag: revision R for the even runs, the checked-out HEAD for the odd ones
+    # interleaved A/B on one bag: a setting on the odd runs only; or revision R for the even runs, HEAD for the odd
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --repeat 6 \
+        --odd-param map_update_ahead_s=2.0
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --repeat 6 \
         --before-run 'git checkout -q $([ $((RUN_INDEX % 2)) = 0 ] && echo R || echo HEAD) -- monovoc_ros msg_adapters'
 
@@ -332,13 +334,18 @@ def main() -> int:
         help="a shell command run before each run (RUN_INDEX in its environment): e.g. a checkout, for A/B runs",
     )  # fmt: skip
     parser.add_argument(
+        "--odd-param", action="append", default=[], metavar="NAME=VALUE",
+        help="a node parameter for the odd runs of --repeat only (interleaved A/B of a setting)",
+    )  # fmt: skip
+    parser.add_argument(
         "--param", action="append", default=[], metavar="NAME=VALUE",
         help="another node parameter (repeatable), typed as on a ROS command line: objects.description_weight=0.0",
     )  # fmt: skip
     args = parser.parse_args()
     extra = dict(p.split("=", 1) for p in args.param if "=" in p)
-    if len(extra) != len(args.param):
-        parser.error("--param: expected NAME=VALUE")
+    odd = dict(p.split("=", 1) for p in args.odd_param if "=" in p)
+    if len(extra) != len(args.param) or len(odd) != len(args.odd_param):
+        parser.error("--param, --odd-param: expected NAME=VALUE")
     if args.fastdds_profile is not None:
         if not args.fastdds_profile.is_file():
             parser.error(f"--fastdds-profile: no file {args.fastdds_profile}")
@@ -383,9 +390,10 @@ def main() -> int:
                 if args.before_run:  # e.g. another version of the code checked out, for interleaved A/B runs
                     env = {**os.environ, "RUN_INDEX": str(repeat)}
                     subprocess.run(args.before_run, shell=True, check=True, env=env)
-                measured = dict(row, repeat=repeat)
+                params = {**node_params, **odd} if repeat % 2 else node_params
+                measured = dict(row, repeat=repeat, params={k: params[k] for k in odd} if odd else None)
                 measured.update(
-                    run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, node_params,
+                    run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, params,
                         viewer=not args.fast_without_viewer)
                 )  # fmt: skip
                 # The node's snapshots (~1 GB at 1M): a run left them behind and repeated runs filled the disk. The
