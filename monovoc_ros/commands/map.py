@@ -164,9 +164,10 @@ def register(subparsers) -> None:
     p.add_argument(
         "--map-update-ahead-s",
         type=float,
-        default=DEFAULT_AHEAD_S,
+        default=None,
         help="--bag: seconds of stamps after a map update whose keyframes go ahead of it into the map in use, as "
-        "the live node's map_update_ahead_s (docs/map_updates.md); give the node's value to get its map; 0 = in line",
+        f"the live node's map_update_ahead_s (docs/map_updates.md; default {DEFAULT_AHEAD_S:g}, the node's); give "
+        "the node's value to get its map; 0 = in line",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -177,12 +178,11 @@ def run(args: argparse.Namespace) -> int:
 
     if bool(args.source) == bool(args.bag):
         raise SystemExit("monovoc map: give either SOURCE or --bag BAG")
-    if not 0 <= args.map_update_ahead_s <= MAX_AHEAD_S:
-        raise SystemExit(
-            f"monovoc map: --map-update-ahead-s must be in [0, {MAX_AHEAD_S:g}], got {args.map_update_ahead_s}"
-        )
-    if not args.bag and args.map_update_ahead_s != DEFAULT_AHEAD_S:
+    if args.map_update_ahead_s is not None and not args.bag:
         raise SystemExit("monovoc map: --map-update-ahead-s needs --bag (a dataset folder has one map)")
+    ahead_s = DEFAULT_AHEAD_S if args.map_update_ahead_s is None else args.map_update_ahead_s
+    if not 0 <= ahead_s <= MAX_AHEAD_S:
+        raise SystemExit(f"monovoc map: --map-update-ahead-s must be in [0, {MAX_AHEAD_S:g}], got {ahead_s}")
     check_source_options(args)
     if args.bag:
         from monovoc_ros.bags import bag_labels
@@ -203,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
             max_keyframes=args.max_keyframes,
             progress=not args.quiet,
             on_keyframe=hook,
-            ahead_s=args.map_update_ahead_s,
+            ahead_s=ahead_s,
         )
     else:
         mapper, stats = offline.map_sequence(

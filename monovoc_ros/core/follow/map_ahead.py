@@ -30,11 +30,11 @@ from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap
 
 # Seconds of stamps after a map update whose keyframes go into the map in use (MappingSession's `ahead_s`, the
-# node's map_update_ahead_s, `monovoc map --map-update-ahead-s`): 0, in line. At 1M Gaussians a window of 2 s (a map
-# reaches the node 0.5-0.9 s after its stamp, its plan takes ~0.7 s more there) did not lower the robot-scale
-# bench's latency and cost its fast run 8-13% of its keyframes/s (docs/results.md, eighteenth session): keyframes
-# integrated beside the plan slow each other down, where in line the worker waits and the plan has the cores.
-DEFAULT_AHEAD_S = 0.0
+# node's map_update_ahead_s, `monovoc map --map-update-ahead-s`; 0: in line). At 1M Gaussians a map reaches the node
+# 0.5-0.9 s after its stamp and its plan takes ~0.7 s more there: with 2 s, keyframes stop queueing behind it. In
+# four interleaved pairs of the robot-scale bench, once the object index yielded to the worker, 2 s lowered latency
+# p95 by 22-42% and query p99 in three, for 1-3% of the fast run's keyframes/s (docs/results.md, twentieth session).
+DEFAULT_AHEAD_S = 2.0
 # The longest window: stamps further apart are taken as clocks that do not agree (map_frames.FRAME_WINDOW_NS).
 MAX_AHEAD_S = FRAME_WINDOW_NS / 1e9
 
