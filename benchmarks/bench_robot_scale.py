@@ -391,7 +391,7 @@ def main() -> int:
                     env = {**os.environ, "RUN_INDEX": str(repeat)}
                     subprocess.run(args.before_run, shell=True, check=True, env=env)
                 params = {**node_params, **odd} if repeat % 2 else node_params
-                measured = dict(row, repeat=repeat, params={k: params[k] for k in odd} if odd else None)
+                measured = dict(row, repeat=repeat, params={k: params.get(k, "default") for k in odd} if odd else None)
                 measured.update(
                     run(bag, work, kind, count, 1 + len(seq.updates), replay_rate, params,
                         viewer=not args.fast_without_viewer)
