@@ -63,21 +63,16 @@ def keyframe(stamp: int, shift: int = 0) -> Keyframe:
 
 class Sink:
     def __init__(self):
-        self.published = []  # (keyframes, result) per cloud published
-        self.objects: list[tuple[int | None, float]] = []  # (keyframes, monotonic time) per objects published
+        self.published = []
 
-    def publish(self, mapper, result, *, cloud=True, objects=True):
-        keyframes = None if mapper is None else mapper.n_keyframes
-        if cloud:
-            self.published.append((keyframes, result))
-        if objects:
-            self.objects.append((keyframes, time.monotonic()))
+    def publish(self, mapper, result):
+        self.published.append((None if mapper is None else mapper.n_keyframes, result))
         return 0
 
 
 def make_worker(tmp_path: Path | None = None, **settings) -> tuple[MapWorker, Sink, RecordingLog]:
     sink, log = Sink(), RecordingLog()
-    opts = {"queue_size": 8, "publish_period_s": 0.0, "objects_period_s": 0.0, "save_period_s": 0.0}
+    opts = {"queue_size": 8, "publish_period_s": 0.0, "save_period_s": 0.0}
     opts.update(settings)
     worker = MapWorker(MapperConfig(), WorkerSettings(**opts), sink=sink, log=log)
     return worker, sink, log
@@ -331,33 +326,6 @@ def test_publish_rate_limits_and_final_state_is_published():
         worker.stop()
     assert sink.published[-1][0] == 8  # the newest state always goes out, one period later at most
     assert len(sink.published) <= 4  # start + at most ~1 per 0.3 s over ~0.2 s of keyframes + the last
-
-
-def test_objects_go_out_at_most_every_objects_period_and_follow_the_newest_cloud():
-    """With publish_period_s 0 each keyframe gets its cloud; the objects (their geometry, messages, the result
-    listeners) go with a publication at most every objects_period_s, and the newest result's on their own once that
-    has passed."""
-    worker, sink, _ = make_worker(publish_period_s=0.0, objects_period_s=0.5, queue_size=16)
-    heard: list[int] = []
-    worker.add_result_listener(lambda mapper, result: heard.append(mapper.n_keyframes))
-    worker.submit_map(plane_map())
-    worker.start()
-    try:
-        for stamp in range(1, 9):
-            worker.submit_keyframe(keyframe(stamp))
-            wait_until(
-                lambda s=stamp: sink.published and sink.published[-1][0] == s, 10.0, f"cloud {stamp}", process=None
-            )
-            time.sleep(0.05)
-        wait_until(lambda: sink.objects[-1][0] == 8, 10.0, "the newest objects", process=None)
-        assert sink.published[-1][0] == 8  # their cloud went out before them, not again with them
-    finally:
-        worker.stop()
-    assert [n for n, _ in sink.published if n] == list(range(1, 9))
-    times = [t for _, t in sink.objects]
-    assert len(times) < len(sink.published)
-    assert np.diff(times).min() >= 0.4, np.diff(times)  # 0.5 s apart, less the sink's own delay
-    assert heard == [n for n, _ in sink.objects if n is not None]  # listeners hear what the objects show
 
 
 def test_publishing_when_idle_still_publishes_a_worker_that_never_is():
@@ -706,9 +674,9 @@ def test_stop_applies_queued_calls_in_order_before_its_bound_and_refuses_them_af
 class GeometrySink(Sink):
     """Reports objects, as the node's outputs do (the geometry after the cloud)."""
 
-    def publish(self, mapper, result, *, cloud=True, objects=True):
-        super().publish(mapper, result, cloud=cloud, objects=objects)
-        return 0 if result is None or not objects else len(result.objects(mapper.gaussians).objects)
+    def publish(self, mapper, result):
+        super().publish(mapper, result)
+        return 0 if result is None else len(result.objects(mapper.gaussians).objects)
 
 
 def test_a_reintegration_steps_once_per_three_waiting_keyframes_and_finishes_when_none_wait():
@@ -892,8 +860,8 @@ class MapSink:
     def __init__(self):
         self.published: list[tuple[GaussianMap, int]] = []
 
-    def publish(self, mapper, result, *, cloud=True, objects=True):
-        if mapper is not None and cloud:
+    def publish(self, mapper, result):
+        if mapper is not None:
             self.published.append((mapper.gaussians, mapper.n_keyframes))
         return 0
 
@@ -976,8 +944,7 @@ def test_a_stop_applies_the_map_update_keyframes_went_ahead_of_before_the_final_
 
 
 def test_worker_time_is_accounted_by_activity(tmp_path):
-    settings = WorkerSettings(queue_size=8, publish_period_s=0.0, objects_period_s=0.0, save_period_s=0.01,
-                              map_directory=str(tmp_path / "m"))  # fmt: skip
+    settings = WorkerSettings(queue_size=8, publish_period_s=0.0, save_period_s=0.01, map_directory=str(tmp_path / "m"))
     worker = MapWorker(MapperConfig(), settings, sink=GeometrySink(), log=RecordingLog())
     worker.start()
     try:

@@ -141,7 +141,6 @@ class MappingNode(Node):
         settings = WorkerSettings(
             queue_size=p.queue_size,
             publish_period_s=1.0 / p.publish_rate_hz if p.publish_rate_hz > 0 else 0.0,
-            objects_period_s=1.0 / p.objects_publish_rate_hz if p.objects_publish_rate_hz > 0 else 0.0,
             map_directory=p.map_directory,
             save_period_s=p.save_period_s,
             map_update_max_shrink=p.map_update_max_shrink,

@@ -88,36 +88,29 @@ class SemanticOutputs:
         thread); returns the number of objects."""
         return 0 if self._last is None else self._publish_objects(*self._last)
 
-    def publish(
-        self, mapper: SemanticMapper | None, result: SemanticResult | None, *, cloud: bool = True, objects: bool = True
-    ) -> int:
-        """Publishes the cloud and/or the objects and markers; returns the number of objects (0 when left out).
-        The cloud goes first: the object geometry (main clusters, percentile boxes: ~58 ms at 140k Gaussians) is
-        not on the path from a keyframe to the cloud that includes it."""
+    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
+        """Publishes the cloud, then the objects and markers; returns the number of objects. The cloud goes
+        first: the object geometry (main clusters, percentile boxes: ~58 ms at 140k Gaussians) is not on the
+        path from a keyframe to the cloud that includes it."""
         now = self._node.get_clock().now().nanoseconds
         if mapper is None or result is None:
             header = dict(frame_id=self.frame_id, stamp=now)
-            if cloud:
-                empty = (
-                    np.zeros((0, 3), np.float32),
-                    np.zeros((0, 3), np.uint8),
-                    np.zeros(0, np.uint32),
-                    np.zeros(0, np.float32),
-                )
-                self.cloud.publish(ma.semantic_cloud_from_arrays(*empty, **header))
-            if not objects:
-                return 0
+            empty = (
+                np.zeros((0, 3), np.float32),
+                np.zeros((0, 3), np.uint8),
+                np.zeros(0, np.uint32),
+                np.zeros(0, np.float32),
+            )
+            self.cloud.publish(ma.semantic_cloud_from_arrays(*empty, **header))
             self._last = ([], np.zeros(0, np.int64), header, {})
             return self._publish_objects(*self._last)
         header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)
-        if cloud and self._cloud_output.wanted():
+        if self._cloud_output.wanted():
             known = np.flatnonzero(result.object_ids != UNOBSERVED_ID)
             ids = result.object_ids[known]
             # An object's id is its packed palette color: the cloud's packed rgb (result.object_rgb, unpacked).
             means, confidence = mapper.gaussians.means[known], result.confidence[known]
             self.cloud.publish(ma.semantic_cloud_from_arrays(means, ids, ids, confidence, **header))
-        if not objects:
-            return 0
         geometry = result.objects(mapper.gaussians)
         index = result.palette.index_of(geometry.ids)
         observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)

@@ -71,8 +71,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("queue_size", _WORKER.queue_size, "keyframes waiting for the worker (~1.3 MB each at 616x344 with RGB); when full the oldest is dropped (counted)", low=1),
     # Outputs
     Param("frame_id", MAP_FRAME, "frame of the semantic cloud, markers and objects (the SLAM map frame)"),
-    Param("publish_rate_hz", 1.0 / _WORKER.publish_period_s, "max rate of semantic cloud updates (objects and markers follow at most objects_publish_rate_hz); 0 = whenever the queue is empty, and about once a second while it never is", low=0),
-    Param("objects_publish_rate_hz", 1.0 / _WORKER.objects_period_s, "max rate of the objects, their markers and the object index's view of the map (their geometry is a publication's costliest part at 1M Gaussians), going with the cloud's updates or after them; 0 = with every cloud update", low=0),
+    Param("publish_rate_hz", 1.0 / _WORKER.publish_period_s, "max rate of semantic cloud / objects updates; 0 = whenever the queue is empty, and about once a second while it never is", low=0),
     Param("labels_file", "", "JSON list [{color: [r, g, b], class_name: ...}] naming objects (empty: no labels)"),
     Param("labels_define_palette", False, "vote mode: labels_file's colors are the objects; every mask pixel is one of them or snaps to one (lossy masks)"),
     Param("marker_up", [0.0, 0.0, 1.0], "up direction of the map frame, for marker labels ([0, -1, 0] for a y-down SLAM world)"),
@@ -105,7 +104,6 @@ class NodeParams:
     queue_size: int
     frame_id: str
     publish_rate_hz: float
-    objects_publish_rate_hz: float
     labels: dict[int, str]  # packed palette color -> class name
     labels_file: str
     marker_up: tuple[float, float, float]
@@ -191,7 +189,6 @@ class NodeParams:
             queue_size=v["queue_size"],
             frame_id=v["frame_id"],
             publish_rate_hz=v["publish_rate_hz"],
-            objects_publish_rate_hz=v["objects_publish_rate_hz"],
             labels=labels,
             labels_file=v["labels_file"],
             marker_up=(up[0], up[1], up[2]),

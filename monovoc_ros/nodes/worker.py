@@ -25,9 +25,7 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
 Between tasks the worker publishes the semantic result (at most every `publish_period_s` while something
 changed; period 0 = as soon as nothing runnable is queued, and every BUSY_PUBLISH_PERIOD_S while something
 is, or less often when publishing would take more than BUSY_PUBLISH_SHARE of the worker) and saves periodic
-snapshots of new evidence. The objects (their geometry, messages, markers, and the result listeners) go with a
-publication at most every `objects_period_s`, and on their own once that has passed if a publication left them
-out: at 1M Gaussians their part of a publication costs more than the cloud's.
+snapshots of new evidence.
 The rasterizer's numba kernels release the GIL, so ROS callbacks keep running while a keyframe is
 integrated. Nothing here imports ROS: the node wires it to topics (monovoc_ros.nodes.mapping_node).
 
@@ -116,11 +114,8 @@ _ACTIVITY = {"keyframe": "worker_s_keyframes", "map": "worker_s_map_updates", "c
 class OutputSink(Protocol):
     """Where results go (the node's publishers); called on the worker thread."""
 
-    def publish(
-        self, mapper: SemanticMapper | None, result: SemanticResult | None, *, cloud: bool = True, objects: bool = True
-    ) -> int:
-        """Publishes the semantic map (None: no map, publish an empty one): its cloud and/or its objects (and their
-        markers); returns the number of objects (0 when they were left out)."""
+    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
+        """Publishes the semantic map (None: no map, publish an empty one); returns the number of objects."""
         ...
 
 
@@ -132,10 +127,6 @@ class WorkerStopped(RuntimeError):
 class WorkerSettings:
     queue_size: int = 100  # keyframes
     publish_period_s: float = 1.0  # 0: publish as soon as nothing runnable is queued
-    # The objects, their markers and the result listeners (the object index, the query's map) at most this often (s;
-    # 0: with every publication): with publish_period_s 0 a robot at 2 keyframes/s got a publication per keyframe,
-    # each with its object geometry and messages (~70 and ~40 ms of the worker at 1M Gaussians).
-    objects_period_s: float = 1.0
     map_directory: str = ""  # periodic and final snapshots go here ("" = none)
     save_period_s: float = 30.0  # 0 = no periodic snapshots
     # A map update removing a larger share of the Gaussians (by id when both maps have ids, else by count) is
@@ -315,10 +306,8 @@ class MapWorker:
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-snapshot")
         self._writing: Future | None = None
         self._output_dirty = True  # publish once at start (the map, or an empty one)
-        self._objects_dirty = True  # the objects of the current result are not published yet
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
-        self._last_objects = -float("inf")  # when objects were last published
         self._publish_s = 0.0  # the last publication's time
         self._published_s = 0.0  # every publication's time, summed (a task's time leaves out those within it)
         self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
@@ -594,8 +583,8 @@ class MapWorker:
         self._changed(unsaved=self.session.mapper is not None)
 
     def publish_now(self) -> tuple[SemanticResult | None, int]:
-        """Recomputes and publishes the result now, its objects included; returns it and the number of objects."""
-        return self._publish(objects=True)
+        """Recomputes and publishes the result now; returns it and the number of objects."""
+        return self._publish()
 
     def objects_now(self) -> int:
         mapper = self.session.mapper
@@ -736,7 +725,7 @@ class MapWorker:
             self._publish()
 
     def _changed(self, unsaved: bool = True) -> None:
-        self._output_dirty = self._objects_dirty = True
+        self._output_dirty = True
         self._unsaved = self._unsaved or unsaved
 
     # ------------------------------------------------------------------ publishing and saving
@@ -747,21 +736,14 @@ class MapWorker:
         if self._output_dirty:
             period = self.settings.publish_period_s
             waits.append(0.0 if period == 0 else self._last_publish + period - now)
-        elif self._objects_dirty:
-            waits.append(self._objects_due_at() - now)
         if self._save_enabled() and self._unsaved:
             waits.append(self._last_save + self.settings.save_period_s - now)
         if self._writing is not None:
             waits.append(_SNAPSHOT_POLL_S)  # to finish it soon after it is written
         return max(min(waits), 0.0) if waits else None
 
-    def _objects_due_at(self) -> float:
-        return self._last_objects + self.settings.objects_period_s
-
     def _maybe_publish(self) -> None:
         if not self._output_dirty:
-            if self._objects_dirty and time.monotonic() >= self._objects_due_at():
-                self._publish(cloud=False)  # the cloud of this result went out without them
             return
         period = self.settings.publish_period_s
         if period == 0:
@@ -773,28 +755,19 @@ class MapWorker:
             return
         self._publish()
 
-    def _publish(self, cloud: bool = True, objects: bool | None = None) -> tuple[SemanticResult | None, int]:
-        """Publishes the current result: its cloud when `cloud`, its objects when `objects` (None: when due)."""
+    def _publish(self) -> tuple[SemanticResult | None, int]:
         start = time.perf_counter()
-        now = time.monotonic()
-        objects_due = objects if objects is not None else now >= self._objects_due_at()
-        if cloud:
-            self._output_dirty = False
-            self._last_publish = now
-        if objects_due:
-            self._objects_dirty = False
-            self._last_objects = now
+        self._output_dirty = False
+        self._last_publish = time.monotonic()
         mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
         labelled = time.perf_counter()
         computed = result is None or result.objects_seconds is not None
         # Outputs first: the worker computes (and caches on the result) the object geometry before a
         # listener's thread, possibly of lower priority, asks the result for it and holds its lock.
-        count = 0
-        if self.sink is not None:
-            count = self.sink.publish(mapper, result, cloud=cloud, objects=objects_due)
+        objects = self.sink.publish(mapper, result) if self.sink is not None else 0
         geometry_s = 0.0 if computed else (result.objects_seconds or 0.0)
-        if objects_due and mapper is not None and result is not None:
+        if mapper is not None and result is not None:
             for fn in self._result_listeners:
                 try:
                     fn(mapper, result)
@@ -804,16 +777,14 @@ class MapWorker:
         end = time.perf_counter()
         self._publish_s = end - start
         self._published_s += end - start
-        self.stats.update(observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
-        if objects_due:
-            self.stats.update(objects=count)
+        self.stats.update(objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
         self.stats.add(
             publishes=1,
             worker_s_labels=labelled - start,
             worker_s_objects=geometry_s,
             worker_s_publish=end - labelled - geometry_s,
         )
-        return result, count
+        return result, objects
 
     def _save_enabled(self) -> bool:
         return bool(self.settings.map_directory) and self.settings.save_period_s > 0
