@@ -236,7 +236,7 @@ def run(
             "keyframes_processed": int(done["keyframes_processed"]),
             "keyframes_dropped": int(done["keyframes_dropped"]),
             "maps_sent": maps,
-            "maps_received": int(values["maps_decoded"]),
+            "maps_received": int(values["maps_received"]),
             "map_updates_applied": int(values["map_updates"]),
             "map_updates_prepared": int(values["map_updates_prepared"]),
             "map_updates_ahead": int(values["map_updates_ahead"]),

@@ -231,3 +231,36 @@ def _gone(process: psutil.Process) -> bool:
         return not process.is_running() or process.status() == psutil.STATUS_ZOMBIE  # a zombie: exited, not reaped
     except psutil.NoSuchProcess:
         return True
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("reader_process", [True, False])
+def test_a_burst_of_maps_loses_none_silently(tmp_path, reader_process):
+    """Maps sent back to back (a bag replayed with --fast, a SLAM catching up) each reach the node: decoded, or
+    replaced by a newer one in the map reader and counted (`maps_received`); the newest is the map in use. With a
+    map subscription one deep, maps that came while the reader decoded the one before were overwritten unseen."""
+    from sensor_msgs.msg import PointCloud2
+
+    from monovoc_ros.bags.qos import rclpy_profile
+
+    scene = small_scene()
+    env = ros_environment(tmp_path)
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "map_reader_process": reader_process}
+    burst = 6
+    with (
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="mapping_node") as node,
+        ClientNode(env) as client,
+    ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        # As the replayer's: transient-local, the whole burst in its history.
+        maps = client.node.create_publisher(
+            PointCloud2, "/monovoc/gaussians", rclpy_profile(transient_local=True, depth=burst)
+        )
+        wait_for_subscribers(maps, timeout=30.0, process=node)
+        sizes = [len(scene.gaussians) - 100 * i for i in range(burst)]
+        for i, size in enumerate(sizes):
+            maps.publish(ma.gaussian_map_to_cloud(scene.gaussians.subset(np.arange(size)), stamp=i + 1))
+        values = diagnostics.wait_for(lambda v: v["maps_received"] == str(burst), 30.0, process=node)
+        values = diagnostics.wait_for(lambda v: v["gaussians"] == str(sizes[-1]), 30.0, process=node)
+    # Every map is the first, an update, or one replaced by a newer map before it was applied (counted).
+    assert 1 + int(values["map_updates"]) + int(values["maps_coalesced"]) == burst, values

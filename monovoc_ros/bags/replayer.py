@@ -16,10 +16,17 @@ once its history is full, so every ``depth`` messages on a topic the replay wait
 acknowledged, and before it returns it waits for all of them (``wait_for_all_acked``). What a
 subscriber's own queue drops (a slow callback and a small ``depth``) is the subscriber's business:
 give subscriptions of replayed topics a queue as deep as the burst they must absorb.
+
+No overtaking with ``fast``: after each Gaussian map message the replay waits until a node reports on /diagnostics
+that it took it (monovoc_ros.bags.map_gate), so that the keyframes posed in it come after it; not when no node
+reports that within a few seconds of the start, nor on a node given by the caller (it spins that node, not the
+replay), nor after one map was not reported taken in time (counted as ``maps_unconfirmed``).
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
 import threading
 import time
@@ -30,9 +37,10 @@ from pathlib import Path
 from typing import Any
 
 from monovoc_ros.bags import schemas
+from monovoc_ros.bags.map_gate import MapGate
 from monovoc_ros.bags.qos import rclpy_profile
 from monovoc_ros.bags.reader import BagInfo, bag_info, iter_messages
-from monovoc_ros.bags.rosnode import ros_node
+from monovoc_ros.bags.rosnode import ros_node, spinning
 from monovoc_ros.contract import KEYFRAME_ROLES, MAP_ROLE
 from monovoc_ros.fastdds_profile import WRITER_HEARTBEAT_MS
 
@@ -58,6 +66,7 @@ class ReplaySummary:
     unacked: list[str] = field(default_factory=list)  # topics not fully acknowledged in time
     unmatched: list[str] = field(default_factory=list)  # expected topics without a subscriber at their first message
     interrupted: bool = False
+    maps_unconfirmed: int = 0  # --fast: maps no node reported taken in time (the replay stopped waiting for them)
 
     def as_dict(self) -> dict:
         return {
@@ -72,6 +81,7 @@ class ReplaySummary:
             "unacked": self.unacked,
             "unmatched": self.unmatched,
             "interrupted": self.interrupted,
+            "maps_unconfirmed": self.maps_unconfirmed,
         }
 
 
@@ -94,6 +104,10 @@ def _split_remap(text: str) -> tuple[str, str]:
     if not sep or not src or not dst:
         raise ValueError(f"remap {text!r}: expected FROM:=TO")
     return src, dst
+
+
+def _is_map(topic: str) -> bool:
+    return topic.rsplit("/", 1)[-1] == MAP_ROLE
 
 
 def expected_topics(topics: Iterable[str]) -> list[str]:
@@ -205,7 +219,11 @@ def replay(
     remaps = parse_remaps(remap)
     summary = ReplaySummary(str(path), {}, 0.0, 0, info.duration_s, None if fast else rate)
     counts: Counter[str] = Counter()
-    with ros_node("monovoc_replay", node, writer_heartbeat_ms=WRITER_HEARTBEAT_MS) as ros:
+    gate: MapGate | None = None
+    with (
+        ros_node("monovoc_replay", node, writer_heartbeat_ms=WRITER_HEARTBEAT_MS) as ros,
+        contextlib.ExitStack() as own,
+    ):
         pubs = _Publishers(ros, info, selected, remaps)
         clock_pub = _ClockPublisher(ros) if clock else None
         try:
@@ -213,13 +231,17 @@ def replay(
                 pubs.wait_matched(expected_topics(selected), 1, wait_timeout, stop)
             elif wait_subscribers > 0:
                 pubs.wait_matched(selected, wait_subscribers, wait_timeout, stop)
+            if fast and node is None and any(_is_map(t) for t in selected):
+                gate = MapGate(ros)
+                own.enter_context(spinning(ros))
+                gate = gate if gate.found(stop) else None
             if on_started is not None:
                 on_started()
             start = time.monotonic()
             try:
                 while not stop.is_set():
                     late = _play_once(
-                        Path(path), selected, pubs, clock_pub, counts, fast, rate, clock_hz, stop, on_published
+                        Path(path), selected, pubs, clock_pub, counts, fast, rate, clock_hz, stop, on_published, gate
                     )
                     summary.max_late_ms = max(summary.max_late_ms, late)
                     summary.loops += 1
@@ -233,6 +255,7 @@ def replay(
             summary.seconds = time.monotonic() - start
             summary.messages = {pubs.out[t]: counts[t] for t in selected}
             summary.unmatched = [pubs.out[t] for t in expected_topics(selected) if t in pubs.unmatched]
+            summary.maps_unconfirmed = gate.missed if gate is not None else 0
             if on_done is not None:
                 on_done(summary)
             if hold > 0 and not summary.interrupted:
@@ -277,8 +300,10 @@ def _play_once(
     clock_hz: float,
     stop: threading.Event,
     on_published: Callable[[str, int], None] | None = None,
+    gate: MapGate | None = None,
 ) -> float:
-    """One pass over the bag; returns the worst lateness behind the schedule in ms."""
+    """One pass over the bag; returns the worst lateness behind the schedule in ms. `gate`: --fast waits for each
+    map to be taken (module docstring)."""
     first_ns: int | None = None
     wall0 = 0.0
     worst_late = 0.0
@@ -300,7 +325,11 @@ def _play_once(
         topic = message.topic
         if not counts[topic] and pubs.pubs[topic].get_subscription_count() == 0:
             pubs.unmatched.add(topic)
-        pubs.pubs[topic].publish(message.data)
+        publisher = pubs.pubs[topic]
+        if gate is not None and _is_map(topic):
+            gate.publish_and_wait(functools.partial(publisher.publish, message.data), stop)
+        else:
+            publisher.publish(message.data)
         if on_published is not None:
             on_published(topic, message.log_time_ns)
         counts[topic] += 1

@@ -53,6 +53,8 @@ class MapperStats(SessionStats):
     worker_s_snapshots: float = 0.0  # periodic snapshots into map_directory
     worker_s_calls: float = 0.0  # services and other calls run on the worker (save, load, queries of it)
     map_decode_s: float = 0.0
+    # Map messages taken from the topic: decoded (maps_decoded), refused, or replaced in the map reader by a newer one.
+    maps_received: int = 0
     maps_decoded: int = 0
     map_reader_restarts: int = 0  # map reader processes that exited while the node ran (another was started)
     map_prepare_s: float = 0.0  # preparing map updates (MappingSession.plan_map) on a thread beside the worker

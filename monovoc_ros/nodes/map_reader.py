@@ -400,7 +400,7 @@ def _child_main(argv: list[str] | None = None) -> int:
     from sensor_msgs.msg import PointCloud2
 
     import msg_adapters as ma
-    from monovoc_ros.nodes.qos import latched_qos
+    from monovoc_ros.nodes.qos import map_qos
 
     def on_map(msg: Any) -> None:
         # Whatever a message does to the reader costs that message only: a crash would be a crash loop on a
@@ -422,7 +422,7 @@ def _child_main(argv: list[str] | None = None) -> int:
     # rclpy's handlers would end the child on a signal, under the node's feet.
     rclpy.init(args=["--ros-args", "--disable-rosout-logs"], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(args.node_name, namespace=args.namespace)
-    node.create_subscription(PointCloud2, args.topic, on_map, latched_qos())  # the node's own QoS for `gaussians`
+    node.create_subscription(PointCloud2, args.topic, on_map, map_qos())  # the node's own QoS for `gaussians`
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     with contextlib.suppress(Exception):

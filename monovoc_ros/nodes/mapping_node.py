@@ -68,7 +68,7 @@ from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal,
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.param_spec import ParameterError, declare
 from monovoc_ros.nodes.params import PARAMETERS, NodeParams
-from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, latched_qos, output_events
+from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, map_qos, output_events
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.nodes.startup import StartupAborted, check_stop, compile_kernels
@@ -392,7 +392,7 @@ class MappingNode(Node):
             )
         if self._map_reader is None:
             self.create_subscription(
-                PointCloud2, "gaussians", self._on_gaussians, latched_qos(), callback_group=self.callback_groups["map"]
+                PointCloud2, "gaussians", self._on_gaussians, map_qos(), callback_group=self.callback_groups["map"]
             )
         # Volatile, so that a SLAM publishing its path either way (latched or not) matches.
         self.create_subscription(
@@ -467,6 +467,7 @@ class MappingNode(Node):
 
     def _on_gaussians(self, msg: Any) -> None:
         start = time.perf_counter()
+        self.stats.add(maps_received=1)
         try:
             gaussians = ma.cloud_to_gaussian_map(msg)
         except ValueError as exc:
@@ -485,7 +486,8 @@ class MappingNode(Node):
         self.get_logger().error(message)
 
     def _on_received_map(self, received: ReceivedMap) -> None:
-        self.stats.add(maps_coalesced=received.superseded)  # replaced in the reader before the worker saw them
+        # Those it replaced in the reader were received too, and are coalesced before the worker saw them.
+        self.stats.add(maps_received=1 + received.superseded, maps_coalesced=received.superseded)
         try:
             self._accept_map(received.gaussians, received.stamp_ns, received.frame_id, received.decode_s)
         except Exception as exc:  # a bug must cost one map, not the map reader's thread, and show as a bug
@@ -504,6 +506,7 @@ class MappingNode(Node):
         self._reject_log("bad_gaussians", message)
 
     def _on_reader_refusal(self, refusal: Refusal) -> None:
+        self.stats.add(maps_received=1)
         if refusal.bad_input:
             self._refuse_map(refusal.message)
         else:  # the reader's own failure, its traceback in the message

@@ -2,9 +2,9 @@
 
 * Keyframe inputs (image, mask, camera_info, pose): reliable by default (a bag replayed with --fast must
   not lose messages), volatile, keep-last `input_depth`; best effort for sensor-data publishers.
-* The Gaussian map and every output (semantic cloud, objects, markers): reliable + transient-local,
-  depth 1, so a node or viewer that starts late still gets the latest one. Big clouds must be reliable:
-  best effort over the default Fast DDS shared-memory segment drops most of them (ROS_WHEELS.md).
+* The Gaussian map and every output (semantic cloud, objects, markers): reliable + transient-local, so a node
+  or viewer that starts late still gets the latest one; depth 1, the map `MAP_DEPTH`. Big clouds must be
+  reliable: best effort over the default Fast DDS shared-memory segment drops most of them (ROS_WHEELS.md).
 """
 
 from __future__ import annotations
@@ -30,6 +30,24 @@ def latched_qos() -> QoSProfile:
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
         depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+
+
+# Depth of the Gaussian map subscription (the node's, or its map reader's). Maps that arrive together (a bag
+# replayed with --fast, a SLAM catching up, a transient-local history delivered to a late joiner) each reach the
+# node, which keeps the newest of those it could not take in time and counts the others (`maps_coalesced`). One
+# deep, DDS overwrote them unseen: a --fast replay of a bag with three maps delivered one, counted nowhere. The
+# cost: serialized maps waiting in the reader (~56 MB each at 1M Gaussians) only while the node is behind.
+MAP_DEPTH = 8
+
+
+def map_qos() -> QoSProfile:
+    """Reliable, transient-local, depth MAP_DEPTH: the Gaussian map topic's subscription."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=MAP_DEPTH,
         reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL,
     )
