@@ -72,6 +72,9 @@ def test_unknown_questions_say_what_is_understood():
     assert not answer.success and "I understand: how many" in answer.answer and answer.count is None
     with pytest.raises(QueryError, match="empty question"):
         ask(index, "  ")
+    for question in ("where is the", "is there a", "how many are there?"):
+        with pytest.raises(QueryError, match="the question names no object; I understand: how many"):
+            ask(index, question)
 
 
 def test_offline_monovoc_ask(capsys):

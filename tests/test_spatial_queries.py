@@ -109,6 +109,14 @@ def test_the_answer_says_how_it_read_the_text_and_keeps_plain_queries_as_they_we
     assert default.matches[0][0].hex == "#66ff33"
 
 
+def test_a_relational_answer_keeps_the_note_that_the_text_was_truncated():
+    index, view = room_index()
+    text = "the chair next to the sofa " * 100  # 2699 characters once its whitespace is collapsed
+    answer = spatial.answer(index, text, 3, view=view)
+    assert "satisfy it" in answer.message and "ranked by the whole text" not in answer.message  # by the relation
+    assert answer.truncated and "query truncated from 2699 to 1000 characters" in answer.message, answer.message
+
+
 def test_support_and_under_are_directional():
     cup = spatial.UprightBox(np.array([0.0, 0.0, 0.75]), np.array([0.1, 0.1, 0.85]))
     table = spatial.UprightBox(np.array([-0.5, -0.5, 0.0]), np.array([0.5, 0.5, 0.75]))

@@ -526,11 +526,11 @@ class ObjectIndex:
         cleaned = " ".join(text.split())
         if not cleaned:
             raise QueryError("empty query: give a text to search for, e.g. 'a chair'")
-        notes = []
-        truncated = len(cleaned) > self.config.max_query_chars
-        if truncated:
-            notes.append(f"query truncated from {len(cleaned)} to {self.config.max_query_chars} characters")
+        truncation = ""
+        if len(cleaned) > self.config.max_query_chars:
+            truncation = f"query truncated from {len(cleaned)} to {self.config.max_query_chars} characters"
             cleaned = cleaned[: self.config.max_query_chars]
+        notes = [truncation] if truncation else []
         try:
             top_k = int(top_k)
             min_score = float(min_score)
@@ -544,7 +544,7 @@ class ObjectIndex:
         if not records:
             waiting = self.pending()
             why = f"{self.views.keyframes} keyframes seen" + (f", {waiting} objects being embedded" if waiting else "")
-            return QueryResult(cleaned, [], "; ".join([f"no objects in the map yet ({why})", *notes]), 0, truncated)
+            return QueryResult(cleaned, [], "; ".join([f"no objects in the map yet ({why})", *notes]), 0, truncation)
         with self._lock:
             query = self._query_cache.get(cleaned)
             if query is not None:
@@ -573,7 +573,7 @@ class ObjectIndex:
         message = f"{len(matches)} of {len(records)} objects{below}"
         if self.config.label_weight > 0 and named.any():
             notes.append(f"{np.count_nonzero(named)} labelled {head_noun(cleaned)!r} ranked by label confidence")
-        return QueryResult(cleaned, matches, "; ".join([message, *notes]), len(records), truncated)
+        return QueryResult(cleaned, matches, "; ".join([message, *notes]), len(records), truncation)
 
     # ------------------------------------------------------------------ persistence support
 

@@ -74,6 +74,8 @@ def _phrase_objects(scene: Scene, text: str) -> tuple[list[tuple[ObjectRecord, f
     """The objects `text` (a noun phrase, maybe with a relation) names, with their grades; its reading; and
     how they were found."""
     text = " ".join(w for w in text.split() if w not in ("are", "is", "there"))  # "chairs are next to the table"
+    if not strip_articles(text.split()):  # "where is the", "is there a": the query's "empty query" would puzzle
+        raise QueryError(f"the question names no object; I understand: {FORMS}")
     query = parse(text) or SpatialQuery(strip_articles(text.split()))
     margin = 0.0 if query.superlative else COUNT_MARGIN
     heads = scene.named(query.head, margin=margin)

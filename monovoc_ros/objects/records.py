@@ -88,7 +88,11 @@ class QueryResult:
     matches: list[tuple[ObjectRecord, float]] = field(default_factory=list)
     message: str = ""
     n_objects: int = 0  # objects that were ranked
-    truncated: bool = False
+    truncation: str = ""  # the note on a truncated text, which every answer's message keeps ("": not truncated)
+
+    @property
+    def truncated(self) -> bool:
+        return bool(self.truncation)
 
     @property
     def answered(self) -> bool:

@@ -480,12 +480,12 @@ def answer(index, text: str, top_k: int = 0, min_score: float = -1.0, view: View
     scene = Scene(index, default_view(index, view))
     ranked, message, answers = spatial_answer(query, scene, len(scene.records))
     if ranked is None:
-        return QueryResult(plain.text, plain.matches, f"{plain.message}; {message}", plain.n_objects, plain.truncated)
+        return QueryResult(plain.text, plain.matches, f"{plain.message}; {message}", plain.n_objects, plain.truncation)
     # min_score is a cosine bound: it filters the objects ranked by embedding, not the relation's answers.
     kept = [(r, s) for k, (r, s) in enumerate(ranked) if k < answers or s >= min_score]
     kept = kept[: top_k or index.config.default_top_k]
-    return QueryResult(plain.text, kept, f"{len(kept)} of {len(scene.records)} objects; {message}", len(scene.records),
-                       plain.truncated)  # fmt: skip
+    notes = [f"{len(kept)} of {len(scene.records)} objects", *([plain.truncation] if plain.truncated else []), message]
+    return QueryResult(plain.text, kept, "; ".join(notes), len(scene.records), plain.truncation)
 
 
 def _combinations(sets: list[list[ObjectRecord]], exclude: int) -> list[tuple[ObjectRecord, ...]]:
