@@ -5,7 +5,7 @@ the way into the node (it decodes a map in a process of its own: ~30 ms at 140k 
 into the map before it with poses of the new one (36 of 40 in a bag of the synthetic room with two loop closures).
 So after a map message the replay waits until a node's /diagnostics count of maps taken from the topic
 (`maps_received`, nodes/diagnostics.MapperStats) has grown; the keyframes after it are then queued behind it. A
-replay that finds no node reporting that count within `find_s` of its start does not wait (another consumer).
+replay that finds no node reporting that count within FIND_S of its start does not wait (another consumer).
 """
 
 from __future__ import annotations
