@@ -25,11 +25,12 @@ def input_qos(depth: int, reliability: str = "reliable") -> QoSProfile:
     )
 
 
-def latched_qos() -> QoSProfile:
-    """Reliable, transient-local, depth 1: the latest message for late joiners (maps, semantic outputs)."""
+def latched_qos(depth: int = 1) -> QoSProfile:
+    """Reliable, transient-local, keep-last `depth`: the latest message for late joiners (outputs; the map's
+    subscription: `map_qos`)."""
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
-        depth=1,
+        depth=depth,
         reliability=ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL,
     )
@@ -44,13 +45,8 @@ MAP_DEPTH = 8
 
 
 def map_qos() -> QoSProfile:
-    """Reliable, transient-local, depth MAP_DEPTH: the Gaussian map topic's subscription."""
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=MAP_DEPTH,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    )
+    """The Gaussian map topic's subscription: latched, MAP_DEPTH deep."""
+    return latched_qos(MAP_DEPTH)
 
 
 DIAGNOSTICS_QOS = QoSProfile(depth=10)
