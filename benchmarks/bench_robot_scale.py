@@ -2,13 +2,13 @@
 
     scripts/with_env.sh python benchmarks/bench_robot_scale.py                       # 1M and 2M Gaussians
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot
-    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead-s 2
+    scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --map-update-ahead-s 0
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --fastdds-profile P.xml
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --param query.top_k=3
     RMW_FASTRTPS_PUBLICATION_MODE=ASYNCHRONOUS scripts/with_env.sh python benchmarks/bench_robot_scale.py --runs robot
     # interleaved A/B on one bag: a setting on the odd runs only; or revision R for the even runs, HEAD for the odd
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --repeat 6 \
-        --odd-param map_update_ahead_s=2.0
+        --odd-param map_update_ahead_s=0
     scripts/with_env.sh python benchmarks/bench_robot_scale.py --sizes 1000000 --runs robot --repeat 6 \
         --before-run 'git checkout -q $([ $((RUN_INDEX % 2)) = 0 ] && echo R || echo HEAD) -- monovoc_ros msg_adapters'
 

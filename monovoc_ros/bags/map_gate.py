@@ -45,13 +45,9 @@ class MapGate:
         with self._changed:
             return dict(self._taken)
 
-    def publish_and_wait(self, publish: Callable[[], None], stop: threading.Event) -> None:
-        """Publishes a map (`publish()`) and waits until a node took it (not after a miss: a node gone)."""
-        if self.missed:
-            publish()
-            return
-        before = self.counts()
-        publish()
+    def wait_taken(self, before: dict[str, int], stop: threading.Event) -> None:
+        """After a map was published (`before`: `counts()` just before): waits until a node took it; a map not
+        reported within WAIT_S is counted in `missed`, and the gate waits no more (its node is gone)."""
         if not self.taken_since(before, stop) and not stop.is_set():
             self.missed += 1
 

@@ -18,15 +18,16 @@ subscriber's own queue drops (a slow callback and a small ``depth``) is the subs
 give subscriptions of replayed topics a queue as deep as the burst they must absorb.
 
 No overtaking with ``fast``: after each Gaussian map message the replay waits until a node reports on /diagnostics
-that it took it (monovoc_ros.bags.map_gate), so that the keyframes posed in it come after it; not when no node
-reports that within a few seconds of the start, nor on a node given by the caller (it spins that node, not the
-replay), nor after one map was not reported taken in time (counted as ``maps_unconfirmed``).
+that it took it (monovoc_ros.bags.map_gate: up to one diagnostics period, 1 s by default, per map), so that the
+keyframes posed in it come after it (``map_gate`` in the summary); not when no node reports that within 3 s of the
+start (a replay into another consumer pays those 3 s once), nor on a node given by the caller (it spins that node,
+not the replay), nor while the map topic has no subscriber, nor after one map was not reported taken in time
+(``maps_unconfirmed``).
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
 import threading
 import time
@@ -66,6 +67,9 @@ class ReplaySummary:
     unacked: list[str] = field(default_factory=list)  # topics not fully acknowledged in time
     unmatched: list[str] = field(default_factory=list)  # expected topics without a subscriber at their first message
     interrupted: bool = False
+    # --fast with a map topic: whether a node reported taking maps, so the replay waited for each (module
+    # docstring); None: not looked for (a timed replay, no map topic, a node given by the caller).
+    map_gate: bool | None = None
     maps_unconfirmed: int = 0  # --fast: maps no node reported taken in time (the replay stopped waiting for them)
 
     def as_dict(self) -> dict:
@@ -81,6 +85,7 @@ class ReplaySummary:
             "unacked": self.unacked,
             "unmatched": self.unmatched,
             "interrupted": self.interrupted,
+            "map_gate": self.map_gate,
             "maps_unconfirmed": self.maps_unconfirmed,
         }
 
@@ -235,6 +240,7 @@ def replay(
                 gate = MapGate(ros)
                 own.enter_context(spinning(ros))
                 gate = gate if gate.found(stop) else None
+                summary.map_gate = gate is not None
             if on_started is not None:
                 on_started()
             start = time.monotonic()
@@ -326,14 +332,15 @@ def _play_once(
         if not counts[topic] and pubs.pubs[topic].get_subscription_count() == 0:
             pubs.unmatched.add(topic)
         publisher = pubs.pubs[topic]
-        if gate is not None and _is_map(topic):
-            gate.publish_and_wait(functools.partial(publisher.publish, message.data), stop)
-        else:
-            publisher.publish(message.data)
+        gated = gate is not None and not gate.missed and _is_map(topic) and publisher.get_subscription_count() > 0
+        before = gate.counts() if gated else None
+        publisher.publish(message.data)
         if on_published is not None:
             on_published(topic, message.log_time_ns)
         counts[topic] += 1
         since_ack[topic] += 1
+        if before is not None:
+            gate.wait_taken(before, stop)
         if fast and since_ack[topic] >= pubs.depth[topic]:
             # The history is full of possibly unacknowledged samples: the next write could drop one.
             pubs.wait_acked([topic], 30.0)

@@ -19,7 +19,12 @@ def register(subparsers) -> None:
     p.add_argument("bag", help="MCAP bag (e.g. bags/synthetic_room.mcap)")
     speed = p.add_mutually_exclusive_group()
     speed.add_argument("--rate", type=float, default=1.0, help="multiple of the recorded rate (default 1)")
-    speed.add_argument("--fast", action="store_true", help="as fast as possible, without losing messages")
+    speed.add_argument(
+        "--fast",
+        action="store_true",
+        help="as fast as possible, without losing messages; after each Gaussian map it waits until the node reports "
+        "it taken (/diagnostics maps_received), so the keyframes posed in it do not overtake it",
+    )
     p.add_argument("--clock", action="store_true", help="publish /clock (rosgraph_msgs/Clock) with the bag time")
     p.add_argument("--clock-hz", type=float, default=40.0, help="/clock rate between messages (default 40)")
     p.add_argument(
@@ -45,6 +50,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from monovoc_ros.bags.map_gate import FIND_S, WAIT_S
     from monovoc_ros.bags.reader import BagError
     from monovoc_ros.bags.replayer import ReplayError, replay
     from monovoc_ros.bags.rosnode import install_stop_signals
@@ -58,6 +64,20 @@ def run(args: argparse.Namespace) -> int:
     def done(summary) -> None:
         # Printed before --hold, so callers know playback has ended while the map stays latched.
         print(json.dumps(summary.as_dict(), indent=1), flush=True)
+        if summary.maps_unconfirmed:
+            print(
+                f"monovoc replay: WARNING: {summary.maps_unconfirmed} map(s) not reported taken within "
+                f"{WAIT_S:g} s: the replay stopped waiting for maps, and keyframes may overtake them",
+                file=sys.stderr,
+                flush=True,
+            )
+        elif summary.map_gate is False:
+            print(
+                f"monovoc replay: note: no node reported its maps on /diagnostics (maps_received) within {FIND_S:g} "
+                "s: the keyframes after a map may overtake it",
+                file=sys.stderr,
+                flush=True,
+            )
         if summary.unmatched:
             print(
                 f"monovoc replay: WARNING: no subscriber on {summary.unmatched} when their first message went out: "

@@ -467,13 +467,16 @@ class MappingNode(Node):
 
     def _on_gaussians(self, msg: Any) -> None:
         start = time.perf_counter()
-        self.stats.add(maps_received=1)
+        # Counted once queued or refused: a --fast replay waits for the count before the keyframes after it.
         try:
-            gaussians = ma.cloud_to_gaussian_map(msg)
-        except ValueError as exc:
-            self._refuse_map(f"Gaussian map ignored: {exc}")
-            return
-        self._accept_map(gaussians, ma.header_stamp_ns(msg), str(msg.header.frame_id), time.perf_counter() - start)
+            try:
+                gaussians = ma.cloud_to_gaussian_map(msg)
+            except ValueError as exc:
+                self._refuse_map(f"Gaussian map ignored: {exc}")
+                return
+            self._accept_map(gaussians, ma.header_stamp_ns(msg), str(msg.header.frame_id), time.perf_counter() - start)
+        finally:
+            self.stats.add(maps_received=1)
 
     def _ingest_bug(self, what: str, exc: Exception) -> None:
         """An input dropped by a bug, not by bad input: counted as ingest_errors and logged with its traceback."""
@@ -486,12 +489,13 @@ class MappingNode(Node):
         self.get_logger().error(message)
 
     def _on_received_map(self, received: ReceivedMap) -> None:
-        # Those it replaced in the reader were received too, and are coalesced before the worker saw them.
-        self.stats.add(maps_received=1 + received.superseded, maps_coalesced=received.superseded)
+        self.stats.add(maps_coalesced=received.superseded)  # replaced in the reader before the worker saw them
         try:
             self._accept_map(received.gaussians, received.stamp_ns, received.frame_id, received.decode_s)
         except Exception as exc:  # a bug must cost one map, not the map reader's thread, and show as a bug
             self._ingest_bug("gaussians: handling a map failed", exc)
+        finally:  # once queued (a --fast replay waits for the count), with those it replaced in the reader
+            self.stats.add(maps_received=1 + received.superseded)
 
     def _accept_map(self, gaussians: GaussianMap, stamp_ns: int, frame: str, decode_s: float) -> None:
         """A decoded map message (from the map callback or the map reader process) -> the worker."""
