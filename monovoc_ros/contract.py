@@ -16,6 +16,9 @@ import importlib
 DEFAULT_NAMESPACE = "/monovoc"
 CAMERA_FRAME = "camera_optical_frame"
 MAP_FRAME = "map"
+# Where every node publishes its diagnostics (absolute, as diagnostic_aggregator expects); `monovoc replay --fast`
+# reads the mapping node's count of maps taken there (bags/map_gate.py).
+DIAGNOSTICS_TOPIC = "/diagnostics"
 KEYFRAME_ROLES = ("image", "mask", "camera_info", "pose")
 # Optional keyframe input (node parameter use_segments): a segmenter's class names for the mask's segments,
 # one SegmentArray per mask with the mask's stamp (empty when it named nothing).

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from monovoc_ros.contract import DEFAULT_NAMESPACE as NAMESPACE
-from monovoc_ros.contract import KEYFRAME_ROLES, topic_names
+from monovoc_ros.contract import DIAGNOSTICS_TOPIC, KEYFRAME_ROLES, topic_names
 from monovoc_ros.fastdds_profile import PROFILES_ENV, PUBLICATION_MODE_ENV
 from monovoc_ros.nodes import service_call
 
@@ -344,7 +344,7 @@ class DiagnosticsMonitor:
     """Keeps the newest ``/diagnostics`` status whose name contains ``name``; ``values()`` is its key -> value
     dict (strings), ``wait_for(pred)`` polls pred(values)."""
 
-    def __init__(self, node: Any, name: str = "", topic: str = "/diagnostics"):
+    def __init__(self, node: Any, name: str = "", topic: str = DIAGNOSTICS_TOPIC):
         from diagnostic_msgs.msg import DiagnosticArray
 
         self.name = name

@@ -15,8 +15,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from monovoc_ros.contract import DIAGNOSTICS_TOPIC
+
 MAPS_RECEIVED_KEY = "maps_received"  # the /diagnostics key of MapperStats.maps_received
-DIAGNOSTICS_TOPIC = "/diagnostics"
 FIND_S = 3.0  # how long a replay looks for a node reporting the count (the node's default period is 1 s)
 WAIT_S = 30.0  # how long it waits for one map to be taken
 
@@ -45,19 +46,16 @@ class MapGate:
         with self._changed:
             return dict(self._taken)
 
-    def wait_taken(self, before: dict[str, int], stop: threading.Event) -> None:
-        """After a map was published (`before`: `counts()` just before): waits until a node took it; a map not
-        reported within WAIT_S is counted in `missed`, and the gate waits no more (its node is gone)."""
-        if not self.taken_since(before, stop) and not stop.is_set():
+    def wait_taken(self, before: dict[str, int], stop: threading.Event, timeout: float = WAIT_S) -> None:
+        """After a map was published (`before`: `counts()` just before): waits until a node's count grew past it; a
+        map not reported within `timeout` is counted in `missed`, and the gate waits no more (its node is gone)."""
+        taken = self._wait(lambda now: any(n > before.get(name, 0) for name, n in now.items()), timeout, stop)
+        if not taken and not stop.is_set():
             self.missed += 1
 
     def found(self, stop: threading.Event, timeout: float = FIND_S) -> bool:
         """Whether a node reports the count within `timeout`."""
         return self._wait(bool, timeout, stop)
-
-    def taken_since(self, before: dict[str, int], stop: threading.Event, timeout: float = WAIT_S) -> bool:
-        """Waits until a node's count grew past `before` (`counts()` before the map was published)."""
-        return self._wait(lambda now: any(n > before.get(name, 0) for name, n in now.items()), timeout, stop)
 
     def _wait(self, done: Callable[[dict[str, int]], bool], timeout: float, stop: threading.Event) -> bool:
         deadline = time.monotonic() + timeout

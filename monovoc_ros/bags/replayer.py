@@ -125,7 +125,7 @@ def expected_topics(topics: Iterable[str]) -> list[str]:
 
 def latched_topics(info: BagInfo) -> set[str]:
     """Topics replayed transient-local: recorded so, or the Gaussian map topic of our contract."""
-    return {t.name for t in info.topics.values() if t.transient_local or t.name.endswith("/gaussians")}
+    return {t.name for t in info.topics.values() if t.transient_local or _is_map(t.name)}
 
 
 class _Publishers:

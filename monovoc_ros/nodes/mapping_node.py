@@ -47,6 +47,7 @@ from rclpy.task import Future
 import msg_adapters as ma
 from monovoc_ros.contract import (
     DEFAULT_NAMESPACE,
+    DIAGNOSTICS_TOPIC,
     KEYFRAME_POSES_ROLE,
     KEYFRAME_POSES_TYPE,
     keyframe_types,
@@ -171,7 +172,7 @@ class MappingNode(Node):
         self._create_subscriptions()
         self._create_services()
         self._diagnostics = self.create_publisher(
-            _diagnostic_array_type(), "/diagnostics", DIAGNOSTICS_QOS, event_callbacks=output_events()
+            _diagnostic_array_type(), DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS, event_callbacks=output_events()
         )
         timers = self.callback_groups["timers"]
         # Wall-clock (steady) timers: with use_sim_time, ROS-time timers stop when /clock stops (a bag's end)

@@ -26,7 +26,13 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 import msg_adapters as ma
-from monovoc_ros.contract import DEFAULT_NAMESPACE, IMAGE_MESSAGE_TYPES, SEGMENTS_TYPE, message_class
+from monovoc_ros.contract import (
+    DEFAULT_NAMESPACE,
+    DIAGNOSTICS_TOPIC,
+    IMAGE_MESSAGE_TYPES,
+    SEGMENTS_TYPE,
+    message_class,
+)
 from monovoc_ros.nodes.mapping_node import StopSignals
 from monovoc_ros.nodes.param_spec import Param, ParameterError, declare
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, input_qos
@@ -96,7 +102,7 @@ class SegmenterNode(Node):
         image_type = message_class(IMAGE_MESSAGE_TYPES[values["image_transport"]])
         self.mask_pub = self.create_publisher(message_class(IMAGE_MESSAGE_TYPES["raw"]), "mask", input_qos(100))
         self.segments_pub = self.create_publisher(message_class(SEGMENTS_TYPE), "segments", input_qos(100))
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
         self._mailbox: Any = None
         self._wake = threading.Condition()
         self._stopping = False
