@@ -143,6 +143,8 @@ def worker_shares(values: dict[str, str], wall_s: float) -> dict:
     shares["total"] = round(sum(shares.values()), 3)
     shares["map_decoding_beside_the_worker"] = round(float(values["map_decode_s"]) / wall_s, 3)
     shares["map_update_plans_beside_the_worker"] = round(float(values["map_prepare_s"]) / wall_s, 3)
+    # The motions the map reader process registered for the plans (another process: not the node's cores' share).
+    shares["map_motions_in_the_map_reader"] = round(float(values.get("map_reader_motion_s", 0)) / wall_s, 3)
     return shares
 
 
@@ -239,6 +241,7 @@ def run(
             "maps_received": int(values["maps_received"]),
             "map_updates_applied": int(values["map_updates"]),
             "map_updates_prepared": int(values["map_updates_prepared"]),
+            "map_motions_given": int(values.get("map_motions_given", 0)),  # registered in the map reader process
             "map_updates_ahead": int(values["map_updates_ahead"]),
             "reintegrations": int(values["reintegrations"]),
             "maps_coalesced": int(values["maps_coalesced"]),

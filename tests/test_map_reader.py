@@ -12,6 +12,7 @@ import os
 import re
 import signal
 import socket
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import psutil
 import pytest
 
 import msg_adapters as ma
+from monovoc_ros.core.follow.map_motion import MapMotion
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.nodes import map_reader
 from monovoc_ros.nodes.qos import latched_qos
@@ -122,6 +124,77 @@ def test_refusals_end_of_stream_and_malformed_messages():
         ours.shutdown(socket.SHUT_RDWR)
         assert map_reader.receive(theirs) is None
     assert _maps_open() == 0
+
+
+def _motion() -> MapMotion:
+    rng = np.random.default_rng(3)
+    angle = 0.01
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    return MapMotion(rotation, rng.normal(size=3), rng.normal(size=3), 1.5, rng.normal(0, 0.01, (5, 4, 2, 3)),
+                     rms=0.004, inliers=0.97, converged=True, by="registration")  # fmt: skip
+
+
+def test_a_motion_crosses_the_socket_bit_for_bit():
+    motion = _motion()
+    ours, theirs = _pair()
+    with ours, theirs:
+        map_reader.send_motion(ours, 7, motion, 0.125)
+        got = map_reader.receive(theirs)
+        map_reader.send_motion(ours, 8, None, 0.5)  # not estimated: the node's plan estimates it
+        assert map_reader.receive(theirs) == map_reader.ReceivedMotion(8, None, 0.5)
+    assert isinstance(got, map_reader.ReceivedMotion) and (got.seq, got.seconds) == (7, 0.125)
+    for name in ("rotation", "translation", "origin", "offsets"):
+        np.testing.assert_array_equal(getattr(got.motion, name), getattr(motion, name), err_msg=name)
+    assert (got.motion.spacing, got.motion.rms, got.motion.inliers, got.motion.converged, got.motion.by) == (
+        1.5, 0.004, 0.97, True, "registration")  # fmt: skip
+    assert _maps_open() == 0  # copied out: its file is closed at once
+
+
+def test_a_malformed_motion_is_refused():
+    ours, theirs = _pair()
+    motion = _motion()
+    bad = [
+        (replace(motion, offsets=np.zeros((2, 2, 3))), "not expected"),
+        (replace(motion, rotation=np.full((3, 3), np.nan)), "not finite"),
+        (replace(motion, by="magic"), "a motion by 'magic'"),
+        (replace(motion, spacing=0.0), "field spacing of 0.0"),
+    ]
+    with ours, theirs:
+        for sent, error in bad:
+            map_reader.send_motion(ours, 1, sent, 0.0)
+            with pytest.raises(ValueError, match=re.escape(error)):
+                map_reader.receive(theirs)
+        header = {"kind": "motion", "seq": 1, "seconds": 0, "size": 64, "arrays": [], "spacing": 1, "rms": 0,
+                  "inliers": 1, "converged": True, "by": "ids"}  # fmt: skip
+        _send_header(ours, header)
+        with pytest.raises(ValueError, match="a motion of arrays"):
+            map_reader.receive(theirs)
+    assert _maps_open() == 0
+
+
+def test_each_map_gets_the_motion_its_child_sends_after_it():
+    """MotionHandover: a map's GivenMotion is from the map the same child handed over before; the motion message
+    completes it; a map without its motion (a newer one came first, or the child ended) completes it with None."""
+    handover = map_reader.MotionHandover()
+    maps = [small_scene().gaussians.subset(np.arange(i + 1)) for i in range(5)]
+
+    def received(seq: int) -> map_reader.ReceivedMap:
+        return map_reader.ReceivedMap(maps[seq - 1], seq, "map", 0.0, seq=seq)
+
+    assert handover.handed_over(received(1)).motion is None  # a child's first map: nothing before it
+    second = handover.handed_over(received(2)).motion
+    assert second.base is maps[0] and second.config == map_reader.READER_MOTION and not second.motion.done()
+    handover.arrived(map_reader.ReceivedMotion(1, _motion(), 0.1))  # not the awaited map's: ignored
+    assert not second.motion.done()
+    motion = _motion()
+    handover.arrived(map_reader.ReceivedMotion(2, motion, 0.2))
+    assert second.motion.result(0) is motion and handover.seconds == 0.2
+    third = handover.handed_over(received(3)).motion
+    fourth = handover.handed_over(received(4)).motion  # before the third's motion came
+    assert third.motion.result(0) is None and fourth.base is maps[2] and not fourth.motion.done()
+    handover.reset()  # the child ended
+    assert fourth.motion.result(0) is None
+    assert handover.handed_over(received(5)).motion is None  # a new child's first map
 
 
 def test_the_reader_keeps_only_the_newest_map_the_node_has_not_asked_for():

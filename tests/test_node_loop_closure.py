@@ -91,6 +91,8 @@ def test_loop_closure_without_ids_then_corrected_poses_live_equals_offline(tmp_p
             process=node,
         )  # fmt: skip
         assert float(done["map_update_carried_share"]) > 0.99
+        # The registration came from the map reader process (the node did not estimate it): the same result.
+        assert done["map_motions_given"] == "1" and float(done["map_reader_motion_s"]) > 0
         assert call_service(save, SaveMap.Request(directory=str(tmp_path / "final")), process=node).success
 
     final = load_snapshot(tmp_path / "final")
@@ -216,12 +218,13 @@ def test_a_bag_with_a_loop_closure_maps_the_same_live_and_offline(tmp_path, fast
             assert replay.returncode == 0, replay.describe()
             gated = '"map_gate": true' if fast else '"map_gate": null'  # --fast waited for the node to take the map
             assert gated in replay.output() and '"maps_unconfirmed": 0' in replay.output(), replay.describe()
-        diagnostics.wait_for(
+        done = diagnostics.wait_for(
             lambda v: v["keyframes_processed"] == str(N_KEYFRAMES) and v["reintegrations"] == "1"
             and v["reintegrating"] == "false" and v["map_updates"] == "1",
             30.0,
             process=node,
         )  # fmt: skip
+        assert done["map_motions_given"] == "1"  # registered in the map reader process
         assert call_service(save, SaveMap.Request(directory=str(tmp_path / "live")), process=node).success
     live = load_snapshot(tmp_path / "live")
     assert_same_evidence(live.state, reference.state, rtol=1e-12, atol=1e-12)

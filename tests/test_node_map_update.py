@@ -83,6 +83,8 @@ def test_map_update_carries_evidence_by_id(tmp_path, ahead, reader_process):
         publisher.gaussians.publish(update_msg)
         updated_values = diagnostics.wait_for(lambda v: v["map_updates"] == "1", 20.0, process=node)
         assert updated_values["map_updates_prepared"] == "1"  # its plan was made beside the worker
+        # with its motion (here from the ids) estimated in the map reader process, when there is one
+        assert updated_values["map_motions_given"] == ("1" if reader_process else "0")
         assert updated_values["map_updates_ahead"] == ("1" if ahead else "0")  # decided by the stamps alone
         assert call_service(save, SaveMap.Request(directory=str(tmp_path / "mid")), process=node).success
         for msgs in messages[8:]:

@@ -14,7 +14,9 @@ import pytest
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.follow.map_ahead import MapAhead
-from monovoc_ros.core.follow.map_follow import FollowConfig
+from monovoc_ros.core.follow.map_follow import FollowConfig, map_motion
+from monovoc_ros.core.follow.map_motion import MapMotion
+from monovoc_ros.core.follow.map_updater import GivenMotion, plan_map_update
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
@@ -256,6 +258,37 @@ def test_a_plan_is_used_only_for_the_maps_it_was_made_of():
     assert session.stats.map_updates_prepared == 0
     session.add_map(first, plan=session.plan_map(None, first))
     assert session.stats.map_updates == 2 and session.stats.map_updates_prepared == 1
+
+
+def test_a_plan_takes_a_motion_estimated_elsewhere_only_for_its_maps_and_equals_its_own():
+    first = plane_map(400, ids=False)
+    second = _without_ids_moved(first, 0.01, seed=1)
+    config = MapperConfig().follow()
+    own = plan_map_update(first, second, config)
+    estimated: Future = Future()
+    estimated.set_result(map_motion(first, second, config.motion))  # what the map reader process sends
+    given = plan_map_update(first, second, config, given=GivenMotion(first, config.motion, estimated))
+    assert given.motion_given and not own.motion_given
+    np.testing.assert_array_equal(given.follow.sources, own.follow.sources)
+    for name in ("rotation", "translation", "origin", "offsets"):
+        np.testing.assert_array_equal(getattr(given.follow.motion, name), getattr(own.follow.motion, name))
+    # Taken as given, not estimated again: a motion that is not the maps' own shows.
+    elsewhere: Future = Future()
+    elsewhere.set_result(MapMotion(translation=np.array([0.0, 0.0, 0.25]), by="registration"))
+    moved = plan_map_update(first, second, config, given=GivenMotion(first, config.motion, elsewhere))
+    assert moved.motion_given and moved.follow.motion.translation[2] == 0.25
+    # Of another old map, another configuration, or none was estimated (its Future holds None): estimated here.
+    nothing: Future = Future()
+    nothing.set_result(None)
+    other = replace(config.motion, sample=1000)
+    for hint in (
+        GivenMotion(second, config.motion, estimated),
+        GivenMotion(first, other, estimated),
+        GivenMotion(first, config.motion, nothing),
+    ):
+        plan = plan_map_update(first, second, config, given=hint)
+        assert not plan.motion_given
+        np.testing.assert_array_equal(plan.follow.sources, own.follow.sources)
 
 
 def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scratch():
@@ -716,8 +749,8 @@ class HeldPlans(MapWorker):
         super().__init__(*args, **kwargs)
         self.release = threading.Event()
 
-    def _prepare_map(self, base, gaussians):
-        prepared = super()._prepare_map(base, gaussians)
+    def _prepare_map(self, base, gaussians, given):
+        prepared = super()._prepare_map(base, gaussians, given)
         if prepared is None or base is None:  # the first map has nothing to prepare
             return prepared
         held: Future = Future()

@@ -36,6 +36,7 @@ from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MAX_AHEAD_S, MapA
 from monovoc_ros.core.follow.map_frames import update_stamp
 from monovoc_ros.core.follow.map_motion import MapMotion
 from monovoc_ros.core.follow.map_updater import (
+    GivenMotion,
     MapMotionError,
     MapUpdatePlan,
     MapUpdater,
@@ -290,16 +291,18 @@ class MappingSession:
         base: GaussianMap | None,
         gaussians: GaussianMap,
         on_motion: Callable[[MapMotion | None], None] | None = None,
+        given: GivenMotion | None = None,
     ) -> MapUpdatePlan | None:
         """The update of `base` (None: the map in use) to `gaussians` prepared for `add_map` (the registration
         and the evidence's sources: core.follow.map_updater.MapUpdatePlan), None when there is nothing to
         prepare (no map yet, or the same map again). Reads no state but the map in use, so a live node runs
-        it on a thread of its own while the mapper goes on with keyframes. `on_motion`: see plan_map_update."""
+        it on a thread of its own while the mapper goes on with keyframes. `on_motion`, `given`: see
+        plan_map_update."""
         mapper = self._mapper
         base = base if base is not None else (mapper.gaussians if mapper is not None else None)
         if base is None or len(gaussians) == 0 or same_geometry(base, gaussians):
             return None
-        return plan_map_update(base, gaussians, self.config.follow(), on_motion)
+        return plan_map_update(base, gaussians, self.config.follow(), on_motion, given)
 
     @property
     def poses_corrected(self) -> bool:

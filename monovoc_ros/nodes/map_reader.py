@@ -15,6 +15,13 @@ long as the map's arrays do. The node asks for each map (a credit byte) as soon 
 before; until then the child keeps only the newest (NewestMap), so a node starting up or falling behind never
 has a backlog of maps waiting in the socket.
 
+The child also registers each map it hands over against the one it handed over before (the registration of a map
+update without Gaussian ids, core.follow.map_follow.map_motion: 0.15-0.2 s of a 1M-Gaussian update's plan, 0.3-0.4 s
+in the node's process beside its worker) and sends that motion right after the map (a MapMotion's arrays in a
+sealed memfd too). The node's plan of that update takes it when the map before is the one the update starts from
+(core.follow.map_updater.GivenMotion: the same function of the same two maps, so the same plan) instead of
+estimating it beside the worker, which waits for the motion before the keyframes after the map go ahead of it.
+
 Lifetime: the child ends when the node closes its end of the socket (a stop, or the node dying in any way),
 destroying its participant first (Fast DDS removes its shared-memory files then), and ignores SIGINT and
 SIGTERM (a terminal's Ctrl-C or a signal to the process group reaches it too; the node decides when it
@@ -39,17 +46,31 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass
+from concurrent.futures import Future
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from monovoc_ros.core.follow.map_motion import MapMotion, MotionConfig
+from monovoc_ros.core.follow.map_updater import GivenMotion
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.fastdds_profile import child_environment
 
 # The arrays of a GaussianMap that a map message carries (cloud_to_gaussian_map fills no others), as the
 # GaussianMap holds them: the only dtypes a header may name.
 _DTYPES = {"means": "<f4", "scales": "<f4", "quats": "<f4", "opacities": "<f4", "colors": "<f4", "ids": "<i8"}
+# A MapMotion's arrays: name -> (dtype, shape; -1 for any length).
+_MOTION_ARRAYS = {
+    "rotation": ("<f8", (3, 3)),
+    "translation": ("<f8", (3,)),
+    "origin": ("<f8", (3,)),
+    "offsets": ("<f8", (-1, -1, -1, 3)),
+}
+_MOTION_BY = ("identity", "registration", "ids")
+# The registration the child runs (core.follow.map_follow.map_motion): the node's plans use the default, which no
+# parameter changes; a plan compares it with its own (GivenMotion.motion_for).
+READER_MOTION = MotionConfig()
 _ALIGN = 64
 _HEADER_BYTES = 1 << 16  # a header names six arrays and a frame id of at most _MAX_FRAME_ID characters
 _MAX_FRAME_ID = 1024
@@ -88,20 +109,61 @@ class ReceivedMap:
     frame_id: str
     decode_s: float  # the child's take-to-arrays time for this message
     superseded: int = 0  # maps the child decoded but replaced by this newer one before the node asked
+    seq: int = 0  # the child's count of maps handed over (from 1)
+    # Its motion from the map the same child handed over before, estimated there and sent after it (None: it is
+    # the child's first map).
+    motion: GivenMotion | None = None
+
+
+@dataclass(frozen=True)
+class ReceivedMotion:
+    """The motion of the child's map `seq` from the map it handed over before (None: not estimated, the same
+    geometry again or the estimate failed)."""
+
+    seq: int
+    motion: MapMotion | None
+    seconds: float  # the child's time estimating it
 
 
 # ---------------------------------------------------------------------------------------------- transport
 
 
 def send_map(
-    sock: socket.socket, gmap: GaussianMap, *, stamp_ns: int, frame_id: str, decode_s: float, superseded: int = 0
+    sock: socket.socket,
+    gmap: GaussianMap,
+    *,
+    stamp_ns: int,
+    frame_id: str,
+    decode_s: float,
+    superseded: int = 0,
+    seq: int = 0,
 ) -> None:
     """Writes ``gmap``'s arrays into a new sealed memfd and sends it with its header over ``sock``
     (SOCK_SEQPACKET)."""
+    arrays = [(name, getattr(gmap, name)) for name in _DTYPES if getattr(gmap, name) is not None]
+    header = {"kind": "map", "stamp_ns": int(stamp_ns), "frame_id": str(frame_id), "decode_s": float(decode_s),
+              "superseded": int(superseded), "seq": int(seq)}  # fmt: skip
+    _send_arrays(sock, header, arrays)
+
+
+def send_motion(sock: socket.socket, seq: int, motion: MapMotion | None, seconds: float) -> None:
+    """Sends the motion of map ``seq`` (None: not estimated); its arrays in a sealed memfd (a smooth field over a
+    building's floor is ~1 MB, more than one socket message holds)."""
+    header = {"kind": "motion", "seq": int(seq), "seconds": float(seconds)}
+    if motion is None:
+        sock.send(json.dumps(header).encode())
+        return
+    header.update(spacing=float(motion.spacing), rms=float(motion.rms), inliers=float(motion.inliers),
+                  converged=bool(motion.converged), by=str(motion.by))  # fmt: skip
+    arrays = [(name, np.asarray(getattr(motion, name), np.float64)) for name in _MOTION_ARRAYS]
+    _send_arrays(sock, header, arrays)
+
+
+def _send_arrays(sock: socket.socket, header: dict[str, Any], arrays: list[tuple[str, np.ndarray]]) -> None:
+    """Sends ``header`` with ``arrays`` written into a new sealed memfd (their layout added to the header)."""
     layout, offset = [], 0
     fd = os.memfd_create("monovoc_map", os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
     try:
-        arrays = [(name, getattr(gmap, name)) for name in _DTYPES if getattr(gmap, name) is not None]
         size = sum(_padded(a.nbytes) for _, a in arrays)
         os.ftruncate(fd, max(size, 1))
         for name, array in arrays:
@@ -110,9 +172,7 @@ def send_map(
             layout.append({"name": name, "dtype": array.dtype.str, "shape": list(array.shape), "offset": offset})
             offset += _padded(array.nbytes)
         fcntl.fcntl(fd, fcntl.F_ADD_SEALS, _SEALS)
-        header = {"kind": "map", "stamp_ns": int(stamp_ns), "frame_id": str(frame_id), "decode_s": float(decode_s),
-                  "superseded": int(superseded), "size": size, "arrays": layout}  # fmt: skip
-        socket.send_fds(sock, [json.dumps(header).encode()], [fd])
+        socket.send_fds(sock, [json.dumps({**header, "size": size, "arrays": layout}).encode()], [fd])
     finally:
         os.close(fd)  # the receiver holds its own descriptor from here
 
@@ -122,9 +182,9 @@ def send_refusal(sock: socket.socket, refusal: Refusal) -> None:
     sock.send(json.dumps({"kind": "refusal", "message": refusal.message, "bad_input": refusal.bad_input}).encode())
 
 
-def receive(sock: socket.socket) -> ReceivedMap | Refusal | None:
-    """The next map from ``sock``, or a refusal, or None when the sender has gone. A malformed message (what
-    our own child never sends) raises ValueError, its descriptor closed."""
+def receive(sock: socket.socket) -> ReceivedMap | ReceivedMotion | Refusal | None:
+    """The next map from ``sock``, or a map's motion, or a refusal, or None when the sender has gone. A malformed
+    message (what our own child never sends) raises ValueError, its descriptor closed."""
     data, fds, flags, _addr = socket.recv_fds(sock, _HEADER_BYTES, 1)
     try:
         if not data and not fds:
@@ -132,16 +192,22 @@ def receive(sock: socket.socket) -> ReceivedMap | Refusal | None:
         if flags & (socket.MSG_TRUNC | socket.MSG_CTRUNC):
             raise ValueError("message truncated")
         header = json.loads(data)
-        if header["kind"] == "refusal":
+        kind = header["kind"]
+        if kind == "refusal":
             return Refusal(str(header["message"]), bool(header["bad_input"]))
-        if header["kind"] != "map" or len(fds) != 1:
-            raise ValueError(f"unexpected message {header['kind']!r} with {len(fds)} descriptors")
+        if kind == "motion" and not fds:
+            return ReceivedMotion(int(header["seq"]), None, float(header["seconds"]))
+        if kind not in ("map", "motion") or len(fds) != 1:
+            raise ValueError(f"unexpected message {kind!r} with {len(fds)} descriptors")
+        if kind == "motion":
+            return ReceivedMotion(int(header["seq"]), _motion_of(fds[0], header), float(header["seconds"]))
         return ReceivedMap(
             _map_of(fds[0], header),
             int(header["stamp_ns"]),
             str(header["frame_id"]),
             float(header["decode_s"]),
             int(header["superseded"]),
+            int(header["seq"]),
         )
     except Exception as exc:  # whatever the header holds, one clear error
         raise ValueError(f"map reader: malformed message ({type(exc).__name__}: {exc})") from None
@@ -151,6 +217,29 @@ def receive(sock: socket.socket) -> ReceivedMap | Refusal | None:
 
 
 def _map_of(fd: int, header: dict[str, Any]) -> GaussianMap:
+    specs = {name: (dtype, None) for name, dtype in _DTYPES.items()}
+    return GaussianMap(**_arrays_of(fd, header, specs), stamp_ns=max(0, int(header["stamp_ns"])))
+
+
+def _motion_of(fd: int, header: dict[str, Any]) -> MapMotion:
+    arrays = _arrays_of(fd, header, _MOTION_ARRAYS)
+    if set(arrays) != set(_MOTION_ARRAYS):
+        raise ValueError(f"a motion of arrays {sorted(arrays)}")
+    spacing, by = float(header["spacing"]), str(header["by"])
+    if not (np.isfinite(spacing) and spacing > 0) or by not in _MOTION_BY:
+        raise ValueError(f"a motion by {by!r} with a field spacing of {spacing}")
+    if not all(np.isfinite(a).all() for a in arrays.values()):
+        raise ValueError("a motion that is not finite")
+    copies = {name: np.array(a) for name, a in arrays.items()}  # a few kB: not worth keeping the file mapped
+    return MapMotion(**copies, spacing=spacing, rms=float(header["rms"]), inliers=float(header["inliers"]),
+                     converged=bool(header["converged"]), by=by)  # fmt: skip
+
+
+def _arrays_of(
+    fd: int, header: dict[str, Any], specs: dict[str, tuple[str, tuple[int, ...] | None]]
+) -> dict[str, np.ndarray]:
+    """The arrays the header lays out in the sealed file ``fd``, read-only views of it; ``specs``: name -> (dtype,
+    shape; None: one or two dimensions of any length; -1: a dimension of any length)."""
     if fcntl.fcntl(fd, fcntl.F_GET_SEALS) & _SEALS != _SEALS:
         raise ValueError("the shared file is not sealed")
     size, actual = int(header["size"]), os.fstat(fd).st_size
@@ -161,15 +250,22 @@ def _map_of(fd: int, header: dict[str, Any]) -> GaussianMap:
     for entry in header["arrays"]:
         name, dtype, offset = entry["name"], np.dtype(entry["dtype"]), int(entry["offset"])
         shape = tuple(int(s) for s in entry["shape"])
-        if name not in _DTYPES or name in arrays or dtype.str != _DTYPES[name]:
+        if name not in specs or name in arrays or dtype.str != specs[name][0]:
             raise ValueError(f"array {name!r} of {dtype.str} not expected")
+        expected = specs[name][1]
+        if expected is None:
+            fits = 1 <= len(shape) <= 2
+        else:
+            fits = len(shape) == len(expected) and all(e in (-1, s) for e, s in zip(expected, shape, strict=True))
+        if not fits:
+            raise ValueError(f"array {name!r} of shape {shape} not expected")
         count = 1
         for s in shape:  # Python integers: no overflow
             count *= s
-        if not 1 <= len(shape) <= 2 or min(shape) < 0 or offset < 0 or offset + count * dtype.itemsize > size:
+        if min(shape) < 0 or offset < 0 or offset + count * dtype.itemsize > size:
             raise ValueError(f"array {name!r} of shape {shape} at {offset} outside the {size} bytes")
         arrays[name] = np.frombuffer(memory, dtype, count, offset).reshape(shape)
-    return GaussianMap(**arrays, stamp_ns=max(0, int(header["stamp_ns"])))
+    return arrays
 
 
 def _padded(nbytes: int) -> int:
@@ -236,12 +332,19 @@ class MapReaderProcess:
         self._on_map, self._on_refused, self._on_restart = on_map, on_refused, on_restart
         self._stopping = threading.Event()
         self._lock = threading.Lock()
+        # The current child's map handed over last, and the motion awaited for it (MotionHandover).
+        self._motions = MotionHandover()
         self._child: subprocess.Popen | None = None
         self._sock: socket.socket | None = None
         self._thread = threading.Thread(target=self._run, name="map_reader", daemon=True)
         # The first child starts now: its start-up (~1 s of imports and discovery) overlaps the node's own.
         with contextlib.suppress(OSError):  # the thread tries again, and says why
             self._child, self._sock = self._spawn()
+
+    @property
+    def motion_seconds(self) -> float:
+        """The children's time estimating the motions of the maps they handed over."""
+        return self._motions.seconds
 
     def start(self) -> None:
         """Hands the maps over from now on."""
@@ -326,6 +429,12 @@ class MapReaderProcess:
             sock.send(_CREDIT)
         except OSError:
             return
+        try:
+            self._receive_all(sock)
+        finally:  # a new child starts over: its first map has no motion, and none comes for this one's last
+            self._motions.reset()
+
+    def _receive_all(self, sock: socket.socket) -> None:
         while True:
             try:
                 item = receive(sock)
@@ -341,13 +450,53 @@ class MapReaderProcess:
                 if isinstance(item, Refusal):
                     self._on_refused(item)
                     continue
+                if isinstance(item, ReceivedMotion):
+                    self._motions.arrived(item)
+                    continue
                 sock.send(_CREDIT)  # the next map, as soon as there is one: this one goes to the worker's queue
-                self._on_map(item)
+                self._on_map(self._motions.handed_over(item))
             except OSError:
                 return
             except Exception as exc:  # a bug in the node's callbacks costs one message, not the hand-over
                 with contextlib.suppress(Exception):
                     self._on_refused(Refusal(_failure("handling", exc), bad_input=False))
+
+
+class MotionHandover:
+    """The node's side of the motions: each map a child hands over gets a GivenMotion from the map that child handed
+    over before, whose Future the motion message sent after the map completes. Completed with None (the plan then
+    estimates the motion itself) when the child skips it (a newer map comes first) or ends. Thread-safe."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last: GaussianMap | None = None
+        self._awaited: tuple[int, Future] | None = None
+        self.seconds = 0.0  # the children's time estimating motions
+
+    def handed_over(self, received: ReceivedMap) -> ReceivedMap:
+        """``received`` with the motion to come for it (none for a child's first map)."""
+        future: Future = Future()
+        with self._lock:
+            base, self._last = self._last, received.gaussians
+            awaited, self._awaited = self._awaited, (received.seq, future) if base is not None else None
+        if awaited is not None:
+            awaited[1].set_result(None)
+        return received if base is None else replace(received, motion=GivenMotion(base, READER_MOTION, future))
+
+    def arrived(self, motion: ReceivedMotion) -> None:
+        with self._lock:
+            awaited = self._awaited
+            if awaited is None or awaited[0] != motion.seq:
+                return  # of a map the node never had (our child sends none)
+            self._awaited = None
+            self.seconds += motion.seconds
+        awaited[1].set_result(motion.motion)
+
+    def reset(self) -> None:
+        with self._lock:
+            awaited, self._awaited, self._last = self._awaited, None, None
+        if awaited is not None:
+            awaited[1].set_result(None)
 
 
 # ---------------------------------------------------------------------------------------------- child
@@ -356,6 +505,22 @@ class MapReaderProcess:
 def _failure(during: str, exc: BaseException) -> str:
     trace = "".join(traceback.format_exception(exc))
     return f"map reader: {during} a map failed ({type(exc).__name__}: {exc}); map dropped\n{trace}"
+
+
+def _estimated_motion(old: GaussianMap, new: GaussianMap) -> tuple[MapMotion | None, float]:
+    """(the motion of `old` to `new` a node's plan would estimate, the seconds it took); None for the same geometry
+    again (a node prepares no update for it) or when the estimate failed (printed: the child's stderr is the
+    node's)."""
+    from monovoc_ros.core.follow.map_follow import map_motion  # numba kernels and scipy: only once a second map comes
+    from monovoc_ros.core.map.gaussians import same_geometry
+
+    start = time.perf_counter()
+    try:
+        motion = None if same_geometry(old, new) else map_motion(old, new, READER_MOTION)
+    except Exception:
+        traceback.print_exc()
+        motion = None
+    return motion, time.perf_counter() - start
 
 
 def _child_main(argv: list[str] | None = None) -> int:
@@ -380,16 +545,29 @@ def _child_main(argv: list[str] | None = None) -> int:
         node_gone.set()
 
     def hand_over() -> None:
+        seq, previous = 0, None
         while True:
             (gmap, stamp_ns, frame_id, decode_s), superseded = newest.take()
             try:
-                send_map(sock, gmap, stamp_ns=stamp_ns, frame_id=frame_id, decode_s=decode_s, superseded=superseded)
+                send_map(sock, gmap, stamp_ns=stamp_ns, frame_id=frame_id, decode_s=decode_s, superseded=superseded,
+                         seq=seq + 1)  # fmt: skip
             except ConnectionError:  # the node is gone
                 node_gone.set()
                 return
             except Exception as exc:  # no shared memory for it, most likely
                 with contextlib.suppress(OSError):
                     send_refusal(sock, Refusal(_failure("handing over", exc), bad_input=False))
+                continue
+            seq += 1
+            if previous is not None:
+                try:
+                    send_motion(sock, seq, *_estimated_motion(previous, gmap))
+                except ConnectionError:
+                    node_gone.set()
+                    return
+                except Exception:  # the node estimates it itself (the motion's Future completes with None)
+                    traceback.print_exc()
+            previous = gmap
 
     threading.Thread(target=listen_to_node, name="node", daemon=True).start()
     threading.Thread(target=hand_over, name="hand_over", daemon=True).start()

@@ -53,6 +53,7 @@ from monovoc_ros.contract import (
     keyframe_types,
     message_class,
 )
+from monovoc_ros.core.follow.map_updater import GivenMotion
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map.ply import load_ply
 from monovoc_ros.core.map_store import MapStoreError, current_snapshot, load_deferred, load_snapshot
@@ -492,19 +493,24 @@ class MappingNode(Node):
     def _on_received_map(self, received: ReceivedMap) -> None:
         self.stats.add(maps_coalesced=received.superseded)  # replaced in the reader before the worker saw them
         try:
-            self._accept_map(received.gaussians, received.stamp_ns, received.frame_id, received.decode_s)
+            self._accept_map(
+                received.gaussians, received.stamp_ns, received.frame_id, received.decode_s, received.motion
+            )
         except Exception as exc:  # a bug must cost one map, not the map reader's thread, and show as a bug
             self._ingest_bug("gaussians: handling a map failed", exc)
         finally:  # once queued (a --fast replay waits for the count), with those it replaced in the reader
             self.stats.add(maps_received=1 + received.superseded)
 
-    def _accept_map(self, gaussians: GaussianMap, stamp_ns: int, frame: str, decode_s: float) -> None:
-        """A decoded map message (from the map callback or the map reader process) -> the worker."""
+    def _accept_map(
+        self, gaussians: GaussianMap, stamp_ns: int, frame: str, decode_s: float, given: GivenMotion | None = None
+    ) -> None:
+        """A decoded map message (from the map callback or the map reader process, with the motion it estimates)
+        -> the worker."""
         self.stats.add(map_decode_s=decode_s, maps_decoded=1)
         if frame and frame != self.params.frame_id and frame not in self._warned_frame:
             self._warned_frame.add(frame)
             self.get_logger().warning(f"Gaussian map frame {frame!r} differs from frame_id {self.params.frame_id!r}")
-        self.worker.submit_map(gaussians, f"stamp {stamp_ns}")
+        self.worker.submit_map(gaussians, f"stamp {stamp_ns}", given)
 
     def _refuse_map(self, message: str) -> None:
         self.stats.reject("bad_gaussians")
@@ -621,6 +627,7 @@ class MappingNode(Node):
         snapshot["queue_length"] = self.worker.keyframes_waiting
         snapshot["inputs_waiting"] = len(self._reorder)
         snapshot["inputs_released_early"] = self._reorder.released_early
+        snapshot["map_reader_motion_s"] = self._map_reader.motion_seconds if self._map_reader is not None else 0.0
         with self._ingest_lock:
             sync = self.assembler.sync.stats
             extra: dict[str, Any] = {f"sync_unmatched.{r}": n for r, n in sync.unmatched.items()}

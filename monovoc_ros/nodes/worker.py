@@ -49,7 +49,7 @@ from typing import Any, Protocol
 
 from monovoc_ros.core.follow.keyframe_log import KeyframePoses
 from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MapAhead
-from monovoc_ros.core.follow.map_updater import MapUpdatePlan
+from monovoc_ros.core.follow.map_updater import GivenMotion, MapUpdatePlan
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import SnapshotInfo, write_snapshot
@@ -370,23 +370,28 @@ class MapWorker:
         self.stats.update(queue_length=self.keyframes_waiting)
         return dropped
 
-    def submit_map(self, gaussians: GaussianMap, name: str = "") -> None:
+    def submit_map(self, gaussians: GaussianMap, name: str = "", given: GivenMotion | None = None) -> None:
         """Queues a map; its update (registration, the evidence's sources) is prepared at once on the planning
-        thread, so that the worker only applies it when its turn comes."""
-        if self.queue.put_map(gaussians, name, self._prepare_map):
+        thread, so that the worker only applies it when its turn comes. `given`: its motion estimated elsewhere
+        (the map reader process), taken by the plan when it is of the map it prepares the update from."""
+        if self.queue.put_map(gaussians, name, lambda base, new: self._prepare_map(base, new, given)):
             self.stats.add(maps_coalesced=1)
 
-    def _prepare_map(self, base: GaussianMap | None, gaussians: GaussianMap) -> Preparation | None:
+    def _prepare_map(
+        self, base: GaussianMap | None, gaussians: GaussianMap, given: GivenMotion | None
+    ) -> Preparation | None:
         motion: Future = Future()
 
         def plan() -> MapUpdatePlan | None:
-            start = time.perf_counter()
+            start, made = time.perf_counter(), None
             try:
-                return self.session.plan_map(base, gaussians, motion.set_result)
+                made = self.session.plan_map(base, gaussians, motion.set_result, given)
+                return made
             finally:
                 if not motion.done():  # nothing to prepare, or it failed
                     motion.set_result(None)
-                self.stats.add(map_prepare_s=time.perf_counter() - start)
+                given_used = int(made is not None and made.motion_given)
+                self.stats.add(map_prepare_s=time.perf_counter() - start, map_motions_given=given_used)
 
         try:
             return Preparation(self._planner.submit(plan), motion)

@@ -93,8 +93,11 @@ def follow_map(old: GaussianMap, new: GaussianMap, config: FollowConfig | None =
     return follow_positions(follow_ids(old, new, config), new, config)
 
 
-def follow_ids(old: GaussianMap, new: GaussianMap, config: FollowConfig) -> FollowResult:
-    """Step 1: the sources by id (-1 for every other new Gaussian) and the map's motion."""
+def follow_ids(
+    old: GaussianMap, new: GaussianMap, config: FollowConfig, motion: MapMotion | None = None
+) -> FollowResult:
+    """Step 1: the sources by id (-1 for every other new Gaussian) and the map's motion (`motion`: estimated
+    beforehand by this function of these maps with `config.motion`, elsewhere; live, in the map reader process)."""
     old_ok = _finite_rows(old.means)  # None: every row (no copies at 1M Gaussians)
     new_ok = _finite_rows(new.means)
     old_means = old.means if old_ok is None else old.means[old_ok]
@@ -108,7 +111,9 @@ def follow_ids(old: GaussianMap, new: GaussianMap, config: FollowConfig) -> Foll
         if old_ok is not None:
             new_rows = new_rows[np.isin(sources[new_rows], old_ok)]
         old_rows = sources[new_rows]
-    if old_rows is not None and len(old_rows) >= 3:
+    if motion is not None:
+        pass
+    elif old_rows is not None and len(old_rows) >= 3:
         motion = estimate_motion(old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows)
     else:
         pick = slice(None) if new_ok is None else new_ok
@@ -116,6 +121,12 @@ def follow_ids(old: GaussianMap, new: GaussianMap, config: FollowConfig) -> Foll
         motion = estimate_motion(old_means, new.means[pick], config.motion, new_frames=frames)
     by_id = int(np.count_nonzero(sources >= 0))
     return FollowResult(sources, motion, by_id, 0, old_means, old_ok, new_ok)
+
+
+def map_motion(old: GaussianMap, new: GaussianMap, config: MotionConfig) -> MapMotion:
+    """The motion `follow_ids` finds from `old` to `new` with `config`: what a process holding both maps
+    estimates for a plan elsewhere (core.follow.map_updater.GivenMotion)."""
+    return follow_ids(old, new, FollowConfig(motion=config)).motion
 
 
 def follow_positions(follow: FollowResult, new: GaussianMap, config: FollowConfig) -> FollowResult:

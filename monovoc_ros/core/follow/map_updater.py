@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -39,7 +40,7 @@ from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.follow.keyframe_log import KeyframeLog, KeyframePoses, LoggedKeyframe
 from monovoc_ros.core.follow.map_follow import FollowConfig, FollowResult, follow_ids, follow_positions
 from monovoc_ros.core.follow.map_frames import MapFrames, PoseMover, in_new_frame, update_stamp
-from monovoc_ros.core.follow.map_motion import MapMotion
+from monovoc_ros.core.follow.map_motion import MapMotion, MotionConfig
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import validate_pose
 from monovoc_ros.core.map.gaussians import GaussianMap, removed_gaussians
@@ -56,6 +57,9 @@ _POSE_SUPPORT_M = 4.0
 _POSE_MOVE_MIN_M = 0.01
 # Corrected keyframe poses moving any keyframe farther than this (metres) are refused.
 MAX_POSE_CORRECTION_M = 10.0
+# Seconds a plan waits for a motion computed elsewhere (GivenMotion) before it estimates the motion itself: bounds
+# the wait on a process that hangs (1M Gaussians: the map reader's registration takes 0.15-0.4 s).
+GIVEN_MOTION_WAIT_S = 10.0
 # Work beside a map update: the new map's arrays during its plan (`plan_map_update`), its labels' geometry once it
 # is applied (`update_map`). Threads kept for the process: threads started per plan raised the 1M robot run's
 # peak RSS from 1.5-1.7 to 1.8-2.2 GB (glibc gives a new thread's allocations an arena of its own). Nothing on
@@ -174,6 +178,29 @@ def checked_poses(log: KeyframeLog | None, poses: KeyframePoses) -> list[tuple[i
 
 
 @dataclass(frozen=True, eq=False)
+class GivenMotion:
+    """The motion of a map update to a new map estimated elsewhere, by `follow_ids` of the same two maps with
+    `config` (live: the map reader process registers each map it hands over against the one it handed over before,
+    nodes/map_reader.py): `motion` is a Future of that MapMotion, or of None when it was not estimated (the reader
+    failed, or ended first). A plan takes it only for exactly that old map and configuration (`motion_for`)."""
+
+    base: GaussianMap  # the old map it was estimated against
+    config: MotionConfig
+    motion: Future
+
+    def motion_for(self, old: GaussianMap, config: MotionConfig) -> MapMotion | None:
+        """The given motion of `old` to the new map, when it is of `old` and `config`, waiting for it (at most
+        GIVEN_MOTION_WAIT_S); None when the plan must estimate it itself."""
+        if self.base is not old or self.config != config:
+            return None
+        try:
+            motion = self.motion.result(timeout=GIVEN_MOTION_WAIT_S)
+        except (FutureTimeout, CancelledError):
+            return None
+        return motion if isinstance(motion, MapMotion) else None
+
+
+@dataclass(frozen=True, eq=False)
 class MapUpdatePlan:
     """What a map update computes from the two maps alone (`plan_map_update`): the registration and the
     nearest old Gaussian of every new one, ~90% of an update without ids (1M Gaussians: ~1 s of 1.1 s). A
@@ -186,6 +213,7 @@ class MapUpdatePlan:
     config: FollowConfig
     follow: FollowResult
     refusal: str  # motion_refusal ("" when the motion is believable; step 2 of the follow only then)
+    motion_given: bool = False  # its motion was a GivenMotion's (estimated elsewhere), not estimated here
 
     def applies_to(self, old: GaussianMap, new: GaussianMap, config: FollowConfig) -> bool:
         return self.old is old and self.new is new and self.config == config
@@ -196,10 +224,13 @@ def plan_map_update(
     new: GaussianMap,
     config: FollowConfig,
     on_motion: Callable[[MapMotion | None], None] | None = None,
+    given: GivenMotion | None = None,
 ) -> MapUpdatePlan:
     """The map update of `old` to `new` up to the evidence transfer (see MapUpdatePlan); reads nothing else,
     so any thread may compute it. `on_motion` hears the map's motion (None: refused) as soon as it is known,
-    before the transfer (a live worker may integrate keyframes meanwhile: nodes/worker.py)."""
+    before the transfer (a live worker may integrate keyframes meanwhile: nodes/worker.py). `given`: the motion
+    estimated elsewhere, taken when it is of these maps (`GivenMotion.motion_for`): the same function of the same
+    maps, so the same plan."""
     # The rasterizer's per-map values, cached with the map: here, beside a live worker, and not in its first
     # keyframe after the update (1M Gaussians: the chunks, and the covariances and other arrays in their order,
     # ~70 ms). They read the new map only, so the `_BESIDE` pool computes them during the registration, whose
@@ -207,7 +238,8 @@ def plan_map_update(
     # 490-510 ms, but its memory on top of theirs raised the 2M node's peak RSS by 0.45 GB).
     arrays = _BESIDE.submit(lambda: (new.chunk_bounds, new.placed))
     try:
-        follow = follow_ids(old, new, config)
+        motion = given.motion_for(old, config.motion) if given is not None else None
+        follow = follow_ids(old, new, config, motion)
         refusal = motion_refusal(follow, config)
         if on_motion is not None:
             on_motion(None if refusal else follow.motion)
@@ -219,7 +251,7 @@ def plan_map_update(
     else:
         arrays.result()
         follow_positions(follow, new, config)
-    return MapUpdatePlan(old, new, config, follow, refusal)
+    return MapUpdatePlan(old, new, config, follow, refusal, motion_given=motion is not None)
 
 
 def update_map(
