@@ -143,6 +143,8 @@ def worker_shares(values: dict[str, str], wall_s: float) -> dict:
     shares["total"] = round(sum(shares.values()), 3)
     shares["map_decoding_beside_the_worker"] = round(float(values["map_decode_s"]) / wall_s, 3)
     shares["map_update_plans_beside_the_worker"] = round(float(values["map_prepare_s"]) / wall_s, 3)
+    # Of the worker's map updates: waiting for the motion or the plan prepared beside it.
+    shares["map_update_waits"] = round(float(values.get("map_update_wait_s", 0)) / wall_s, 3)
     # The motions the map reader process registered for the plans (another process: not the node's cores' share).
     shares["map_motions_in_the_map_reader"] = round(float(values.get("map_reader_motion_s", 0)) / wall_s, 3)
     return shares

@@ -45,6 +45,7 @@ class MapperStats(SessionStats):
     # decoding Gaussian map messages (in the map callback's thread, beside the worker).
     worker_s_keyframes: float = 0.0  # integration, association and the keyframe listeners (object views)
     worker_s_map_updates: float = 0.0  # checks, registration and evidence transfer of new SLAM maps
+    map_update_wait_s: float = 0.0  # of which waiting for the motion or the plan prepared beside the worker
     worker_s_reintegration: float = 0.0  # re-integration steps after a map update that bent the map
     reintegration_steps: int = 0  # logged keyframes integrated again (one per step)
     worker_s_labels: float = 0.0  # the semantic result (labels of every Gaussian) for a publication

@@ -9,8 +9,9 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
 * Gaussian maps from the SLAM front-end: never dropped; a map that directly follows another pending map
   replaces it (only the newest of consecutive updates matters: no keyframe lies between them). Its update's
   registration and evidence sources (~90% of an update without ids) are prepared at once on a planning
-  thread against the map queued before it (`MappingSession.plan_map`), while the worker integrates the
-  keyframes ahead of it; when its turn comes the worker applies the plan if that map is the one in use
+  thread against the map queued before it (`MappingSession.plan_map`; the registration already done by the map
+  reader process when it was of that map: `GivenMotion`), while the worker integrates the keyframes ahead of it;
+  when its turn comes the worker applies the plan if that map is the one in use
   (else the session computes the update itself: the same function, the same result). The keyframes stamped within
   `map_update_ahead_s` after a map do not wait for its plan: once the registration has the map's motion (about half
   of the plan) they go into the map in use, their poses taken back by that motion, and the update is applied
@@ -408,6 +409,7 @@ class MapWorker:
             task.plan.cancel()  # of a map not in use (refused, reset, loaded): no use waiting for it
             return None
         self._publish_before_waiting(task.plan)
+        start = time.perf_counter()
         try:
             return task.plan.result()
         except CancelledError:
@@ -415,6 +417,8 @@ class MapWorker:
         except Exception as exc:  # the session's own computation raises it again where it is handled
             self.log.warning(f"map {task.name}: preparing its update failed ({type(exc).__name__}: {exc})")
             return None
+        finally:
+            self.stats.add(map_update_wait_s=time.perf_counter() - start)
 
     def submit_keyframe_poses(self, poses: KeyframePoses, name: str = "") -> Future:
         """Corrected keyframe poses, applied in order with keyframes and maps (core.session)."""
@@ -693,7 +697,9 @@ class MapWorker:
         ):
             return False
         self._publish_before_waiting(task.motion)
+        start = time.perf_counter()
         wait([task.motion, task.plan], return_when=FIRST_COMPLETED)
+        self.stats.add(map_update_wait_s=time.perf_counter() - start)
         motion = task.motion.result() if task.motion.done() else None
         if motion is None:  # cancelled, refused, or nothing to prepare: `_apply_map` says why
             return False
