@@ -167,8 +167,10 @@ def test_a_malformed_motion_is_refused():
         header = {"kind": "motion", "seq": 1, "seconds": 0, "size": 64, "arrays": [], "spacing": 1, "rms": 0,
                   "inliers": 1, "converged": True, "by": "ids"}  # fmt: skip
         _send_header(ours, header)
-        with pytest.raises(ValueError, match="a motion of arrays"):
+        with pytest.raises(map_reader.MalformedMessage, match="a motion of arrays") as error:
             map_reader.receive(theirs)
+        # Told from a map: the node gives no credit for it and does not count it as a map message.
+        assert error.value.kind == "motion"
     assert _maps_open() == 0
 
 
@@ -194,7 +196,10 @@ def test_each_map_gets_the_motion_its_child_sends_after_it():
     assert third.motion.result(0) is None and fourth.base is maps[2] and not fourth.motion.done()
     handover.reset()  # the child ended
     assert fourth.motion.result(0) is None
-    assert handover.handed_over(received(5)).motion is None  # a new child's first map
+    assert handover.handed_over(received(1)).motion is None  # a new child's first map
+    # A map the node could not read (seq 2) is no base: the child's motion of 3 is from it, not from 1.
+    assert handover.handed_over(received(3)).motion is None
+    assert handover.handed_over(received(4)).motion.base is maps[2]
 
 
 def test_the_reader_keeps_only_the_newest_map_the_node_has_not_asked_for():

@@ -277,7 +277,8 @@ def test_a_plan_takes_a_motion_estimated_elsewhere_only_for_its_maps_and_equals_
     elsewhere.set_result(MapMotion(translation=np.array([0.0, 0.0, 0.25]), by="registration"))
     moved = plan_map_update(first, second, config, given=GivenMotion(first, config.motion, elsewhere))
     assert moved.motion_given and moved.follow.motion.translation[2] == 0.25
-    # Of another old map, another configuration, or none was estimated (its Future holds None): estimated here.
+    # Of another old map, another configuration, none was estimated (its Future holds None), or none came in time
+    # (a reader that hangs): estimated here.
     nothing: Future = Future()
     nothing.set_result(None)
     other = replace(config.motion, sample=1000)
@@ -285,10 +286,48 @@ def test_a_plan_takes_a_motion_estimated_elsewhere_only_for_its_maps_and_equals_
         GivenMotion(second, config.motion, estimated),
         GivenMotion(first, other, estimated),
         GivenMotion(first, config.motion, nothing),
+        GivenMotion(first, config.motion, Future(), wait_s=0.05),
     ):
         plan = plan_map_update(first, second, config, given=hint)
         assert not plan.motion_given
         np.testing.assert_array_equal(plan.follow.sources, own.follow.sources)
+
+
+def test_the_worker_takes_a_given_motion_only_for_the_map_its_update_starts_from():
+    """As the node with its map reader: each map comes with the motion from the map before it; a map refused by the
+    worker (map_shrink) leaves the next map's given motion unused, and the result is the offline one either way."""
+    first = plane_map(400, ids=False)
+    second = _without_ids_moved(first, 0.01, seed=1)
+    shrunk = first.subset(np.arange(40))  # refused: the map in use stays `second`
+    third = _without_ids_moved(second, 0.01, seed=2)
+    fourth = _without_ids_moved(third, 0.01, seed=3)
+    maps = [first, second, shrunk, third, fourth]
+    config = MapperConfig().follow().motion
+    worker, _, _ = make_worker()
+    worker.start()
+    try:
+        for i, (before, gmap) in enumerate(zip([None, *maps], maps, strict=False)):
+            given = None
+            if before is not None:
+                motion: Future = Future()
+                motion.set_result(map_motion(before, gmap, config))
+                given = GivenMotion(before, config, motion)
+            worker.submit_map(gmap, given=given)
+            worker.submit_keyframe(keyframe(i + 1))
+            drain(worker)
+        live = worker.submit(lambda m: (m.state, m.gaussians)).result(5)
+    finally:
+        worker.stop()
+    offline = MappingSession(MapperConfig())
+    for i, gmap in enumerate(maps):
+        offline.add_map(gmap)
+        offline.add_keyframe(keyframe(i + 1))
+        offline.integrate_next()
+    assert live[1] is fourth and offline.mapper.gaussians is fourth
+    assert_same_evidence(live[0], offline.mapper.state)
+    assert worker.stats.map_updates == 3 and worker.stats.rejected["map_shrink"] == 1
+    # second's and fourth's motions were taken; third's was of `shrunk`, not of the map in use (`second`)
+    assert worker.stats.map_motions_given == 2
 
 
 def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scratch():

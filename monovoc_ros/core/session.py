@@ -97,6 +97,7 @@ class SessionStats:
     map_version: int = 0
     map_updates: int = 0  # map updates applied (core.follow.map_updater)
     map_updates_prepared: int = 0  # of them, applied with a plan prepared beforehand (`plan_map`)
+    map_motions_given: int = 0  # of those, with a motion estimated elsewhere (live: the map reader process)
     map_updates_ahead: int = 0  # map updates later keyframes went ahead of into the map in use, counted as they start
     # Keyframes integrated before the map they were posed in (stamped at or before them) reached the mapper: that
     # map's update left their logged poses; and keyframes posed in a map older than the one in use, moved into it

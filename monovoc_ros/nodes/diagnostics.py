@@ -59,7 +59,6 @@ class MapperStats(SessionStats):
     maps_decoded: int = 0
     map_reader_restarts: int = 0  # map reader processes that exited while the node ran (another was started)
     map_prepare_s: float = 0.0  # preparing map updates (MappingSession.plan_map) on a thread beside the worker
-    map_motions_given: int = 0  # map update plans that took the motion the map reader process estimated
 
 
 def diagnostic_status(stats: dict[str, Any], *, name: str, hardware_id: str, extra: dict[str, Any] | None = None):

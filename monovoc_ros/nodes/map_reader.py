@@ -15,12 +15,15 @@ long as the map's arrays do. The node asks for each map (a credit byte) as soon 
 before; until then the child keeps only the newest (NewestMap), so a node starting up or falling behind never
 has a backlog of maps waiting in the socket.
 
-The child also registers each map it hands over against the one it handed over before (the registration of a map
-update without Gaussian ids, core.follow.map_follow.map_motion: 0.15-0.2 s of a 1M-Gaussian update's plan, 0.3-0.4 s
-in the node's process beside its worker) and sends that motion right after the map (a MapMotion's arrays in a
-sealed memfd too). The node's plan of that update takes it when the map before is the one the update starts from
-(core.follow.map_updater.GivenMotion: the same function of the same two maps, so the same plan) instead of
-estimating it beside the worker, which waits for the motion before the keyframes after the map go ahead of it.
+The child also registers each map it hands over against the one it handed over before (core.follow.map_follow.
+map_motion, the motion a plan estimates: by registration without Gaussian ids, 0.15-0.2 s of a 1M-Gaussian update's
+plan in a process of its own, ~0.35 s beside a busy node; from the ids when both maps have them) and sends that motion
+right after the map (a MapMotion's arrays in a sealed memfd too; nothing when it could not estimate it). The node's
+plan of that update takes it when the map before is the one the update starts from (core.follow.map_updater.
+GivenMotion: the same function of the same two maps, so the same plan) instead of estimating it beside the worker,
+which waits for the motion before the keyframes after the map go ahead of it. The node attaches a motion only to a map
+that directly follows the one it received before from the same child (`seq`): after a message it could not read, the
+next map's plan estimates its motion itself.
 
 Lifetime: the child ends when the node closes its end of the socket (a stop, or the node dying in any way),
 destroying its participant first (Fast DDS removes its shared-memory files then), and ignores SIGINT and
@@ -52,9 +55,11 @@ from typing import Any
 
 import numpy as np
 
+from monovoc_ros.core.follow.map_follow import map_motion
 from monovoc_ros.core.follow.map_motion import MapMotion, MotionConfig
 from monovoc_ros.core.follow.map_updater import GivenMotion
-from monovoc_ros.core.map.gaussians import GaussianMap
+from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
+from monovoc_ros.core.thread_pools import single_threaded_blas
 from monovoc_ros.fastdds_profile import child_environment
 
 # The arrays of a GaussianMap that a map message carries (cloud_to_gaussian_map fills no others), as the
@@ -96,10 +101,20 @@ def supported() -> bool:
 @dataclass(frozen=True)
 class Refusal:
     """A map message the child did not hand over: ``bad_input`` when the message was at fault (what the node
-    counts as bad_gaussians), else the reader failed on it (a bug, or no shared memory for it)."""
+    counts as bad_gaussians), else the reader failed on it (a bug, or no shared memory for it). ``of_map`` False:
+    not a map but a map's motion the node could not read (its plan estimates the motion itself)."""
 
     message: str
     bad_input: bool
+    of_map: bool = True
+
+
+class MalformedMessage(ValueError):
+    """A message from the child that the node cannot read; ``kind`` as its header says, when it could be read."""
+
+    def __init__(self, message: str, kind: str | None) -> None:
+        super().__init__(message)
+        self.kind = kind
 
 
 @dataclass(frozen=True)
@@ -186,13 +201,14 @@ def receive(sock: socket.socket) -> ReceivedMap | ReceivedMotion | Refusal | Non
     """The next map from ``sock``, or a map's motion, or a refusal, or None when the sender has gone. A malformed
     message (what our own child never sends) raises ValueError, its descriptor closed."""
     data, fds, flags, _addr = socket.recv_fds(sock, _HEADER_BYTES, 1)
+    kind = None
     try:
         if not data and not fds:
             return None
         if flags & (socket.MSG_TRUNC | socket.MSG_CTRUNC):
             raise ValueError("message truncated")
         header = json.loads(data)
-        kind = header["kind"]
+        kind = str(header["kind"])
         if kind == "refusal":
             return Refusal(str(header["message"]), bool(header["bad_input"]))
         if kind == "motion" and not fds:
@@ -210,7 +226,7 @@ def receive(sock: socket.socket) -> ReceivedMap | ReceivedMotion | Refusal | Non
             int(header["seq"]),
         )
     except Exception as exc:  # whatever the header holds, one clear error
-        raise ValueError(f"map reader: malformed message ({type(exc).__name__}: {exc})") from None
+        raise MalformedMessage(f"map reader: malformed message ({type(exc).__name__}: {exc})", kind) from None
     finally:
         for fd in fds:
             os.close(fd)
@@ -438,10 +454,14 @@ class MapReaderProcess:
         while True:
             try:
                 item = receive(sock)
-            except ValueError as exc:  # it may have been a map, which spent the child's credit: give another
-                item = Refusal(str(exc), bad_input=False)
-                with contextlib.suppress(OSError):
-                    sock.send(_CREDIT)
+            except MalformedMessage as exc:
+                # A map or a motion lost: the next map's motion may not be of the map the node has before it.
+                self._motions.reset()
+                of_map = exc.kind != "motion"
+                item = Refusal(str(exc), bad_input=False, of_map=of_map)
+                if of_map:  # it may have been a map, which spent the child's credit: give another
+                    with contextlib.suppress(OSError):
+                        sock.send(_CREDIT)
             except OSError:
                 return
             if item is None:
@@ -464,20 +484,23 @@ class MapReaderProcess:
 
 class MotionHandover:
     """The node's side of the motions: each map a child hands over gets a GivenMotion from the map that child handed
-    over before, whose Future the motion message sent after the map completes. Completed with None (the plan then
-    estimates the motion itself) when the child skips it (a newer map comes first) or ends. Thread-safe."""
+    over right before it (the previous `seq`), whose Future the motion message sent after the map completes.
+    Completed with None (the plan then estimates the motion itself) when the child sends none or a newer map comes
+    first; after a message the node could not read, or the child's end (`reset`), the next map gets none.
+    Thread-safe."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._last: GaussianMap | None = None
+        self._last: tuple[int, GaussianMap] | None = None  # (seq, map) received last from the current child
         self._awaited: tuple[int, Future] | None = None
         self.seconds = 0.0  # the children's time estimating motions
 
     def handed_over(self, received: ReceivedMap) -> ReceivedMap:
-        """``received`` with the motion to come for it (none for a child's first map)."""
+        """``received`` with the motion to come for it (none for a child's first map, or after a gap)."""
         future: Future = Future()
         with self._lock:
-            base, self._last = self._last, received.gaussians
+            last, self._last = self._last, (received.seq, received.gaussians)
+            base = last[1] if last is not None and last[0] == received.seq - 1 else None
             awaited, self._awaited = self._awaited, (received.seq, future) if base is not None else None
         if awaited is not None:
             awaited[1].set_result(None)
@@ -511,9 +534,6 @@ def _estimated_motion(old: GaussianMap, new: GaussianMap) -> tuple[MapMotion | N
     """(the motion of `old` to `new` a node's plan would estimate, the seconds it took); None for the same geometry
     again (a node prepares no update for it) or when the estimate failed (printed: the child's stderr is the
     node's)."""
-    from monovoc_ros.core.follow.map_follow import map_motion  # numba kernels and scipy: only once a second map comes
-    from monovoc_ros.core.map.gaussians import same_geometry
-
     start = time.perf_counter()
     try:
         motion = None if same_geometry(old, new) else map_motion(old, new, READER_MOTION)
@@ -534,6 +554,7 @@ def _child_main(argv: list[str] | None = None) -> int:
     # whole process group would otherwise end the reader first and count as a crash.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    single_threaded_blas()  # as in the node (core.thread_pools): the registration's numpy hands BLAS small matrices
     sock = socket.socket(fileno=args.fd)
     newest = NewestMap()
     node_gone = threading.Event()
@@ -560,13 +581,16 @@ def _child_main(argv: list[str] | None = None) -> int:
                 continue
             seq += 1
             if previous is not None:
+                motion, seconds = _estimated_motion(previous, gmap)
                 try:
-                    send_motion(sock, seq, *_estimated_motion(previous, gmap))
+                    send_motion(sock, seq, motion, seconds)
                 except ConnectionError:
                     node_gone.set()
                     return
-                except Exception:  # the node estimates it itself (the motion's Future completes with None)
+                except Exception:  # no shared memory for its arrays, most likely: the node estimates it itself
                     traceback.print_exc()
+                    with contextlib.suppress(OSError):
+                        send_motion(sock, seq, None, seconds)  # needs no descriptor
             previous = gmap
 
     threading.Thread(target=listen_to_node, name="node", daemon=True).start()

@@ -517,7 +517,7 @@ class MappingNode(Node):
         self._reject_log("bad_gaussians", message)
 
     def _on_reader_refusal(self, refusal: Refusal) -> None:
-        self.stats.add(maps_received=1)
+        self.stats.add(maps_received=int(refusal.of_map))
         if refusal.bad_input:
             self._refuse_map(refusal.message)
         else:  # the reader's own failure, its traceback in the message

@@ -384,15 +384,13 @@ class MapWorker:
         motion: Future = Future()
 
         def plan() -> MapUpdatePlan | None:
-            start, made = time.perf_counter(), None
+            start = time.perf_counter()
             try:
-                made = self.session.plan_map(base, gaussians, motion.set_result, given)
-                return made
+                return self.session.plan_map(base, gaussians, motion.set_result, given)
             finally:
                 if not motion.done():  # nothing to prepare, or it failed
                     motion.set_result(None)
-                given_used = int(made is not None and made.motion_given)
-                self.stats.add(map_prepare_s=time.perf_counter() - start, map_motions_given=given_used)
+                self.stats.add(map_prepare_s=time.perf_counter() - start)
 
         try:
             return Preparation(self._planner.submit(plan), motion)

@@ -107,6 +107,7 @@ class MapUpdateReport:
     seconds: float = 0.0  # in update_map (live: the worker's part, when the update was prepared beside it)
     sources: np.ndarray | None = None  # (N_new,) int64 old row whose evidence each new Gaussian took, -1: none
     prepared: bool = False  # its MapUpdatePlan was prepared beforehand (live: beside the worker)
+    motion_given: bool = False  # that plan's motion was estimated elsewhere (live: in the map reader process)
     mover: PoseMover | None = None  # how it moved camera poses (None: they stay)
     poses_kept: int = 0  # logged poses it would have moved that are stamped at or after it (in its frame already)
 
@@ -187,14 +188,15 @@ class GivenMotion:
     base: GaussianMap  # the old map it was estimated against
     config: MotionConfig
     motion: Future
+    wait_s: float = GIVEN_MOTION_WAIT_S  # the longest a plan waits for it
 
     def motion_for(self, old: GaussianMap, config: MotionConfig) -> MapMotion | None:
         """The given motion of `old` to the new map, when it is of `old` and `config`, waiting for it (at most
-        GIVEN_MOTION_WAIT_S); None when the plan must estimate it itself."""
+        `wait_s`); None when the plan must estimate it itself."""
         if self.base is not old or self.config != config:
             return None
         try:
-            motion = self.motion.result(timeout=GIVEN_MOTION_WAIT_S)
+            motion = self.motion.result(timeout=self.wait_s)
         except (FutureTimeout, CancelledError):
             return None
         return motion if isinstance(motion, MapMotion) else None
@@ -290,6 +292,7 @@ def update_map(
         seconds=time.perf_counter() - start,
         sources=follow.sources,
         prepared=prepared,
+        motion_given=prepared and plan.motion_given,
         mover=mover,
         poses_kept=kept,
     )
@@ -441,7 +444,10 @@ class MapUpdater:
         report = update_map(mapper, gaussians, plan, taken_back)
         self.frames.updated(old, gaussians, report.mover)
         self.stats.add(
-            map_updates=1, map_updates_prepared=int(report.prepared), keyframes_before_their_map=report.poses_kept
+            map_updates=1,
+            map_updates_prepared=int(report.prepared),
+            map_motions_given=int(report.motion_given),
+            keyframes_before_their_map=report.poses_kept,
         )
         self.stats.update(map_update_carried_share=report.carried_share, ms_map_update_last=1e3 * report.seconds)
         early = f"; {report.poses_kept} keyframes stamped after it came first (poses kept)" if report.poses_kept else ""
