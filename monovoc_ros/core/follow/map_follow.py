@@ -111,11 +111,10 @@ def follow_ids(
         if old_ok is not None:
             new_rows = new_rows[np.isin(sources[new_rows], old_ok)]
         old_rows = sources[new_rows]
-    if motion is not None:
-        pass
-    elif old_rows is not None and len(old_rows) >= 3:
+    by_ids = old_rows is not None and len(old_rows) >= 3
+    if motion is None and by_ids:
         motion = estimate_motion(old.means, new.means, config.motion, old_rows=old_rows, new_rows=new_rows)
-    else:
+    elif motion is None:
         pick = slice(None) if new_ok is None else new_ok
         frames = (new.quats[pick], new.scales[pick])
         motion = estimate_motion(old_means, new.means[pick], config.motion, new_frames=frames)
