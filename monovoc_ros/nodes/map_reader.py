@@ -18,7 +18,7 @@ has a backlog of maps waiting in the socket.
 The child also registers each map it hands over against the one it handed over before (core.follow.map_follow.
 map_motion, the motion a plan estimates: by registration without Gaussian ids, 0.15-0.2 s of a 1M-Gaussian update's
 plan in a process of its own, ~0.35 s beside a busy node; from the ids when both maps have them) and sends that motion
-right after the map (a MapMotion's arrays in a sealed memfd too; nothing when it could not estimate it). The node's
+right after the map (a MapMotion's arrays in a sealed memfd too; "none" when it could not estimate it). The node's
 plan of that update takes it when the map before is the one the update starts from (core.follow.map_updater.
 GivenMotion: the same function of the same two maps, so the same plan) instead of estimating it beside the worker,
 which waits for the motion before the keyframes after the map go ahead of it. The node attaches a motion only to a map
