@@ -277,13 +277,23 @@ def test_a_plan_takes_a_motion_estimated_elsewhere_only_for_its_maps_and_equals_
     elsewhere.set_result(MapMotion(translation=np.array([0.0, 0.0, 0.25]), by="registration"))
     moved = plan_map_update(first, second, config, given=GivenMotion(first, config.motion, elsewhere))
     assert moved.motion_given and moved.follow.motion.translation[2] == 0.25
-    # Of another old map, another configuration, none was estimated (its Future holds None), or none came in time
-    # (a reader that hangs): estimated here.
+    # Of the same map sent again (another object, the same arrays: a SLAM re-publishing it, a new map reader's
+    # latched copy): taken.
+    again = GaussianMap(first.means.copy(), first.scales.copy(), first.quats.copy(), first.opacities.copy())
+    copied = plan_map_update(first, second, config, given=GivenMotion(again, config.motion, estimated))
+    assert copied.motion_given
+    np.testing.assert_array_equal(copied.follow.sources, own.follow.sources)
+    # Of another old map (one centre moved a micrometre too), another configuration, none was estimated (its Future
+    # holds None), or none came in time (a reader that hangs): estimated here.
+    means = first.means.copy()
+    means[7, 0] += 1e-6
+    nudged = GaussianMap(means, first.scales, first.quats, first.opacities)
     nothing: Future = Future()
     nothing.set_result(None)
     other = replace(config.motion, sample=1000)
     for hint in (
         GivenMotion(second, config.motion, estimated),
+        GivenMotion(nudged, config.motion, estimated),
         GivenMotion(first, other, estimated),
         GivenMotion(first, config.motion, nothing),
         GivenMotion(first, config.motion, Future(), wait_s=0.05),

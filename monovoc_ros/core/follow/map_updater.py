@@ -58,8 +58,9 @@ _POSE_MOVE_MIN_M = 0.01
 # Corrected keyframe poses moving any keyframe farther than this (metres) are refused.
 MAX_POSE_CORRECTION_M = 10.0
 # Seconds a plan waits for a motion computed elsewhere (GivenMotion) before it estimates the motion itself: bounds
-# the wait on a process that hangs (1M Gaussians: the map reader's registration takes 0.15-0.4 s).
-GIVEN_MOTION_WAIT_S = 10.0
+# the wait on a process that hangs or a registration that takes unusually long (1M Gaussians: the map reader's takes
+# 0.15-0.4 s, 2M ~2x), which the plan then repeats.
+GIVEN_MOTION_WAIT_S = 3.0
 # Work beside a map update: the new map's arrays during its plan (`plan_map_update`), its labels' geometry once it
 # is applied (`update_map`). Threads kept for the process: threads started per plan raised the 1M robot run's
 # peak RSS from 1.5-1.7 to 1.8-2.2 GB (glibc gives a new thread's allocations an arena of its own). Nothing on
@@ -183,7 +184,8 @@ class GivenMotion:
     """The motion of a map update to a new map estimated elsewhere, by `follow_ids` of the same two maps with
     `config` (live: the map reader process registers each map it hands over against the one it handed over before,
     nodes/map_reader.py): `motion` is a Future of that MapMotion, or of None when it was not estimated (the reader
-    failed, or ended first). A plan takes it only for exactly that old map and configuration (`motion_for`)."""
+    failed, or ended first). A plan takes it only for that old map (the same object, or the same arrays the
+    registration reads: a map sent again arrives as another object) and configuration (`motion_for`)."""
 
     base: GaussianMap  # the old map it was estimated against
     config: MotionConfig
@@ -193,13 +195,23 @@ class GivenMotion:
     def motion_for(self, old: GaussianMap, config: MotionConfig) -> MapMotion | None:
         """The given motion of `old` to the new map, when it is of `old` and `config`, waiting for it (at most
         `wait_s`); None when the plan must estimate it itself."""
-        if self.base is not old or self.config != config:
+        if self.config != config or not _registers_as(self.base, old):
             return None
         try:
             motion = self.motion.result(timeout=self.wait_s)
         except (FutureTimeout, CancelledError):
             return None
         return motion if isinstance(motion, MapMotion) else None
+
+
+def _registers_as(a: GaussianMap, b: GaussianMap) -> bool:
+    """Whether `follow_ids` reads the same arrays of `a` as of `b` (centres, frames and ids), exactly."""
+    if a is b:
+        return True
+    if len(a) != len(b) or (a.ids is None) != (b.ids is None):
+        return False
+    pairs = [(a.means, b.means), (a.quats, b.quats), (a.scales, b.scales), (a.ids, b.ids)]
+    return all(x is None or np.array_equal(x, y) for x, y in pairs)
 
 
 @dataclass(frozen=True, eq=False)
