@@ -125,6 +125,19 @@ def test_absurd_motions_are_refused():
     assert motion_refusal(follow_map(old, far), FollowConfig()) != ""
 
 
+def test_a_map_whose_centres_pile_up_is_refused_without_registering_it():
+    """Thousands of centres in one 10 cm cell (every Gaussian at one point): no SLAM map looks like that, and the
+    registration's neighbour searches scan a cell whole per query (30k at one point took ~23 s). Refused at once as a
+    registration that did not converge; a map as crowded as a real one still registers."""
+    old = replace(small_scene().gaussians, ids=None)
+    piled = replace(old, means=np.repeat(old.means[:1], len(old), axis=0))
+    follow = follow_map(old, piled)
+    assert not follow.motion.converged and follow.motion.inliers == 0.0
+    assert motion_refusal(follow, FollowConfig()) == "the registration of the old map to the new one did not converge"
+    moved = churn.loop_closure(old, degrees=0.5, seed=3).gaussians
+    assert motion_refusal(follow_map(old, moved), FollowConfig()) == ""
+
+
 def replace_motion(**changes):
     from monovoc_ros.core.follow.map_motion import MotionConfig
 

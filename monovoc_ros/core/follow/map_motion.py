@@ -43,6 +43,10 @@ from monovoc_ros.core.map.camera import quat_wxyz_to_matrix, validate_pose
 # took 3-5 ms per 12k queries where scipy's cKDTree took 23-30 ms (and 87 ms to build, the grid 25).
 _TARGET_CELL_M = 0.1
 _GRID_MAX_TRIM_M = 1.0  # beyond it (start_trim set wider than its 0.5 m), a k-d tree: no cube of cells to scan
+# A new map with more targets than this in one grid cell is not registered (a motion that did not converge: refused
+# once there is evidence). Each search scans a query's cells whole, and the k-d tree splits no pile of equal points:
+# 30k Gaussians at one point took ~23 s to register. Replica office_0 holds at most 61 centres in a 10 cm cell.
+_MAX_CELL_TARGETS = 4096
 # Poses moved together by MapMotion.move_poses (a (chunk, support) distance matrix: 64 x 20k float64, 10 MB).
 _POSE_CHUNK = 64
 _FIRST_AXES = np.diag([1.0, 1.0, 0.0])
@@ -233,6 +237,7 @@ class _Targets:
         self, new: np.ndarray, known: np.ndarray | None, config: MotionConfig, frames: tuple | None = None
     ) -> None:
         self.known = known
+        self.crowded = 0
         self._others = np.zeros((0, 3))  # new centres that are not targets (when the targets are a sample)
         self._frames: tuple | None = None
         if known is None:
@@ -243,6 +248,8 @@ class _Targets:
                 rows = (rng.random() * step + step * np.arange(config.target_sample)).astype(np.int64)
             self.points = np.asarray(new[rows], np.float64)
             self.grid = PointGrid.build(self.points, _TARGET_CELL_M)
+            # The most targets in one cell: a map whose centres pile up in one place (`_sample`).
+            self.crowded = int(np.diff(self.grid.cell_starts).max()) if len(self.points) else 0
             self._frames = None if frames is None else (frames[0][rows], frames[1][rows])
             if len(rows) < len(new):
                 sampled = np.zeros(len(new), bool)
@@ -403,7 +410,8 @@ def _sample(
     new_rows: np.ndarray | None,
     new_frames: tuple[np.ndarray, np.ndarray] | None,
 ) -> _Sample | None:
-    """The sample of `estimate_motion` (None: fewer than 3 centres in a map, nothing to register)."""
+    """The sample of `estimate_motion` (None: fewer than 3 centres in a map, nothing to register; or a new map whose
+    centres pile up in one place, `_MAX_CELL_TARGETS`)."""
     rng = np.random.default_rng(config.seed)
     known = old_rows is not None and new_rows is not None and len(old_rows) >= 3
     # Rows are sampled before they are gathered: gathering every partner at 1M Gaussians took 64 ms.
@@ -414,7 +422,10 @@ def _sample(
     if len(old) < 3 or len(new) < 3:
         return None
     src = np.asarray(old[rng.choice(len(old), min(config.sample, len(old)), replace=False)], np.float64)
-    return _Sample(src, _Targets(new, None, config, new_frames), False, "registration")
+    targets = _Targets(new, None, config, new_frames)
+    if targets.crowded > _MAX_CELL_TARGETS:
+        return None
+    return _Sample(src, targets, False, "registration")
 
 
 def _fit_rigid(sample: _Sample, config: MotionConfig) -> tuple[np.ndarray, np.ndarray, float] | MapMotion:
