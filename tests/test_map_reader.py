@@ -289,6 +289,36 @@ def test_a_reader_that_dies_is_replaced_and_the_latched_map_is_not_applied_twice
         assert [p.name for p in segments if p.exists() or p.with_name(p.name + "_el").exists()] == []
 
 
+@pytest.mark.ros
+def test_a_reader_that_stops_answering_is_replaced(tmp_path):
+    """A reader stopped (SIGSTOP) or hung sends no heartbeat: after SILENT_S the node kills it, counts and logs it,
+    and a new one takes the latched map the stopped one never handed over."""
+    from sensor_msgs.msg import PointCloud2
+
+    scene = small_scene()
+    env = ros_environment(tmp_path)
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
+    with (
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="mapping_node") as node,
+        ClientNode(env) as client,
+    ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        maps = client.node.create_publisher(PointCloud2, "/monovoc/gaussians", latched_qos())
+        wait_for_subscribers(maps, timeout=30.0, process=node)
+        maps.publish(ma.gaussian_map_to_cloud(scene.gaussians, stamp=1))
+        diagnostics.wait_for(lambda v: v["maps_decoded"] == "1", 30.0, process=node)
+        stopped = _reader_of(node)
+        stopped.suspend()
+        fewer = scene.gaussians.subset(np.arange(len(scene.gaussians) - 100))
+        maps.publish(ma.gaussian_map_to_cloud(fewer, stamp=2))
+        wait = map_reader.SILENT_S + 30.0
+        values = diagnostics.wait_for(lambda v: v["gaussians"] == str(len(fewer)), wait, process=node)
+        assert values["map_reader_restarts"] == "1" and values["maps_decoded"] == "2"
+        assert f"the map reader was silent for {map_reader.SILENT_S:g} s" in node.output()
+        assert _reader_of(node).pid != stopped.pid
+        wait_until(lambda: _gone(stopped), 10.0, "the stopped reader to be killed")
+
+
 def _own_fastdds_segments(pid: int) -> list[Path]:
     """The Fast DDS shared-memory segments the participant of process `pid` created: /dev/shm/fastrtps_<id>, whose
     lock file <id>_el the process holds (/proc/locks); the shared port files are left out."""

@@ -28,8 +28,8 @@ next map's plan estimates its motion itself.
 Lifetime: the child ends when the node closes its end of the socket (a stop, or the node dying in any way),
 destroying its participant first (Fast DDS removes its shared-memory files then), and ignores SIGINT and
 SIGTERM (a terminal's Ctrl-C or a signal to the process group reaches it too; the node decides when it
-stops). If the child dies while the node runs, the node logs it, counts it
-(``map_reader_restarts``) and starts another after a back-off. The latched map that the new child receives
+stops). If the child dies while the node runs, or sends no heartbeat for SILENT_S (stopped, hung), the node
+kills it, logs it, counts it (``map_reader_restarts``) and starts another after a back-off. The latched map that the new child receives
 again is the map in use: the session skips it as it skips any map sent again (``maps_unchanged``).
 """
 
@@ -91,6 +91,11 @@ RESTART_DELAY_S = (1.0, 30.0)  # first and longest back-off before starting a ch
 HEALTHY_RUN_S = 60.0  # a child that ran this long before it exited was no crash loop: the back-off starts over
 STOP_WAIT_S = 0.5  # how long a stop waits for the child to exit on its own (~0.1 s) before killing it
 _POLL_S = 0.05  # the child looks for the end of the socket this often between messages
+# The child says it is alive this often (s); a node that hears nothing from it for SILENT_S takes it for hung (a
+# SIGSTOP, a deadlock) and replaces it as it replaces one that exited. Generous: a decode or a registration runs
+# beside the heartbeat's thread, which only waits for the interpreter between their numpy and numba calls.
+HEARTBEAT_S = 1.0
+SILENT_S = 15.0
 
 
 def supported() -> bool:
@@ -192,14 +197,19 @@ def _send_arrays(sock: socket.socket, header: dict[str, Any], arrays: list[tuple
         os.close(fd)  # the receiver holds its own descriptor from here
 
 
+def send_alive(sock: socket.socket) -> None:
+    """The child's heartbeat (HEARTBEAT_S)."""
+    sock.send(b'{"kind": "alive"}')
+
+
 def send_refusal(sock: socket.socket, refusal: Refusal) -> None:
     """Tells the node that a map message was not handed over, and why."""
     sock.send(json.dumps({"kind": "refusal", "message": refusal.message, "bad_input": refusal.bad_input}).encode())
 
 
-def receive(sock: socket.socket) -> ReceivedMap | ReceivedMotion | Refusal | None:
-    """The next map from ``sock``, or a map's motion, or a refusal, or None when the sender has gone. A malformed
-    message (what our own child never sends) raises ValueError, its descriptor closed."""
+def receive(sock: socket.socket) -> ReceivedMap | ReceivedMotion | Refusal | bool | None:
+    """The next map from ``sock``, or a map's motion, or a refusal, True for a heartbeat, or None when the sender has
+    gone. A malformed message (what our own child never sends) raises ValueError, its descriptor closed."""
     data, fds, flags, _addr = socket.recv_fds(sock, _HEADER_BYTES, 1)
     kind = None
     try:
@@ -209,6 +219,8 @@ def receive(sock: socket.socket) -> ReceivedMap | ReceivedMotion | Refusal | Non
             raise ValueError("message truncated")
         header = json.loads(data)
         kind = str(header["kind"])
+        if kind == "alive" and not fds:
+            return True
         if kind == "refusal":
             return Refusal(str(header["message"]), bool(header["bad_input"]))
         if kind == "motion" and not fds:
@@ -418,7 +430,7 @@ class MapReaderProcess:
                     pair[1].shutdown(socket.SHUT_RDWR)
             child, sock = pair
             started = time.monotonic()
-            self._serve(sock)
+            silent = self._serve(sock)
             with self._lock:
                 self._sock = None
             sock.close()
@@ -431,7 +443,8 @@ class MapReaderProcess:
                 return
             if time.monotonic() - started > HEALTHY_RUN_S:
                 delay = RESTART_DELAY_S[0]
-            self._report_restart(f"the map reader exited (code {child.returncode}); starting another in {delay:g} s")
+            ended = silent or f"the map reader exited (code {child.returncode})"
+            self._report_restart(f"{ended}; starting another in {delay:g} s")
             self._stopping.wait(delay)
             delay = min(2 * delay, RESTART_DELAY_S[1])
 
@@ -439,21 +452,25 @@ class MapReaderProcess:
         with contextlib.suppress(Exception):  # the node's callback must not end the hand-over either
             self._on_restart(message)
 
-    def _serve(self, sock: socket.socket) -> None:
-        """Receives until the child's end closes."""
+    def _serve(self, sock: socket.socket) -> str | None:
+        """Receives until the child's end closes, or until it was silent for SILENT_S (hung: `_run` kills it; the
+        reason returned)."""
         try:
+            sock.settimeout(SILENT_S)
             sock.send(_CREDIT)
         except OSError:
-            return
+            return None
         try:
-            self._receive_all(sock)
+            return self._receive_all(sock)
         finally:  # a new child starts over: its first map has no motion, and none comes for this one's last
             self._motions.reset()
 
-    def _receive_all(self, sock: socket.socket) -> None:
+    def _receive_all(self, sock: socket.socket) -> str | None:
         while True:
             try:
                 item = receive(sock)
+            except TimeoutError:
+                return f"the map reader was silent for {SILENT_S:g} s (stopped or hung) and was killed"
             except MalformedMessage as exc:
                 # A map or a motion lost: the next map's motion may not be of the map the node has before it.
                 self._motions.reset()
@@ -466,6 +483,8 @@ class MapReaderProcess:
                 return
             if item is None:
                 return
+            if item is True:  # a heartbeat: the socket's timeout starts over
+                continue
             try:
                 if isinstance(item, Refusal):
                     self._on_refused(item)
@@ -593,8 +612,14 @@ def _child_main(argv: list[str] | None = None) -> int:
                         send_motion(sock, seq, None, seconds)  # needs no descriptor
             previous = gmap
 
+    def heartbeat() -> None:
+        with contextlib.suppress(OSError):
+            while not node_gone.wait(HEARTBEAT_S):
+                send_alive(sock)
+
     threading.Thread(target=listen_to_node, name="node", daemon=True).start()
     threading.Thread(target=hand_over, name="hand_over", daemon=True).start()
+    threading.Thread(target=heartbeat, name="heartbeat", daemon=True).start()
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
