@@ -29,8 +29,9 @@ Lifetime: the child ends when the node closes its end of the socket (a stop, or 
 destroying its participant first (Fast DDS removes its shared-memory files then), and ignores SIGINT and
 SIGTERM (a terminal's Ctrl-C or a signal to the process group reaches it too; the node decides when it
 stops). If the child dies while the node runs, or sends no heartbeat for SILENT_S (stopped, hung), the node
-kills it, logs it, counts it (``map_reader_restarts``) and starts another after a back-off. The latched map that the new child receives
-again is the map in use: the session skips it as it skips any map sent again (``maps_unchanged``).
+kills it, logs it, counts it (``map_reader_restarts``) and starts another after a back-off. The latched map that
+the new child receives again is the map in use: the session skips it as it skips any map sent again
+(``maps_unchanged``).
 """
 
 from __future__ import annotations
