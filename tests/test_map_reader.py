@@ -32,7 +32,7 @@ from monovoc_ros.ros_harness import (
     wait_for_subscribers,
     wait_until,
 )
-from tests.node_scene import NODE, small_scene
+from tests.node_scene import NODE, running_mapper, small_scene
 from tests.rosutil import ros_environment
 
 
@@ -293,24 +293,15 @@ def test_a_reader_that_dies_is_replaced_and_the_latched_map_is_not_applied_twice
 def test_a_reader_that_stops_answering_is_replaced(tmp_path):
     """A reader stopped (SIGSTOP) or hung sends no heartbeat: after SILENT_S the node kills it, counts and logs it,
     and a new one takes the latched map the stopped one never handed over."""
-    from sensor_msgs.msg import PointCloud2
-
     scene = small_scene()
-    env = ros_environment(tmp_path)
-    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="mapping_node") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        maps = client.node.create_publisher(PointCloud2, "/monovoc/gaussians", latched_qos())
-        wait_for_subscribers(maps, timeout=30.0, process=node)
-        maps.publish(ma.gaussian_map_to_cloud(scene.gaussians, stamp=1))
+    with running_mapper(tmp_path, {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}) as mapper:
+        node, diagnostics, publisher = mapper.node, mapper.diagnostics, mapper.publisher
+        publisher.publish_map(scene.gaussians, stamp_ns=1)
         diagnostics.wait_for(lambda v: v["maps_decoded"] == "1", 30.0, process=node)
         stopped = _reader_of(node)
         stopped.suspend()
         fewer = scene.gaussians.subset(np.arange(len(scene.gaussians) - 100))
-        maps.publish(ma.gaussian_map_to_cloud(fewer, stamp=2))
+        publisher.publish_map(fewer, stamp_ns=2)
         wait = map_reader.SILENT_S + 30.0
         values = diagnostics.wait_for(lambda v: v["gaussians"] == str(len(fewer)), wait, process=node)
         assert values["map_reader_restarts"] == "1" and values["maps_decoded"] == "2"

@@ -237,7 +237,6 @@ class _Targets:
         self, new: np.ndarray, known: np.ndarray | None, config: MotionConfig, frames: tuple | None = None
     ) -> None:
         self.known = known
-        self.crowded = 0
         self._others = np.zeros((0, 3))  # new centres that are not targets (when the targets are a sample)
         self._frames: tuple | None = None
         if known is None:
@@ -248,8 +247,6 @@ class _Targets:
                 rows = (rng.random() * step + step * np.arange(config.target_sample)).astype(np.int64)
             self.points = np.asarray(new[rows], np.float64)
             self.grid = PointGrid.build(self.points, _TARGET_CELL_M)
-            # The most targets in one cell: a map whose centres pile up in one place (`_sample`).
-            self.crowded = int(np.diff(self.grid.cell_starts).max()) if len(self.points) else 0
             self._frames = None if frames is None else (frames[0][rows], frames[1][rows])
             if len(rows) < len(new):
                 sampled = np.zeros(len(new), bool)
@@ -274,6 +271,13 @@ class _Targets:
         hit = i >= 0
         d[hit] = np.linalg.norm(self.points[i[hit]] - queries[hit], axis=1)
         return i, d
+
+    @property
+    def crowded(self) -> int:
+        """The most targets in one grid cell (0 with known partners): a map whose centres pile up (`_sample`)."""
+        if self.known is not None or not len(self.points):
+            return 0
+        return int(np.diff(self.grid.cell_starts).max())
 
     @cached_property
     def _tree(self) -> cKDTree:

@@ -205,7 +205,8 @@ class GivenMotion:
 
 
 def _registers_as(a: GaussianMap, b: GaussianMap) -> bool:
-    """Whether `follow_ids` reads the same arrays of `a` as of `b` (centres, frames and ids), exactly."""
+    """Whether `follow_ids` reads the same arrays of `a` as of `b` (centres, frames and ids), exactly: not
+    `same_geometry`, which allows rounding in the frames and would let a given motion differ from the plan's own."""
     if a is b:
         return True
     if len(a) != len(b) or (a.ids is None) != (b.ids is None):
