@@ -35,10 +35,8 @@ snapshots into a map directory) running as its own process. Runs per size:
   builds no cloud: a robot mapping with no RViz open).
 
 Both report the worker thread's share of the wall time by activity (diagnostics `worker_s_*`: keyframes, map
-updates, re-integration, labels, snapshots, calls), the map messages' decoding, the map updates' plans and the
-publications' object geometry and messages (all beside the worker; `publication_s_*`), map updates applied and
-prepared, and the node's peak RSS. (Revisions before the publication thread counted the geometry and the messages
-as the worker's `objects` and `publish`: an A/B against one reports them there.)
+updates, re-integration, labels, object geometry, publication, snapshots, calls), the map messages' decoding
+and the map updates' plans (both beside the worker), map updates applied and prepared, and the node's peak RSS.
 """
 
 from __future__ import annotations
@@ -87,10 +85,7 @@ from monovoc_ros.ros_harness import (  # noqa: E402
 )
 from monovoc_ros.synthetic import churn  # noqa: E402
 
-# The worker's activities (`worker_s_*`; "objects" and "publish" only before the publication thread) and the
-# publication thread's (`publication_s_*`).
 ACTIVITIES = ("keyframes", "map_updates", "reintegration", "labels", "objects", "publish", "snapshots", "calls")
-PUBLICATION_ACTIVITIES = ("objects", "outputs")
 TILE_COLORS = 4096  # object colors per tile: tile t's copy of color j is 1 + t * TILE_COLORS + j
 
 
@@ -144,10 +139,8 @@ def peak_rss_mb(pid: int) -> float:
 
 
 def worker_shares(values: dict[str, str], wall_s: float) -> dict:
-    shares = {a: round(float(values.get(f"worker_s_{a}", 0)) / wall_s, 3) for a in ACTIVITIES}
+    shares = {a: round(float(values[f"worker_s_{a}"]) / wall_s, 3) for a in ACTIVITIES}
     shares["total"] = round(sum(shares.values()), 3)
-    for a in PUBLICATION_ACTIVITIES:
-        shares[f"publication_{a}_beside_the_worker"] = round(float(values.get(f"publication_s_{a}", 0)) / wall_s, 3)
     shares["map_decoding_beside_the_worker"] = round(float(values["map_decode_s"]) / wall_s, 3)
     shares["map_update_plans_beside_the_worker"] = round(float(values["map_prepare_s"]) / wall_s, 3)
     # Of the worker's map updates: waiting for the motion or the plan prepared beside it.
@@ -155,13 +148,6 @@ def worker_shares(values: dict[str, str], wall_s: float) -> dict:
     # The motions the map reader process registered for the plans (another process: not the node's cores' share).
     shares["map_motions_in_the_map_reader"] = round(float(values.get("map_reader_motion_s", 0)) / wall_s, 3)
     return shares
-
-
-def publication_keys(values: dict[str, str]) -> dict[str, str]:
-    """The diagnostics key of each part of a publication: labels, object geometry, messages."""
-    if "publication_s_objects" in values:
-        return {"labels": "worker_s_labels", "objects": "publication_s_objects", "publish": "publication_s_outputs"}
-    return {a: f"worker_s_{a}" for a in ("labels", "objects", "publish")}  # a revision before the publication thread
 
 
 def run(
@@ -276,13 +262,11 @@ def run(
             "cloud_viewer": cloud_viewer is not None,
             "clouds_skipped": int(values.get("clouds_skipped", 0)),
             "worker_share": worker_shares(values, wall),
-            # What one publication took: the labels (worker), the object geometry and the messages (publication
-            # thread; the worker's before it).
+            # What one publication took the worker: the labels, the object geometry, the messages.
             "publications": int(values["publishes"]),
-            "publications_replaced": int(values.get("publications_replaced", 0)),
             "publication_ms_mean": {
-                a: round(1e3 * float(values.get(key, 0)) / max(1, int(values["publishes"])), 1)
-                for a, key in publication_keys(values).items()
+                a: round(1e3 * float(values[f"worker_s_{a}"]) / max(1, int(values["publishes"])), 1)
+                for a in ("labels", "objects", "publish")
             },
             # The longest time any thread of the node held the interpreter (nodes/interpreter_watch.py), and when; with
             # --hold-trace-ms, the file of the holders' stacks.

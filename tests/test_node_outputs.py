@@ -12,7 +12,6 @@ import numpy as np
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.nodes.outputs import SemanticOutputs
-from monovoc_ros.nodes.publication import PublishedMap
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.ros_harness import ClientNode, MessageCollector, wait_until
 from tests.node_scene import assemble, scene_messages, small_scene
@@ -31,9 +30,9 @@ def test_a_publication_builds_messages_only_for_changed_objects(tmp_path: Path) 
         mapper.integrate(kf)
     with ClientNode(ros_environment(tmp_path)) as client:
         outputs = SemanticOutputs(client.node, frame_id="map", labels={}, up=(0.0, 0.0, 1.0))
-        n = outputs.publish(PublishedMap.of(mapper), mapper.result())
+        n = outputs.publish(mapper, mapper.result())
         assert n > 3 and outputs.marker_cache.built == n and outputs.object_cache.built == n
-        outputs.publish(PublishedMap.of(mapper), mapper.result())  # nothing changed: nothing built
+        outputs.publish(mapper, mapper.result())  # nothing changed: nothing built
         assert outputs.marker_cache.built == n and outputs.object_cache.built == n
 
         before = _geometry(mapper)
@@ -41,7 +40,7 @@ def test_a_publication_builds_messages_only_for_changed_objects(tmp_path: Path) 
         after = _geometry(mapper)
         moved = sum(1 for oid, values in after.items() if before.get(oid) != values)
         assert 0 < moved < len(after)  # the keyframe changed some objects, not all
-        outputs.publish(PublishedMap.of(mapper), mapper.result())
+        outputs.publish(mapper, mapper.result())
         assert outputs.marker_cache.built == n + moved
         # A SemanticObject also carries the object's observation count: rebuilt for every object seen again.
         assert n + moved <= outputs.object_cache.built <= n + len(after)
@@ -74,7 +73,7 @@ def test_the_cloud_waits_for_a_subscriber_which_then_asks_for_it(tmp_path: Path)
         objects = MessageCollector()
         viewer.node.create_subscription(SemanticObjectArray, "objects", objects, latched_qos())
         wait_until(lambda: outputs.objects.get_subscription_count() == 1, 20.0, "the objects' subscriber")
-        n = outputs.publish(PublishedMap.of(mapper), mapper.result())
+        n = outputs.publish(mapper, mapper.result())
         assert n > 3 and outputs.clouds_skipped == 1  # nobody subscribes to the cloud: left out
         assert len(objects.wait_for(1, 10.0)[-1].objects) == n  # the objects still go out
         assert not asked.is_set()
@@ -83,7 +82,7 @@ def test_the_cloud_waits_for_a_subscriber_which_then_asks_for_it(tmp_path: Path)
         viewer.node.create_subscription(PointCloud2, "semantic_cloud", clouds, latched_qos())
         wait_until(asked.is_set, 20.0, "the cloud's subscriber to ask for the cloud")
         assert not clouds.messages  # none was ever sent
-        outputs.publish(PublishedMap.of(mapper), mapper.result())  # what the node's worker does when asked
+        outputs.publish(mapper, mapper.result())  # what the node's worker does when asked
         observed = int((mapper.result().object_ids != UNOBSERVED_ID).sum())
         assert clouds.wait_for(1, 10.0)[-1].width == observed > 0
         assert outputs.clouds_skipped == 1

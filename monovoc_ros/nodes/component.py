@@ -38,9 +38,8 @@ class Component(Protocol):
 
 @dataclass(frozen=True)
 class MappingHost:
-    """What the mapping node offers the components composed with it. Keyframe listeners run on the worker thread,
-    in order with keyframes, map updates and services (monovoc_ros.nodes.worker); result listeners and the label
-    provider on the publication thread beside it, in order with the publications (monovoc_ros.nodes.publication)."""
+    """What the mapping node offers the components composed with it. Listeners run on the worker thread,
+    in order with keyframes, map updates and services (monovoc_ros.nodes.worker)."""
 
     logger: Any  # the mapping node's logger: one log for the node and its components
     clock: Any  # the mapping node's clock (ROS time, /clock with use_sim_time): stamps of what components publish
@@ -62,15 +61,15 @@ class MappingHost:
     mapper: Callable[[], SemanticMapper | None]
     busy: Callable[[], bool]  # keyframes wait or the worker is on a task (components defer heavy work)
     add_keyframe_listener: Callable[[KeyframeListener], None]  # fn(keyframe, mapper) after each keyframe
-    add_result_listener: Callable[[ResultListener], None]  # fn(published, result) after each publication's outputs
+    add_result_listener: Callable[[ResultListener], None]  # fn(mapper, result) before each publication
     add_reset_listener: Callable[[Callable[[], None]], None]  # fn() after a reset
     add_save_listener: Callable[[SaveListener], None]  # see MapWorker.add_save_listener
     add_load_check: Callable[[LoadCheck], None]  # see MapWorker.add_load_check
     add_diagnostics_source: Callable[[Callable[[], dict[str, Any]]], None]  # fn() -> pairs for /diagnostics
     # Object labels (core.segments.object_labels): set_label_provider(fn), fn() -> {object id: ObjectLabel}, gives the
     # objects topic and its markers the labels a component knows (after labels_file and segment labels; one
-    # provider; fn runs on the publication thread, so it returns a ready mapping). republish_objects() asks for
-    # the last objects and markers again with the current labels (queued on the publication thread; when a
+    # provider; fn runs on the worker thread, so it returns a ready mapping). republish_objects() asks for
+    # the last objects and markers again with the current labels (queued on the worker thread; when a
     # component's labels changed; requests queued meanwhile are coalesced).
     set_label_provider: Callable[[LabelProvider], None]
     republish_objects: Callable[[], None]

@@ -30,7 +30,7 @@ class MapperStats(SessionStats):
 
     keyframes_received: int = 0  # keyframes completed by the KeyframeAssembler
     queue_length: int = 0  # keyframes waiting for the worker
-    publish_ms_last: float = 0.0  # the last publication: its labels (worker) and outputs (publication thread)
+    publish_ms_last: float = 0.0  # result + outputs
     warm_up_ms: float = 0.0  # loading the mapping kernels at start (0 until done)
     kernel_compile_ms: float = 0.0  # compiling them first, when numba's cache was empty (0: it was not)
     objects: int = 0
@@ -49,6 +49,8 @@ class MapperStats(SessionStats):
     worker_s_reintegration: float = 0.0  # re-integration steps after a map update that bent the map
     reintegration_steps: int = 0  # logged keyframes integrated again (one per step)
     worker_s_labels: float = 0.0  # the semantic result (labels of every Gaussian) for a publication
+    worker_s_objects: float = 0.0  # the object geometry of a publication
+    worker_s_publish: float = 0.0  # the cloud, objects and markers messages and the result listeners
     worker_s_snapshots: float = 0.0  # periodic snapshots into map_directory
     worker_s_calls: float = 0.0  # services and other calls run on the worker (save, load, queries of it)
     map_decode_s: float = 0.0
@@ -57,10 +59,6 @@ class MapperStats(SessionStats):
     maps_decoded: int = 0
     map_reader_restarts: int = 0  # map reader processes that exited while the node ran (another was started)
     map_prepare_s: float = 0.0  # preparing map updates (MappingSession.plan_map) on a thread beside the worker
-    # Seconds of the publication thread beside the worker (nodes/publication.py), and publications it skipped.
-    publication_s_objects: float = 0.0  # the object geometry of a publication
-    publication_s_outputs: float = 0.0  # the cloud, objects and markers messages and the result listeners
-    publications_replaced: int = 0  # replaced by a newer one before they started
 
 
 def diagnostic_status(stats: dict[str, Any], *, name: str, hardware_id: str, extra: dict[str, Any] | None = None):

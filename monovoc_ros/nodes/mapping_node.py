@@ -70,7 +70,6 @@ from monovoc_ros.nodes.map_reader import MapReaderProcess, ReceivedMap, Refusal,
 from monovoc_ros.nodes.outputs import SemanticOutputs
 from monovoc_ros.nodes.param_spec import ParameterError, declare
 from monovoc_ros.nodes.params import PARAMETERS, NodeParams
-from monovoc_ros.nodes.publication import PublicationStopped
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, map_qos, output_events
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
@@ -158,10 +157,10 @@ class MappingNode(Node):
             mapper=self._initial_mapper(),
         )
         self.worker.add_reset_listener(self._reset_ingest)
-        self._republish = CoalescedCall(self.worker.publications.call, self.outputs.republish_objects,
+        self._republish = CoalescedCall(self.worker, self.outputs.republish_objects, "republish_objects",
                                         self._report_failure)  # fmt: skip
-        self._publish_for_subscriber = CoalescedCall(lambda fn: self.worker.call(fn, "publish_cloud"),
-                                                     self.worker.publish_now, self._report_failure)  # fmt: skip
+        self._publish_for_subscriber = CoalescedCall(self.worker, self.worker.publish_now, "publish_cloud",
+                                                     self._report_failure)  # fmt: skip
         self.add_diagnostics_source(lambda: {"clouds_skipped": self.outputs.clouds_skipped})
         try:
             check_stop(stop, "loading the map")
@@ -246,7 +245,7 @@ class MappingNode(Node):
         self.worker.add_keyframe_listener(fn)
 
     def add_result_listener(self, fn: ResultListener) -> None:
-        """fn(published, result) on the publication thread after each publication's outputs (nodes/publication.py)."""
+        """fn(mapper, result) on the worker thread each time the semantic result is recomputed (before publishing)."""
         self.worker.add_result_listener(fn)
 
     def add_diagnostics_source(self, fn: Callable[[], dict[str, Any]]) -> None:
@@ -254,7 +253,7 @@ class MappingNode(Node):
         self._diagnostics_sources.append(fn)
 
     def republish_objects(self) -> None:
-        """Queues a republication of the objects and markers with the current labels on the publication thread
+        """Queues a republication of the objects and markers with the current labels on the worker thread
         (the `publish` service's path, without the cloud); one request at a time, later ones coalesce."""
         self._republish()
 
@@ -262,7 +261,7 @@ class MappingNode(Node):
         """Done-callback of the worker tasks nobody waits for: a failure is logged with its traceback and counted
         (a task discarded by a stopping worker is not a failure)."""
         exc = None if future.cancelled() else future.exception()
-        if exc is None or isinstance(exc, (WorkerStopped, PublicationStopped)):
+        if exc is None or isinstance(exc, WorkerStopped):
             return
         self.stats.add(worker_errors=1)
         self.get_logger().error(

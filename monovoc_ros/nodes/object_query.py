@@ -57,7 +57,6 @@ from monovoc_ros.nodes.navigation import NavigationSettings
 from monovoc_ros.nodes.object_query_params import PARAMETERS
 from monovoc_ros.nodes.outputs import semantic_objects
 from monovoc_ros.nodes.param_spec import declare
-from monovoc_ros.nodes.publication import PublishedMap
 from monovoc_ros.nodes.qos import SERVICE_QOS
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.objects import questions, spatial
@@ -169,10 +168,10 @@ class ObjectQueryComponent:
         self._backend_source = backend if backend is not None else lazy_backend(settings.backend, **options)
         self._index_lock = threading.Lock()
         self.index = ObjectIndex(self._backend_source, settings.index)
-        # newest (gaussians, result, segment labels, their confidence) from the publication thread
+        # newest (gaussians, result, segment labels, their confidence) from the worker
         self._pending: tuple[Any, Any, Any, Any] | None = None
         # The labels of the index's records, as last given to the host (replaced, never changed in place:
-        # the publication thread reads it).
+        # the worker thread reads it).
         self._labels: Mapping[int, ObjectLabel] = {}
         self._labelled: tuple[Any, np.ndarray] | None = None  # newest (gaussians, per-Gaussian ids)
         self._wake = threading.Event()
@@ -306,10 +305,10 @@ class ObjectQueryComponent:
     def _on_keyframe(self, keyframe: Any, mapper: Any) -> None:
         self.index.keyframe_listener(keyframe, mapper)
 
-    def _on_result(self, published: PublishedMap, result: Any) -> None:
+    def _on_result(self, mapper: Any, result: Any) -> None:
         # Gaussian maps and results are immutable snapshots: safe to hand to another thread.
-        self._pending = (published.gaussians, result, published.object_labels, published.object_label_confidence)
-        self._labelled = (published.gaussians, result.object_ids)
+        self._pending = (mapper.gaussians, result, mapper.object_labels(), mapper.object_label_confidence())
+        self._labelled = (mapper.gaussians, result.object_ids)
         self._wake.set()
 
     def labelled_map(self, index: ObjectIndex | None = None) -> tuple[Any, Any]:

@@ -1,5 +1,4 @@
-"""The semantic_mapper's outputs: semantic cloud, object markers and SemanticObjectArray (publication thread, beside
-the worker: nodes/publication.py).
+"""The semantic_mapper's outputs: semantic cloud, object markers and SemanticObjectArray (worker thread).
 
 Everything published is derived from one `SemanticResult`, so cloud, markers and objects always agree; the
 objects and markers report the result's one object geometry (`SemanticResult.objects`), as do the query
@@ -7,7 +6,7 @@ answers and objects.db.
 Labels follow core.segments.object_labels: labels_file, then the segmenter's class names, then what a label
 provider knows (the object-query component: names restored from objects.db and the embedding model's
 guesses, which exist only once objects are embedded). When those change, `republish_objects` sends the
-objects and markers of the last result again with the new labels (on the publication thread, like `publish`).
+objects and markers of the last result again with the new labels (on the worker thread, like `publish`).
 The cloud holds observed Gaussians only (those with evidence and a palette label): unobserved ones have
 no label to show, and leaving them out keeps the message small early in a run. Its header stamp is the
 stamp of the newest integrated keyframe, so clients can tell which keyframes a cloud includes.
@@ -29,14 +28,13 @@ import numpy as np
 
 import msg_adapters as ma
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID
-from monovoc_ros.core.mapping import SemanticResult
+from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
 from monovoc_ros.core.object_geometry import ObjectSummary
 from monovoc_ros.core.segments.object_labels import ObjectLabel, display, label_fields, resolve
-from monovoc_ros.nodes.publication import PublishedMap
 from monovoc_ros.nodes.qos import latched_qos, output_events
 from monovoc_ros.nodes.subscribed_output import SubscribedOutput
 
-# fn() -> object id -> label, consulted after labels_file and segment labels (called on the publication thread).
+# fn() -> object id -> label, consulted after labels_file and segment labels (called on the worker thread).
 LabelProvider = Callable[[], Mapping[int, ObjectLabel]]
 
 
@@ -90,12 +88,12 @@ class SemanticOutputs:
         thread); returns the number of objects."""
         return 0 if self._last is None else self._publish_objects(*self._last)
 
-    def publish(self, published: PublishedMap | None, result: SemanticResult | None) -> int:
+    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
         """Publishes the cloud, then the objects and markers; returns the number of objects. The cloud goes
         first: the object geometry (main clusters, percentile boxes: ~58 ms at 140k Gaussians) is not on the
         path from a keyframe to the cloud that includes it."""
         now = self._node.get_clock().now().nanoseconds
-        if published is None or result is None:
+        if mapper is None or result is None:
             header = dict(frame_id=self.frame_id, stamp=now)
             empty = (
                 np.zeros((0, 3), np.float32),
@@ -106,17 +104,17 @@ class SemanticOutputs:
             self.cloud.publish(ma.semantic_cloud_from_arrays(*empty, **header))
             self._last = ([], np.zeros(0, np.int64), header, {})
             return self._publish_objects(*self._last)
-        header = dict(frame_id=self.frame_id, stamp=published.stamp_ns if published.stamp_ns is not None else now)
+        header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)
         if self._cloud_output.wanted():
             known = np.flatnonzero(result.object_ids != UNOBSERVED_ID)
             ids = result.object_ids[known]
             # An object's id is its packed palette color: the cloud's packed rgb (result.object_rgb, unpacked).
-            means, confidence = published.gaussians.means[known], result.confidence[known]
+            means, confidence = mapper.gaussians.means[known], result.confidence[known]
             self.cloud.publish(ma.semantic_cloud_from_arrays(means, ids, ids, confidence, **header))
-        geometry = result.objects(published.gaussians)
+        geometry = result.objects(mapper.gaussians)
         index = result.palette.index_of(geometry.ids)
         observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
-        self._last = (list(geometry.objects), observations, header, published.object_labels)
+        self._last = (list(geometry.objects), observations, header, mapper.object_labels())
         return self._publish_objects(*self._last)
 
     @property

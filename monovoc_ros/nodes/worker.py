@@ -25,16 +25,15 @@ Subscription and service callbacks never touch the mapper; they put tasks into o
 
 Between tasks the worker publishes the semantic result (at most every `publish_period_s` while something
 changed; period 0 = as soon as nothing runnable is queued, and every BUSY_PUBLISH_PERIOD_S while something
-is, or less often when publishing would take more than BUSY_PUBLISH_SHARE of that time) and saves periodic
-snapshots of new evidence. A publication's labels are computed here; its object geometry, messages and result
-listeners run on the publication thread beside the worker (nodes/publication.py).
+is, or less often when publishing would take more than BUSY_PUBLISH_SHARE of the worker) and saves periodic
+snapshots of new evidence.
 The rasterizer's numba kernels release the GIL, so ROS callbacks keep running while a keyframe is
 integrated. Nothing here imports ROS: the node wires it to topics (monovoc_ros.nodes.mapping_node).
 
-Hooks for other components (object database, text queries): on the worker thread
-`add_keyframe_listener(fn(keyframe, mapper))` after each integrated keyframe and `submit(fn(mapper))` to read or
-change the mapper in order with everything else; on the publication thread `add_result_listener(fn(published,
-result))` after each publication's outputs (`published`: the PublishedMap the worker captured for it).
+Hooks for other components (object database, text queries), all run on the worker thread:
+`add_keyframe_listener(fn(keyframe, mapper))` after each integrated keyframe, `add_result_listener(fn(mapper,
+result))` after the semantic result was recomputed (before it is published), and `submit(fn(mapper))` to
+read or change the mapper in order with everything else.
 """
 
 from __future__ import annotations
@@ -65,9 +64,8 @@ from monovoc_ros.core.session import (
     SaveListener,
 )
 from monovoc_ros.nodes.diagnostics import MapperStats
-from monovoc_ros.nodes.publication import PublicationThread, PublishedMap
 
-ResultListener = Callable[[PublishedMap, SemanticResult], None]
+ResultListener = Callable[[SemanticMapper, SemanticResult], None]
 
 
 @dataclass(frozen=True)
@@ -115,9 +113,9 @@ _ACTIVITY = {"keyframe": "worker_s_keyframes", "map": "worker_s_map_updates", "c
 
 
 class OutputSink(Protocol):
-    """Where results go (the node's publishers); called on the publication thread."""
+    """Where results go (the node's publishers); called on the worker thread."""
 
-    def publish(self, published: PublishedMap | None, result: SemanticResult | None) -> int:
+    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
         """Publishes the semantic map (None: no map, publish an empty one); returns the number of objects."""
         ...
 
@@ -303,8 +301,6 @@ class MapWorker:
         )
         self._result_listeners: list[ResultListener] = []
         self._thread: threading.Thread | None = None
-        # A publication's geometry, messages and result listeners run here, beside the worker (nodes/publication.py).
-        self.publications = PublicationThread(self._publication_failed)
         # Map updates are prepared here, beside the worker (numba kernels and numpy release the interpreter).
         self._planner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-map-plan")
         # Periodic snapshots are written here, one at a time (`_maybe_save`).
@@ -313,8 +309,8 @@ class MapWorker:
         self._output_dirty = True  # publish once at start (the map, or an empty one)
         self._unsaved = False  # evidence that no snapshot in map_directory holds yet
         self._last_publish = -float("inf")
-        self._publish_s = 0.0  # the last publication's time, on both threads
-        self._published_s = 0.0  # the worker's time in publications, summed (a task's time leaves out those within it)
+        self._publish_s = 0.0  # the last publication's time
+        self._published_s = 0.0  # every publication's time, summed (a task's time leaves out those within it)
         self._keyframes_since_step = 0  # live keyframes integrated since the last re-integration step
         self._ahead: _Ahead | None = None  # a map update later keyframes go ahead of (map_update_ahead_s)
         self._last_task = time.monotonic()  # when the worker last finished a task
@@ -436,7 +432,6 @@ class MapWorker:
 
     def start(self) -> None:
         self._last_save = time.monotonic()
-        self.publications.start()
         self._thread = threading.Thread(target=self._run, name="monovoc-mapper-worker", daemon=True)
         self._thread.start()
 
@@ -472,8 +467,6 @@ class MapWorker:
                 )
                 return None
         drained, deferred = self._drain(deadline)
-        if not self.publications.stop(max(deadline(0.0) - time.monotonic(), 0.0) + STOP_GRACE_S):
-            self.log.error("shutdown: a publication is still running")
         self._planner.shutdown(wait=False, cancel_futures=True)
         self._collect_snapshot(wait=True)
         self._writer.shutdown(wait=False)
@@ -597,8 +590,8 @@ class MapWorker:
         self._changed(unsaved=self.session.mapper is not None)
 
     def publish_now(self) -> tuple[SemanticResult | None, int]:
-        """Recomputes and publishes the result now; returns it and the number of objects once published."""
-        return self._publish().result()
+        """Recomputes and publishes the result now; returns it and the number of objects."""
+        return self._publish()
 
     def objects_now(self) -> int:
         mapper = self.session.mapper
@@ -771,50 +764,36 @@ class MapWorker:
             return
         self._publish()
 
-    def _publish(self) -> Future:
-        """Computes the labels and hands the publication to the publication thread; its Future: (result, objects)."""
+    def _publish(self) -> tuple[SemanticResult | None, int]:
         start = time.perf_counter()
         self._output_dirty = False
         self._last_publish = time.monotonic()
         mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
-        published = PublishedMap.of(mapper) if mapper is not None else None
-        labels_s = time.perf_counter() - start
-        self._published_s += labels_s
-        self.stats.add(worker_s_labels=labels_s)
-        return self.publications.publish(lambda: self._publication(published, result, labels_s))
-
-    def _publication(
-        self, published: PublishedMap | None, result: SemanticResult | None, labels_s: float
-    ) -> tuple[SemanticResult | None, int]:
-        """The outputs of one publication, then the result listeners (publication thread)."""
-        start = time.perf_counter()
+        labelled = time.perf_counter()
         computed = result is None or result.objects_seconds is not None
-        # Outputs first: this thread computes (and caches on the result) the object geometry before a listener's
-        # thread, possibly of lower priority, asks the result for it and holds its lock.
-        objects = self.sink.publish(published, result) if self.sink is not None else 0
+        # Outputs first: the worker computes (and caches on the result) the object geometry before a
+        # listener's thread, possibly of lower priority, asks the result for it and holds its lock.
+        objects = self.sink.publish(mapper, result) if self.sink is not None else 0
         geometry_s = 0.0 if computed else (result.objects_seconds or 0.0)
-        if published is not None and result is not None:
+        if mapper is not None and result is not None:
             for fn in self._result_listeners:
                 try:
-                    fn(published, result)
+                    fn(mapper, result)
                 except Exception as exc:
                     self._listener_failed(fn, exc)
         observed = int(result.observed.sum()) if result is not None else 0
-        seconds = time.perf_counter() - start
-        self._publish_s = labels_s + seconds
-        self.stats.update(
-            objects=objects,
-            observed_gaussians=observed,
-            publish_ms_last=1e3 * self._publish_s,
-            publications_replaced=self.publications.replaced,
+        end = time.perf_counter()
+        self._publish_s = end - start
+        self._published_s += end - start
+        self.stats.update(objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
+        self.stats.add(
+            publishes=1,
+            worker_s_labels=labelled - start,
+            worker_s_objects=geometry_s,
+            worker_s_publish=end - labelled - geometry_s,
         )
-        self.stats.add(publishes=1, publication_s_objects=geometry_s, publication_s_outputs=seconds - geometry_s)
         return result, objects
-
-    def _publication_failed(self, exc: BaseException, trace: str) -> None:
-        self.stats.add(worker_errors=1)
-        self.log.error(f"publication: {type(exc).__name__}: {exc}\n{trace}")
 
     def _save_enabled(self) -> bool:
         return bool(self.settings.map_directory) and self.settings.save_period_s > 0
@@ -891,15 +870,13 @@ class MapWorker:
 
 
 class CoalescedCall:
-    """`fn()` queued by any thread through `submit(fn) -> Future` (the worker's or the publication thread's queue),
-    at most once at a time: a request made while one is queued joins it (it has not run yet, so it will see what
-    changed). `on_done(future)`: each run's outcome."""
+    """`fn()` queued on a worker's thread by any thread, at most once at a time: a request made while one is
+    queued joins it (it has not run yet, so it will see what changed). `on_done(future)`: each run's outcome."""
 
-    def __init__(
-        self, submit: Callable[[Callable[[], Any]], Future], fn: Callable[[], Any], on_done: Callable[[Future], None]
-    ):
-        self._submit = submit
+    def __init__(self, worker: MapWorker, fn: Callable[[], Any], name: str, on_done: Callable[[Future], None]):
+        self._worker = worker
         self._fn = fn
+        self._name = name
         self._on_done = on_done
         self._lock = threading.Lock()
         self._queued = False
@@ -909,7 +886,7 @@ class CoalescedCall:
             if self._queued:
                 return
             self._queued = True
-        self._submit(self._run).add_done_callback(self._on_done)
+        self._worker.call(self._run, self._name).add_done_callback(self._on_done)
 
     def _run(self) -> Any:
         with self._lock:
