@@ -20,8 +20,10 @@ tests/test_colcon.py that every executable and file it names is installed by col
 """
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, ExecuteProcess
+from launch.actions import DeclareLaunchArgument, EmitEvent, ExecuteProcess, LogInfo, RegisterEventHandler
 from launch.conditions import IfCondition, UnlessCondition
+from launch.event_handlers import OnProcessExit
+from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
@@ -84,6 +86,13 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("bag", default_value="", description="MCAP bag to replay into the node ('' = none)"),
         DeclareLaunchArgument("bag_rate", default_value="1.0", description="replay speed, multiple of the recorded"),
         DeclareLaunchArgument("rviz", default_value="false", description="open RViz with rviz/monovoc.rviz"),
+        DeclareLaunchArgument(
+            "navigation_mode",
+            default_value="none",
+            choices=["none", "goal_topic", "nav2"],
+            description="go_to: nav2 drives through Nav2's navigate_to_pose, goal_topic publishes the pose, none only "
+            "answers (overrides navigation.mode in query_params_file)",
+        ),
     ]
     use_sim_time = LaunchConfiguration("use_sim_time")
     bag = LaunchConfiguration("bag")
@@ -93,6 +102,7 @@ def generate_launch_description() -> LaunchDescription:
         "map_directory": ParameterValue(LaunchConfiguration("map_directory"), value_type=str),
         "labels_file": ParameterValue(LaunchConfiguration("labels_file"), value_type=str),
         "use_segments": ParameterValue(LaunchConfiguration("use_segments"), value_type=bool),
+        "navigation.mode": ParameterValue(LaunchConfiguration("navigation_mode"), value_type=str),
     }
     # With the segmenter the mapper reads its mono16 per-frame masks and their class names.
     from_segmenter = {
@@ -164,6 +174,18 @@ def generate_launch_description() -> LaunchDescription:
         output="screen",
         condition=IfCondition(PythonExpression(["'", bag, "' != ''"])),
     )
+
+    def replay_ended(event, context) -> list:
+        """A replay that could not start (exit code 1: no such bag, an unreadable one) ends the launch: a mapper
+        waiting for a bag that never comes looks like a working one. Other failures are said, the node kept."""
+        if event.returncode in (0, 130) or event.returncode < 0:  # done, or stopped by a signal
+            return []
+        if event.returncode != 1:
+            ended = f"monovoc: the bag replay ended with exit code {event.returncode} (see its error above)"
+            return [LogInfo(msg=ended)]
+        reason = "the bag replay failed (its error is above): nothing was replayed; stopping the launch"
+        return [LogInfo(msg=f"monovoc: {reason}"), EmitEvent(event=Shutdown(reason=reason))]
+
     rviz = Node(
         package="rviz2",
         executable="rviz2",
@@ -171,4 +193,5 @@ def generate_launch_description() -> LaunchDescription:
         parameters=[{"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
         condition=IfCondition(LaunchConfiguration("rviz")),
     )
-    return LaunchDescription([*arguments, *mappers, segmenter, replay, rviz])
+    on_replay_exit = RegisterEventHandler(OnProcessExit(target_action=replay, on_exit=replay_ended))
+    return LaunchDescription([*arguments, *mappers, segmenter, replay, on_replay_exit, rviz])

@@ -103,6 +103,11 @@ def test_offline_monovoc_approach_json_and_plot(capsys, tmp_path):
     assert "overhead" in capsys.readouterr().err
     assert cli_main(["approach", "--map", str(room_directory()), "the sofa", "--standoff", "0"]) == 1
     assert cli_main(["approach", "--map", str(tmp_path), "the sofa"]) == 2
+    # A plot into a folder that does not exist is refused before the work, in one line.
+    capsys.readouterr()
+    nowhere = str(tmp_path / "no" / "p.png")
+    assert cli_main(["approach", "--map", str(room_directory()), "the sofa", "--plot", nowhere]) == 1
+    assert "--plot" in capsys.readouterr().err and not (tmp_path / "no").exists()
 
 
 def test_the_gaussian_map_type_builds_a_grid():

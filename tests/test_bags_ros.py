@@ -31,7 +31,7 @@ from monovoc_ros.ros_harness import (
     first_cloud_at,
     wait_until,
 )
-from tests.rosutil import ros_environment
+from tests.rosutil import REPO, ros_environment
 
 pytestmark = pytest.mark.ros
 
@@ -275,6 +275,11 @@ def test_replay_errors(bag: Path, tmp_path: Path, monkeypatch) -> None:
         replay(bag, rate=0.0)
     with pytest.raises(ReplayError, match="/nope"):
         replay(bag, topics=["/nope"])
+    # A bag cut inside its first chunk has no complete message: said, not "replayed" with nothing sent.
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((REPO / "bags" / "synthetic_room.mcap").read_bytes()[:100_000])  # its first chunk: 6.6 MB
+    with pytest.raises(ReplayError, match="unfinished bag"):
+        replay(cut)
     _use_ros_env(ros_environment(tmp_path), monkeypatch)
     start = time.monotonic()
     with pytest.raises(ReplayError, match="1 subscriber"):

@@ -50,3 +50,31 @@ def test_a_map_update_window_out_of_range_or_without_a_bag_is_refused(tmp_path, 
         main(["map", *source, "-o", str(tmp_path / "m"), "--map-update-ahead-s", window])
     assert problem in str(info.value)
     assert not (tmp_path / "m").exists()
+
+
+def test_map_input_errors_are_one_line(tmp_path):
+    """A missing or unreadable source is the operator's mistake: one line naming it, no traceback."""
+    garbage = tmp_path / "garbage.mcap"
+    garbage.write_bytes(b"not a bag at all" * 64)
+    half = tmp_path / "half.mcap"
+    half.write_bytes(BAG.read_bytes()[:100_000])  # a cut inside the first chunk: no complete message, no map
+    (tmp_path / "empty").mkdir()
+    cases = [
+        ([str(tmp_path / "nonexistent")], "no such sequence directory"),
+        ([str(tmp_path / "empty")], str(tmp_path / "empty")),
+        (["--bag", str(tmp_path / "nonexistent.mcap")], "nonexistent.mcap"),
+        (["--bag", str(garbage)], "not a readable MCAP bag"),
+        (["--bag", str(half)], "no Gaussian map"),
+    ]
+    for source, problem in cases:
+        with pytest.raises(SystemExit) as info:
+            main(["map", *source, "-o", str(tmp_path / "out"), "--quiet"])
+        assert str(info.value).startswith("monovoc map: ") and problem in str(info.value), (source, info.value)
+
+
+def test_map_into_a_directory_it_cannot_write_is_one_line(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("in the way")
+    with pytest.raises(SystemExit) as info:
+        main(["map", "--bag", str(BAG), "--max-keyframes", "2", "-o", str(blocker / "map"), "--quiet"])
+    assert str(info.value).startswith("monovoc map: ") and "a_file" in str(info.value)

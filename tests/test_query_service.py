@@ -116,6 +116,10 @@ def test_query_service_on_a_resumed_map(tmp_path):
         request.viewpoint.header.frame_id = "odom"
         elsewhere = call_service(service, request, 20.0, process=node)
         assert not elsewhere.success and "no tf here" in elsewhere.message
+        request.viewpoint.header.frame_id = "map"
+        request.viewpoint.pose.position.x = 1e300  # finite, but no robot's: refused, not answered in "inf m"
+        far = call_service(service, request, 20.0, process=node)
+        assert not far.success and "from the map's origin" in far.message, far.message
 
         # Questions: the node's ask service and `monovoc ask` against it.
         from monovoc_interfaces.srv import Ask

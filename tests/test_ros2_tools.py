@@ -178,6 +178,18 @@ def test_launch_on_a_robots_topics(env):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         played = ros2(replay, env, timeout=180.0)  # waits for the launched node's subscriptions
         assert played.returncode == 0, played.stdout + played.stderr
+        # The launch argument sets the query component's parameter (navigation_mode:=goal_topic in the line).
+        answered("ros2 param get /monovoc/semantic_mapper navigation.mode", env, "goal_topic")
         diagnostics.wait_for(lambda v: v["keyframes_processed"] == str(KEYFRAMES), 120.0, process=process)
         assert process.stop() == 0, process.describe()
     assert snapshot_keyframes(env, line) == KEYFRAMES, process.describe()
+
+
+def test_a_bag_that_cannot_be_replayed_ends_the_launch_with_the_reason(env, tmp_path):
+    """A typo in bag:= must not leave a mapper waiting for keyframes that never come, looking like a working one."""
+    line = f"ros2 launch monovoc_ros monovoc.launch.py bag:={tmp_path / 'no_such.mcap'}"
+    with launch(line, env, "ros2_launch_no_bag") as process:
+        # `ros2 launch` returns once every process it started has ended: the mapper was stopped too.
+        wait_until(lambda: not process.running(), 120.0, "the launch to end by itself")
+        out = process.output()
+        assert "no such bag file" in out and "the bag replay failed" in out, process.describe()

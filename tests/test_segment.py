@@ -21,7 +21,7 @@ INPUT_HW = (64, 96)
 PROTO_HW = (16, 24)  # stride 4, as YOLO's prototypes
 
 
-@pytest.mark.parametrize("shape", [(340, 600), (480, 640), (640, 480), (37, 1000), (64, 96)])
+@pytest.mark.parametrize("shape", [(340, 600), (480, 640), (640, 480), (37, 1000), (64, 96), (1, 5000), (5000, 1)])
 def test_letterbox_round_trip(shape):
     h, w = shape
     for lb in (Letterbox.fit(h, w, *INPUT_HW), Letterbox.rect(h, w, 640, 32)):

@@ -181,6 +181,13 @@ class _Publishers:
             self.node.destroy_publisher(pub)
 
 
+def _no_message(info: BagInfo) -> str:
+    """Why a bag without messages has none."""
+    if not info.finished:
+        return "no complete message: an unfinished bag (its recording stopped, or the file was cut, in its first chunk)"
+    return "the bag holds no message"
+
+
 def replay(
     path: str | os.PathLike,
     *,
@@ -221,6 +228,8 @@ def replay(
     if unknown:
         raise ReplayError(f"{path}: no topic(s) {unknown} in the bag (it has {sorted(info.topics)})")
     selected = [t for t in selected if info.topics[t].count > 0]
+    if not selected:  # replaying nothing and exiting 0 would pass for a replay
+        raise ReplayError(f"{path}: {_no_message(info) if info.message_count == 0 else 'no message on those topics'}")
     remaps = parse_remaps(remap)
     summary = ReplaySummary(str(path), {}, 0.0, 0, info.duration_s, None if fast else rate)
     counts: Counter[str] = Counter()

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 
 def register(subparsers) -> None:
@@ -47,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
         shape = ap.RobotShape(**{k: v for k, v in given.items() if v is not None})
         if not args.standoff > 0:
             raise ValueError(f"--standoff must be > 0, got {args.standoff}")
+        if args.plot and not Path(args.plot).resolve().parent.is_dir():  # checked before the work, not after it
+            raise ValueError(f"--plot {args.plot}: no such directory {Path(args.plot).resolve().parent}")
     except ValueError as exc:
         print(f"monovoc approach: {exc}", file=sys.stderr)
         return 1
@@ -71,7 +74,11 @@ def run(args: argparse.Namespace) -> int:
     if args.plot and grid is not None:
         named = [(r.label or r.hex, gaussians.means[ids == r.id]) for r in index.records()]
         name = goal.record.label if goal.record is not None else ""
-        ap.plot(grid, args.plot, named, [(name, goal.approach)], robot)
+        try:
+            ap.plot(grid, args.plot, named, [(name, goal.approach)], robot)
+        except OSError as exc:  # not writable
+            print(f"monovoc approach: --plot {args.plot}: {exc}", file=sys.stderr)
+            return 1
     if args.json:
         print(json.dumps(answer, indent=1))
     elif answer["success"]:

@@ -108,6 +108,8 @@ def run_info(args: argparse.Namespace) -> int:
         return 0
     print(f"file:       {info.path} ({info.size_bytes / 1e6:.2f} MB, {info.profile}, {info.library})")
     print(f"messages:   {info.message_count} in {info.duration_s:.3f} s (compression: {', '.join(info.compression)})")
+    if not info.finished:
+        print("unfinished: no summary (the recording stopped or the file was cut); complete messages found by a scan")
     if info.start_ns is not None:
         print(f"time:       {info.start_ns / 1e9:.9f} .. {info.end_ns / 1e9:.9f}")
     print("topics:")

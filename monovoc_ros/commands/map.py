@@ -174,6 +174,13 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        return _map(args)
+    except (ValueError, OSError) as exc:  # a missing or unreadable source, a bag without a map, an unwritable OUT
+        raise SystemExit(f"monovoc map: {exc}") from None
+
+
+def _map(args: argparse.Namespace) -> int:
     from monovoc_ros import offline
 
     if bool(args.source) == bool(args.bag):

@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
             on_ready=ready,
             bag_format=args.format,
         )
-    except (LookupError, ValueError) as exc:
+    except (LookupError, ValueError, OSError) as exc:  # OSError: an OUT that cannot be written
         print(f"monovoc record: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # before recording started; the file is finalized all the same

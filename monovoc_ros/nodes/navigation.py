@@ -128,11 +128,14 @@ class NavigationComponent:
 
     def plan(self, text: str, standoff: float) -> ap.Goal:
         """The object `text` names and the approach pose (never raises for a bad map: a failed Goal)."""
+        standoff = float(standoff)
+        if not standoff >= 0:  # NaN or negative: a caller's mistake, not "the default" (0 is)
+            return ap.Goal(ap.Approach(False, f"standoff must be >= 0 metres (0: approach.standoff), got {standoff}"))
         index = self._index()
         gaussians, object_ids = self._labelled_map()
         if gaussians is None or object_ids is None or len(object_ids) != len(gaussians):
             return ap.Goal(ap.Approach(False, "no map with objects yet (or it is being updated): try again"))
-        standoff = float(standoff) if standoff and standoff > 0 else self.settings.standoff
+        standoff = standoff if standoff > 0 else self.settings.standoff
         try:
             grid = self._grid_of(index, gaussians)
         except ValueError as exc:

@@ -109,6 +109,10 @@ def _lower_priority() -> None:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), BACKGROUND_NICENESS)
 
 
+# Metres from the map's origin beyond which a request's viewpoint is refused (a robot's pose is far closer).
+MAX_VIEWPOINT_M = 1e6
+
+
 @dataclass(frozen=True)
 class QuerySettings:
     top_k: int
@@ -518,9 +522,13 @@ class ObjectQueryComponent:
         if frame != self.host.frame_id:
             raise QueryError(f"viewpoint in frame {frame!r}, the map is {self.host.frame_id!r} (no tf here)")
         try:
-            return spatial.Viewpoint(ma.pose_stamped_to_matrix(pose, "body"))
+            matrix = ma.pose_stamped_to_matrix(pose, "body")
         except ValueError as exc:
             raise QueryError(f"viewpoint: {exc}") from None
+        distance = float(np.linalg.norm(matrix[:3, 3]))
+        if distance > MAX_VIEWPOINT_M:  # finite, but no robot's in this map: answers would read "inf m"
+            raise QueryError(f"viewpoint: {distance:.3g} m from the map's origin (at most {MAX_VIEWPOINT_M:g} m)")
+        return spatial.Viewpoint(matrix)
 
     def _on_ask(self, request: Any, response: Any) -> Any:
         response.header = ma.make_header(self.host.frame_id, self.host.clock.now().nanoseconds)

@@ -48,8 +48,9 @@ class Letterbox:
         if min(image_h, image_w) <= 0:
             raise ValueError(f"empty image: {image_h}x{image_w}")
         r = size / max(image_h, image_w)
-        input_h = int(np.ceil(round(image_h * r) / stride) * stride)
-        input_w = int(np.ceil(round(image_w * r) / stride) * stride)
+        # At least one stride a side: a thin strip (1x5000) would round to an empty input.
+        input_h = max(stride, int(np.ceil(round(image_h * r) / stride) * stride))
+        input_w = max(stride, int(np.ceil(round(image_w * r) / stride) * stride))
         return cls.fit(image_h, image_w, input_h, input_w)
 
     @property
