@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -261,6 +263,12 @@ def test_record_stops_on_ctrl_c_and_on_duration(tmp_path: Path, monkeypatch) -> 
     result = record(tmp_path / "timed.mcap", ["/nobody/either"], duration=0.3, stop_event=stop)
     assert 0.3 <= time.monotonic() - start < 5.0 and result.missing == ["/nobody/either"]
     assert bag_info(tmp_path / "timed.mcap").message_count == 0
+    # A file it cannot write (its folder would be a file): one line, exit code 1, before waiting for any topic.
+    (tmp_path / "a_file").write_text("in the way")
+    nowhere = tmp_path / "a_file" / "out.mcap"
+    failed = subprocess.run([sys.executable, "-m", "monovoc_ros.cli", "record", "-o", str(nowhere), "/x"], env=env,
+                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert failed.returncode == 1 and failed.stderr.startswith("monovoc record: ") and "Traceback" not in failed.stderr
 
 
 def test_replay_errors(bag: Path, tmp_path: Path, monkeypatch) -> None:
