@@ -20,7 +20,14 @@ tests/test_colcon.py that every executable and file it names is installed by col
 """
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, EmitEvent, ExecuteProcess, LogInfo, RegisterEventHandler
+from launch.actions import (
+    DeclareLaunchArgument,
+    EmitEvent,
+    ExecuteProcess,
+    LogInfo,
+    OpaqueFunction,
+    RegisterEventHandler,
+)
 from launch.conditions import IfCondition, UnlessCondition
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
@@ -30,6 +37,8 @@ from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackagePrefix, FindPackageShare
 
 PACKAGE = "monovoc_ros"
+# What launch's conditions read as a boolean: anything else would fail deep in a condition with an unreadable error.
+BOOLEANS = ["true", "false", "True", "False", "1", "0"]
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -70,11 +79,15 @@ def generate_launch_description() -> LaunchDescription:
             description="labels.json naming objects by mask color ('' = none: segment names or the model's guess)",
         ),
         DeclareLaunchArgument(
-            "use_segments", default_value="false", description="subscribe to `segments` (a segmenter's class names)"
+            "use_segments",
+            default_value="false",
+            choices=BOOLEANS,
+            description="subscribe to `segments` (a segmenter's class names)",
         ),
         DeclareLaunchArgument(
             "segmenter",
             default_value="false",
+            choices=BOOLEANS,
             description="start the segmenter node on `image` and map its masks (mask_ids per_frame, use_segments)",
         ),
         DeclareLaunchArgument(
@@ -82,10 +95,14 @@ def generate_launch_description() -> LaunchDescription:
             default_value="yolov5s-seg",
             description="the segmenter's model: yolov5s-seg, yolov7-seg or a YOLO-seg .onnx file",
         ),
-        DeclareLaunchArgument("use_sim_time", default_value="false", description="stamp by /clock (bag replay)"),
+        DeclareLaunchArgument(
+            "use_sim_time", default_value="false", choices=BOOLEANS, description="stamp by /clock (bag replay)"
+        ),
         DeclareLaunchArgument("bag", default_value="", description="MCAP bag to replay into the node ('' = none)"),
         DeclareLaunchArgument("bag_rate", default_value="1.0", description="replay speed, multiple of the recorded"),
-        DeclareLaunchArgument("rviz", default_value="false", description="open RViz with rviz/monovoc.rviz"),
+        DeclareLaunchArgument(
+            "rviz", default_value="false", choices=BOOLEANS, description="open RViz with rviz/monovoc.rviz"
+        ),
         DeclareLaunchArgument(
             "navigation_mode",
             default_value="none",
@@ -194,4 +211,15 @@ def generate_launch_description() -> LaunchDescription:
         condition=IfCondition(LaunchConfiguration("rviz")),
     )
     on_replay_exit = RegisterEventHandler(OnProcessExit(target_action=replay, on_exit=replay_ended))
-    return LaunchDescription([*arguments, *mappers, segmenter, replay, on_replay_exit, rviz])
+    declared = {a.name for a in arguments}
+
+    def unknown_arguments(context) -> list:
+        """`ros2 launch` takes any NAME:=VALUE: a misspelt one (segmentr:=true) would be ignored without a word."""
+        unknown = sorted(set(context.launch_configurations) - declared)
+        if not unknown:
+            return []
+        return [LogInfo(msg=f"monovoc: WARNING: unknown launch argument(s) {', '.join(unknown)}: ignored (known: "
+                            f"{', '.join(sorted(declared))}; see docs/parameters.md)")]  # fmt: skip
+
+    checks = [OpaqueFunction(function=unknown_arguments), on_replay_exit]
+    return LaunchDescription([*arguments, *checks, *mappers, segmenter, replay, rviz])

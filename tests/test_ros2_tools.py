@@ -185,11 +185,12 @@ def test_launch_on_a_robots_topics(env):
     assert snapshot_keyframes(env, line) == KEYFRAMES, process.describe()
 
 
-def test_a_bag_that_cannot_be_replayed_ends_the_launch_with_the_reason(env, tmp_path):
+def test_a_bag_that_cannot_be_replayed_ends_the_launch_with_the_reason_and_a_typo_is_said(env, tmp_path):
     """A typo in bag:= must not leave a mapper waiting for keyframes that never come, looking like a working one."""
-    line = f"ros2 launch monovoc_ros monovoc.launch.py bag:={tmp_path / 'no_such.mcap'}"
+    line = f"ros2 launch monovoc_ros monovoc.launch.py bag:={tmp_path / 'no_such.mcap'} map_directry:=/tmp/typo"
     with launch(line, env, "ros2_launch_no_bag") as process:
         # `ros2 launch` returns once every process it started has ended: the mapper was stopped too.
         wait_until(lambda: not process.running(), 120.0, "the launch to end by itself")
         out = process.output()
         assert "no such bag file" in out and "the bag replay failed" in out, process.describe()
+        assert "unknown launch argument(s) map_directry: ignored" in out, process.describe()  # a typo is said

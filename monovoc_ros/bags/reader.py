@@ -115,6 +115,8 @@ def bag_file(path: str | os.PathLike) -> Path:
         if len(files) != 1 or files[0].suffix != ".mcap":
             raise BagError(f"{path}: only rosbag2 bags of one .mcap file are supported, got {files}")
         path = files[0]
+    if path.is_dir():
+        raise BagError(f"{path}: a folder without a rosbag2 metadata.yaml, not a bag")
     if not path.is_file():
         raise BagError(f"{path}: no such bag file")
     return path
