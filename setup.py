@@ -42,11 +42,11 @@ setup(
         "console_scripts": [
             "monovoc = monovoc_ros.cli:main",
             # ros2 run monovoc_ros semantic_mapper: mapping + object database + /monovoc/query
-            "semantic_mapper = monovoc_ros.nodes.semantic_mapper:main",
+            "semantic_mapper = monovoc_ros.nodes.entry:semantic_mapper",
             # the mapping node alone, without objects and embeddings (no models needed)
-            "mapping_node = monovoc_ros.nodes.mapping_node:main",
+            "mapping_node = monovoc_ros.nodes.entry:mapping_node",
             # keyframe images -> per-frame instance masks + class names (a robot with only a camera)
-            "segmenter = monovoc_ros.nodes.segmenter:main",
+            "segmenter = monovoc_ros.nodes.entry:segmenter",
         ],
     },
 )

@@ -86,3 +86,19 @@ def test_keyframes_deferred_by_the_last_run_are_integrated_first_on_resume(tmp_p
     for keyframe in keyframes[:6]:
         reference.integrate(keyframe)
     assert np.array_equal(saved.result().object_ids, reference.result().object_ids)
+
+
+def test_a_stop_while_the_node_still_imports_is_one_line(tmp_path, monkeypatch, capsys):
+    """The console scripts (nodes/entry.py) import the node when run: a SIGINT landing in an import (a launch that
+    stops at once because its bag cannot be replayed) ends it as a stop during start-up does, without a traceback."""
+    from monovoc_ros.nodes import entry
+
+    (tmp_path / "interrupted_node.py").write_text("raise KeyboardInterrupt\n")  # the signal, inside the import
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert entry._run("interrupted_node") == 0
+    assert (
+        capsys.readouterr().err
+        == "interrupted_node: stop requested during start-up (importing): exiting, nothing written\n"
+    )
+    (tmp_path / "finished_node.py").write_text("def main():\n    return 3\n")
+    assert entry._run("finished_node") == 3  # otherwise the node's main, its exit code passed on
