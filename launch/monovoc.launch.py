@@ -19,6 +19,8 @@ Every argument is listed in the README ("Launch file"). tests/test_ros2_tools.py
 tests/test_colcon.py that every executable and file it names is installed by colcon.
 """
 
+import difflib
+
 from launch import LaunchDescription
 from launch.actions import (
     DeclareLaunchArgument,
@@ -38,7 +40,10 @@ from launch_ros.substitutions import FindPackagePrefix, FindPackageShare
 
 PACKAGE = "monovoc_ros"
 # What launch's conditions read as a boolean: anything else would fail deep in a condition with an unreadable error.
-BOOLEANS = ["true", "false", "True", "False", "1", "0"]
+BOOLEANS = ["true", "false", "True", "False", "TRUE", "FALSE", "1", "0"]
+# `monovoc replay`'s exit code when it published nothing (monovoc_ros.commands.replay.NOT_STARTED: this file imports
+# only launch packages).
+REPLAY_NOT_STARTED = 3
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -193,11 +198,12 @@ def generate_launch_description() -> LaunchDescription:
     )
 
     def replay_ended(event, context) -> list:
-        """A replay that could not start (exit code 1: no such bag, an unreadable one) ends the launch: a mapper
-        waiting for a bag that never comes looks like a working one. Other failures are said, the node kept."""
-        if event.returncode in (0, 130) or event.returncode < 0:  # done, or stopped by a signal
+        """A replay that published nothing (`monovoc replay` exit code 3: no such bag, not a bag, no subscriber in
+        time) ends the launch: a mapper waiting for a bag that never comes looks like a working one. A replay that
+        fails later is said, the node (and what it mapped) kept."""
+        if event.returncode in (0, 130) or event.returncode < 0 or context.is_shutdown:  # done, or stopped
             return []
-        if event.returncode != 1:
+        if event.returncode != REPLAY_NOT_STARTED:
             ended = f"monovoc: the bag replay ended with exit code {event.returncode} (see its error above)"
             return [LogInfo(msg=ended)]
         reason = "the bag replay failed (its error is above): nothing was replayed; stopping the launch"
@@ -213,13 +219,17 @@ def generate_launch_description() -> LaunchDescription:
     on_replay_exit = RegisterEventHandler(OnProcessExit(target_action=replay, on_exit=replay_ended))
     declared = {a.name for a in arguments}
 
-    def unknown_arguments(context) -> list:
-        """`ros2 launch` takes any NAME:=VALUE: a misspelt one (segmentr:=true) would be ignored without a word."""
-        unknown = sorted(set(context.launch_configurations) - declared)
-        if not unknown:
-            return []
-        return [LogInfo(msg=f"monovoc: WARNING: unknown launch argument(s) {', '.join(unknown)}: ignored (known: "
-                            f"{', '.join(sorted(declared))}; see docs/parameters.md)")]  # fmt: skip
+    def misspelt_arguments(context) -> list:
+        """`ros2 launch` takes any NAME:=VALUE: a misspelt argument (segmentr:=true) would be ignored without a word.
+        Only names close to one of this file's are said: the context also holds launch's own settings and the
+        arguments of a launch file that includes this one."""
+        said = []
+        for name in sorted(set(context.launch_configurations) - declared):
+            close = difflib.get_close_matches(name, declared, n=1, cutoff=0.75)
+            if close:
+                said.append(LogInfo(msg=f"monovoc: WARNING: {name} is not an argument of monovoc.launch.py, "
+                                        f"ignored (did you mean {close[0]}? see docs/parameters.md)"))  # fmt: skip
+        return said
 
-    checks = [OpaqueFunction(function=unknown_arguments), on_replay_exit]
+    checks = [OpaqueFunction(function=misspelt_arguments), on_replay_exit]
     return LaunchDescription([*arguments, *checks, *mappers, segmenter, replay, rviz])

@@ -27,6 +27,10 @@ from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
 from monovoc_ros.core.session import DEFAULT_MAX_SHRINK, KeyframeListener, MappingSession, SessionStats
 
 
+class NoMapError(ValueError):
+    """The input gave no Gaussian map the mapper took: nothing to map onto."""
+
+
 @dataclass
 class RunStats(SessionStats):
     """The session's counters and the timing of an offline run."""
@@ -160,6 +164,6 @@ def _run(
                 break
     apply_ahead()  # the keyframes that went ahead of it expect it
     if session.mapper is None:
-        raise ValueError(f"no Gaussian map was given, or every one was refused (rejected: {dict(stats.rejected)})")
+        raise NoMapError(f"no Gaussian map was given, or every one was refused (rejected: {dict(stats.rejected)})")
     stats.wall_seconds = time.perf_counter() - start
     return session.mapper, stats

@@ -108,6 +108,11 @@ def test_offline_monovoc_approach_json_and_plot(capsys, tmp_path):
     nowhere = str(tmp_path / "no" / "p.png")
     assert cli_main(["approach", "--map", str(room_directory()), "the sofa", "--plot", nowhere]) == 1
     assert "--plot" in capsys.readouterr().err and not (tmp_path / "no").exists()
+    # An image format matplotlib does not write: said in one line after the answer, which is still printed.
+    odd = ["approach", "--map", str(room_directory()), "the sofa", "--json", "--plot", str(tmp_path / "g.xyz")]
+    assert cli_main(odd) == 1
+    out = capsys.readouterr()
+    assert json.loads(out.out)["success"] and out.err.startswith("monovoc approach: --plot")
 
 
 def test_the_gaussian_map_type_builds_a_grid():

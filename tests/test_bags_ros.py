@@ -288,6 +288,12 @@ def test_replay_errors(bag: Path, tmp_path: Path, monkeypatch) -> None:
     cut.write_bytes((REPO / "bags" / "synthetic_room.mcap").read_bytes()[:100_000])  # its first chunk: 6.6 MB
     with pytest.raises(ReplayError, match="unfinished bag"):
         replay(cut)
+    # Nothing published: exit code 3 (NOT_STARTED), on which the launch file ends the launch.
+    from monovoc_ros.cli import main as cli_main
+    from monovoc_ros.commands.replay import NOT_STARTED
+
+    assert NOT_STARTED == 3 and cli_main(["replay", str(cut)]) == NOT_STARTED
+    assert cli_main(["replay", str(tmp_path / "no_such.mcap")]) == NOT_STARTED
     _use_ros_env(ros_environment(tmp_path), monkeypatch)
     start = time.monotonic()
     with pytest.raises(ReplayError, match="1 subscriber"):

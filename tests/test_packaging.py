@@ -308,3 +308,18 @@ def test_readme_pip_line_is_the_pinned_pip_only_list():
         assert requirements.get(name) == version, f"{name}=={version} in README, {requirements.get(name)} pinned"
         # and it is what the venv runs (torch's CPU wheel reports a local version, 2.13.0+cpu)
         assert importlib.metadata.version(name).split("+")[0] == version, name
+
+
+def test_the_launch_file_ends_on_the_replay_exit_code_that_means_nothing_was_replayed():
+    """The launch file imports only launch packages: its copy of `monovoc replay`'s NOT_STARTED must agree."""
+    import ast
+
+    from monovoc_ros.commands.replay import NOT_STARTED
+
+    tree = ast.parse(LAUNCH.read_text())
+    values = [
+        node.value.value
+        for node in tree.body
+        if isinstance(node, ast.Assign) and [t.id for t in node.targets] == ["REPLAY_NOT_STARTED"]
+    ]
+    assert values == [NOT_STARTED]

@@ -193,4 +193,4 @@ def test_a_bag_that_cannot_be_replayed_ends_the_launch_with_the_reason_and_a_typ
         wait_until(lambda: not process.running(), 120.0, "the launch to end by itself")
         out = process.output()
         assert "no such bag file" in out and "the bag replay failed" in out, process.describe()
-        assert "unknown launch argument(s) map_directry: ignored" in out, process.describe()  # a typo is said
+        assert "map_directry is not an argument of monovoc.launch.py, ignored (did you mean map_directory?" in out

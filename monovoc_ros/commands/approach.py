@@ -71,14 +71,15 @@ def run(args: argparse.Namespace) -> int:
         goal = ap.Goal(ap.Approach(False, str(exc)))
         grid = None
     answer = goal.to_dict(args.frame_id)
+    plotted = True
     if args.plot and grid is not None:
         named = [(r.label or r.hex, gaussians.means[ids == r.id]) for r in index.records()]
         name = goal.record.label if goal.record is not None else ""
         try:
             ap.plot(grid, args.plot, named, [(name, goal.approach)], robot)
-        except OSError as exc:  # not writable
+        except (OSError, ValueError) as exc:  # not writable; an image format matplotlib does not write
             print(f"monovoc approach: --plot {args.plot}: {exc}", file=sys.stderr)
-            return 1
+            plotted = False  # the answer is still printed
     if args.json:
         print(json.dumps(answer, indent=1))
     elif answer["success"]:
@@ -89,4 +90,4 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         print(f"monovoc approach: {answer['message']}", file=sys.stderr)
-    return 0 if answer["success"] else 1
+    return 0 if answer["success"] and plotted else 1

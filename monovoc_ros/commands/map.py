@@ -174,9 +174,17 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from monovoc_ros.bags.reader import BagError
+    from monovoc_ros.core.evaluation.datasets import SequenceError
+    from monovoc_ros.core.map.ply import PlyError
+    from monovoc_ros.core.map_store import MapStoreError
+    from monovoc_ros.offline import NoMapError
+
     try:
         return _map(args)
-    except (ValueError, OSError) as exc:  # a missing or unreadable source, a bag without a map, an unwritable OUT
+    # The operator's input: a missing or unreadable source, a bag without a map, an OUT it cannot write. Any other
+    # error is a bug: its traceback stays.
+    except (BagError, SequenceError, PlyError, MapStoreError, NoMapError, OSError) as exc:
         raise SystemExit(f"monovoc map: {exc}") from None
 
 

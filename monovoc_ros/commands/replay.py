@@ -7,6 +7,9 @@ import json
 import sys
 import threading
 
+# The exit code of a replay that published nothing (the launch file ends the launch on it: nothing will come).
+NOT_STARTED = 3
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -14,7 +17,9 @@ def register(subparsers) -> None:
         help="publish an MCAP bag on live ROS 2 topics",
         description="Publishes the bag's raw CDR messages at the recorded rate (or --rate R times it, or --fast "
         "as fast as possible without losing messages: reliable QoS, waits for acknowledgements). The Gaussian "
-        "map topic is transient-local, so nodes that start late still get the map. Prints a JSON summary.",
+        "map topic is transient-local, so nodes that start late still get the map. Prints a JSON summary. "
+        f"Exit codes: 0 done; {NOT_STARTED} nothing was replayed (no such bag, not a bag, no message, no subscriber "
+        "in time); 1 it failed while replaying; 2 messages went out to no subscriber or were not acknowledged.",
     )
     p.add_argument("bag", help="MCAP bag (e.g. bags/synthetic_room.mcap)")
     speed = p.add_mutually_exclusive_group()
@@ -58,7 +63,10 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     install_stop_signals(stop)
 
+    publishing = threading.Event()
+
     def started() -> None:
+        publishing.set()
         print(f"monovoc replay: publishing {args.bag}", file=sys.stderr, flush=True)
 
     def done(summary) -> None:
@@ -105,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         )
     except (BagError, ReplayError, ValueError) as exc:
         print(f"monovoc replay: {exc}", file=sys.stderr)
-        return 1
+        return 1 if publishing.is_set() else NOT_STARTED
     except KeyboardInterrupt:  # before publishing started (e.g. while waiting for subscribers)
         return 130
     return 0 if not (summary.unacked or summary.unmatched) else 2

@@ -525,9 +525,9 @@ class ObjectQueryComponent:
             matrix = ma.pose_stamped_to_matrix(pose, "body")
         except ValueError as exc:
             raise QueryError(f"viewpoint: {exc}") from None
-        distance = float(np.linalg.norm(matrix[:3, 3]))
-        if distance > MAX_VIEWPOINT_M:  # finite, but no robot's in this map: answers would read "inf m"
-            raise QueryError(f"viewpoint: {distance:.3g} m from the map's origin (at most {MAX_VIEWPOINT_M:g} m)")
+        farthest = float(np.abs(matrix[:3, 3]).max())  # not the norm: it overflows to inf for 1e300
+        if farthest > MAX_VIEWPOINT_M:  # finite, but no robot's in this map: answers would read "inf m"
+            raise QueryError(f"viewpoint: {farthest:.3g} m from the map's origin (at most {MAX_VIEWPOINT_M:g} m)")
         return spatial.Viewpoint(matrix)
 
     def _on_ask(self, request: Any, response: Any) -> Any:
