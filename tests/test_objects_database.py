@@ -150,6 +150,9 @@ def test_unreadable_files_raise_a_clear_error(tmp_path):
         ObjectDatabase(other)
     with pytest.raises(ObjectDatabaseError, match="no object database"):
         load_object_index(tmp_path / "missing")
+    (tmp_path / "folder" / DB_NAME).mkdir(parents=True)  # a directory in its place: said so, not "missing"
+    with pytest.raises(ObjectDatabaseError, match="objects.db: not a file"):
+        load_object_index(tmp_path / "folder")
     # A real database cut in half (a disk full or a copy gone wrong).
     mapper, index = room_map()
     whole = tmp_path / "whole"

@@ -170,6 +170,8 @@ class ObjectDatabase:
 
     def __init__(self, location: str | os.PathLike, *, create: bool = True) -> None:
         self.path = database_path(location)
+        if not create and self.path.exists() and not self.path.is_file():
+            raise ObjectDatabaseError(f"{self.path}: not a file (an object database is one SQLite file)")
         if not create and not self.path.is_file():
             raise ObjectDatabaseError(f"{self.path}: no object database (build the map's objects first)")
         if create:
