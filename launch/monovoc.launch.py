@@ -41,6 +41,9 @@ from launch_ros.substitutions import FindPackagePrefix, FindPackageShare
 PACKAGE = "monovoc_ros"
 # What launch's conditions read as a boolean: anything else would fail deep in a condition with an unreadable error.
 BOOLEANS = ["true", "false", "True", "False", "TRUE", "FALSE", "1", "0"]
+# Launch configurations that launch and launch_ros set themselves (an including file's PushRosNamespace, SetParameter,
+# SetRemap; ExecuteProcess's settings): not arguments of this file, nor typos of them (ros_namespace ~ namespace).
+LAUNCH_OWN = {"ros_namespace", "global_params", "ros_remaps", "emulate_tty", "sigterm_timeout", "sigkill_timeout"}
 # `monovoc replay`'s exit code when it published nothing (monovoc_ros.commands.replay.NOT_STARTED: this file imports
 # only launch packages).
 REPLAY_NOT_STARTED = 3
@@ -224,7 +227,9 @@ def generate_launch_description() -> LaunchDescription:
         Only names close to one of this file's are said: the context also holds launch's own settings and the
         arguments of a launch file that includes this one."""
         said = []
-        for name in sorted(set(context.launch_configurations) - declared):
+        for name in sorted(set(context.launch_configurations) - declared - LAUNCH_OWN):
+            if name.startswith("anon"):  # launch's AnonName substitutions
+                continue
             close = difflib.get_close_matches(name, declared, n=1, cutoff=0.75)
             if close:
                 said.append(LogInfo(msg=f"monovoc: WARNING: {name} is not an argument of monovoc.launch.py, "
