@@ -366,3 +366,39 @@ def test_a_burst_of_maps_loses_none_silently(tmp_path, reader_process):
         values = diagnostics.wait_for(lambda v: v["gaussians"] == str(sizes[-1]), 30.0, process=node)
     # Every map is the first, an update, or one replaced by a newer map before it was applied (counted).
     assert 1 + int(values["map_updates"]) + int(values["maps_coalesced"]) == burst, values
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("reader_process", [True, False])
+def test_map_bytes_that_are_no_point_cloud_are_refused_and_counted(tmp_path, reader_process):
+    """The map topic is taken serialized (msg_adapters.point_cloud_from_cdr) in the reader and in the node alike: bytes
+    a broken publisher sent are refused as bad input and counted, and the next map is taken."""
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    scene = small_scene()
+    env = ros_environment(tmp_path)
+    params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "map_reader_process": reader_process}
+    smaller = scene.gaussians.subset(np.arange(len(scene.gaussians) - 100))
+    garbage = [
+        serialize_message(ma.gaussian_map_to_cloud(scene.gaussians))[:5000],  # cut in its point data
+        b"\x00\x01\x00\x00" + bytes(range(256)),  # a CDR header and noise
+        b"\x07",  # no CDR header
+    ]
+    with (
+        NodeProcess.python([*NODE, *ros_args(params)], env, name="mapping_node") as node,
+        ClientNode(env) as client,
+    ):
+        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
+        maps = client.node.create_publisher(PointCloud2, "/monovoc/gaussians", latched_qos())
+        wait_for_subscribers(maps, timeout=30.0, process=node)
+        maps.publish(ma.gaussian_map_to_cloud(scene.gaussians, stamp=1))
+        diagnostics.wait_for(lambda v: v["gaussians"] == str(len(scene.gaussians)), 30.0, process=node)
+        for count, data in enumerate(garbage, 1):  # one at a time: the latched topic keeps the newest only
+            maps.publish(data)
+            diagnostics.wait_for(lambda v, n=count: v["rejected.bad_gaussians"] == str(n), 20.0, process=node)
+        maps.publish(ma.gaussian_map_to_cloud(smaller, stamp=2))
+        values = diagnostics.wait_for(lambda v: v["gaussians"] == str(len(smaller)), 30.0, process=node)
+        node.check_running()
+    assert values["rejected.bad_gaussians"] == str(len(garbage)) and values["worker_errors"] == "0", values
+    assert values["ingest_errors"] == "0", values

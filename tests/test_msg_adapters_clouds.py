@@ -20,6 +20,7 @@ from msg_adapters import (
     cloud_to_gaussian_map,
     gaussian_map_to_cloud,
     object_markers,
+    point_cloud_from_cdr,
     semantic_cloud_from_arrays,
     semantic_cloud_to_arrays,
     semantic_object,
@@ -210,6 +211,32 @@ def test_gaussian_cloud_rejects_bad_input() -> None:
     big_ids = GaussianMap(gmap.means, gmap.scales, gmap.quats, gmap.opacities, ids=np.arange(10) + 2**32)
     with pytest.raises(AdapterError, match="ids must fit uint32"):
         gaussian_map_to_cloud(big_ids)
+
+
+@pytest.mark.parametrize("ids", [True, False])
+def test_gaussian_cloud_from_serialized_bytes_equals_rclpy_s(ids: bool) -> None:
+    """A raw subscription's bytes decoded without rclpy: the same map, bit for bit, from arrays of their own (not views
+    of the message's buffer, which the map would otherwise keep alive)."""
+    gmap = _gaussians(500, ids=ids)
+    data = serialize_message(gaussian_map_to_cloud(gmap, frame_id="odom", stamp=12_500_000_000))
+    msg = point_cloud_from_cdr(data)
+    assert str(msg.header.frame_id) == "odom" and time_to_ns(msg.header.stamp) == 12_500_000_000
+    got, want = cloud_to_gaussian_map(msg), cloud_to_gaussian_map(deserialize_message(data, PointCloud2))
+    for name in ("means", "scales", "quats", "opacities", "colors", "ids"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert (a is None) == (b is None) and (a is None or (a.dtype == b.dtype and np.array_equal(a, b))), name
+        assert a is None or a.base is None or not np.shares_memory(a, np.frombuffer(data, np.uint8)), name
+    assert got.stamp_ns == want.stamp_ns == 12_500_000_000
+
+
+def test_serialized_bytes_that_are_no_point_cloud_are_refused() -> None:
+    from std_msgs.msg import String
+
+    data = serialize_message(gaussian_map_to_cloud(_gaussians(50)))
+    for bad in (data[:-1], data[:1500], data[:40], b"\x07", b"", b"\x00\x01\x00\x00" + bytes(range(256)),
+                serialize_message(String(data="not a cloud"))):  # fmt: skip
+        with pytest.raises(AdapterError, match="PointCloud2: not a serialized PointCloud2"):
+            point_cloud_from_cdr(bad)
 
 
 def test_gaussian_cloud_speed_600k() -> None:

@@ -5,13 +5,13 @@ Why: rclpy takes a message holding the interpreter lock. A 1M-Gaussian map (a 56
 that arrived meanwhile waited: the query p99 of the 1M robot runs was 4x the one without map updates.
 
 The child (``python -m monovoc_ros.nodes.map_reader``, a hidden node ``_<node>_map_reader`` in the node's
-namespace) subscribes to the map topic with the node's QoS, decodes each message with the node's own adapter
-(msg_adapters.cloud_to_gaussian_map: the same checks and the same arrays as the in-process subscription and
-offline mapping), and writes the arrays into an anonymous shared-memory file (memfd), sealed against writes
-and resizing. It sends the file descriptor (SCM_RIGHTS) with a small JSON header over a Unix socket; the node
-checks the header against the file, maps it read-only and builds the GaussianMap on it without a copy.
-Nothing is ever in the file system, so whichever process dies, no memory is left behind: the file lives as
-long as the map's arrays do. The node asks for each map (a credit byte) as soon as it has queued the one
+namespace) subscribes to the map topic with the node's QoS, takes each message serialized and decodes it with the
+node's own adapters (msg_adapters.point_cloud_from_cdr and cloud_to_gaussian_map: the same checks and the same arrays
+as the in-process subscription and offline mapping), and writes the arrays into an anonymous shared-memory file
+(memfd), sealed against writes and resizing. It sends the file descriptor (SCM_RIGHTS) with a small JSON header
+over a Unix socket; the node checks the header against the file, maps it read-only and builds the GaussianMap on it
+without a copy. Nothing is ever in the file system, so whichever process dies, no memory is left behind: the file
+lives as long as the map's arrays do. The node asks for each map (a credit byte) as soon as it has queued the one
 before; until then the child keeps only the newest (NewestMap), so a node starting up or falling behind never
 has a backlog of maps waiting in the socket.
 
@@ -630,11 +630,12 @@ def _child_main(argv: list[str] | None = None) -> int:
     import msg_adapters as ma
     from monovoc_ros.nodes.qos import map_qos
 
-    def on_map(msg: Any) -> None:
+    def on_map(data: bytes) -> None:
         # Whatever a message does to the reader costs that message only: a crash would be a crash loop on a
         # latched topic.
         start = time.perf_counter()
         try:
+            msg = ma.point_cloud_from_cdr(data)
             frame_id = str(msg.header.frame_id)
             if len(frame_id) > _MAX_FRAME_ID:
                 raise ValueError(f"frame_id of {len(frame_id)} characters")
@@ -650,7 +651,8 @@ def _child_main(argv: list[str] | None = None) -> int:
     # rclpy's handlers would end the child on a signal, under the node's feet.
     rclpy.init(args=["--ros-args", "--disable-rosout-logs"], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(args.node_name, namespace=args.namespace)
-    node.create_subscription(PointCloud2, args.topic, on_map, map_qos())  # the node's own QoS for `gaussians`
+    # The node's own QoS for `gaussians`; raw: the serialized message, decoded without rclpy's two copies of it.
+    node.create_subscription(PointCloud2, args.topic, on_map, map_qos(), raw=True)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     with contextlib.suppress(Exception):

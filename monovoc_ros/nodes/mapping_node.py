@@ -394,7 +394,12 @@ class MappingNode(Node):
             )
         if self._map_reader is None:
             self.create_subscription(
-                PointCloud2, "gaussians", self._on_gaussians, map_qos(), callback_group=self.callback_groups["map"]
+                PointCloud2,
+                "gaussians",
+                self._on_gaussians,
+                map_qos(),
+                callback_group=self.callback_groups["map"],
+                raw=True,  # decoded as the map reader decodes it (msg_adapters.point_cloud_from_cdr)
             )
         # Volatile, so that a SLAM publishing its path either way (latched or not) matches.
         self.create_subscription(
@@ -467,11 +472,12 @@ class MappingNode(Node):
                 if dropped is not None:
                     self._reject_log("queue_full", f"keyframe {dropped.stamp_ns} dropped: queue_size reached")
 
-    def _on_gaussians(self, msg: Any) -> None:
+    def _on_gaussians(self, data: bytes) -> None:
         start = time.perf_counter()
         # Counted once queued or refused: a --fast replay waits for the count before the keyframes after it.
         try:
             try:
+                msg = ma.point_cloud_from_cdr(data)
                 gaussians = ma.cloud_to_gaussian_map(msg)
             except ValueError as exc:
                 self._refuse_map(f"Gaussian map ignored: {exc}")
