@@ -36,7 +36,10 @@ snapshots into a map directory) running as its own process. Runs per size:
 
 Both report the worker thread's share of the wall time by activity (diagnostics `worker_s_*`: keyframes, map
 updates, re-integration, labels, object geometry, publication, snapshots, calls), the map messages' decoding
-and the map updates' plans (both beside the worker), map updates applied and prepared, and the node's peak RSS.
+and the map updates' plans (both beside the worker), map updates applied and prepared, the node's peak RSS, and
+the CPU every process of the run took (`cpu`: the node, its map reader, the replay in this process, the viewer and
+the query client; core-seconds, per keyframe, and the cores kept busy): on a saturated machine the node's CPU per
+keyframe, not its wall time, says what rate the cores allow.
 """
 
 from __future__ import annotations
@@ -138,6 +141,39 @@ def peak_rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def cpu_seconds(roles: dict[str, list[int]]) -> dict[str, dict[int, float]]:
+    """User + system CPU seconds so far of each role's processes (all their threads), by pid."""
+    out: dict[str, dict[int, float]] = {}
+    for role, pids in roles.items():
+        out[role] = {}
+        for pid in pids:
+            with contextlib.suppress(psutil.Error):
+                t = psutil.Process(pid).cpu_times()
+                out[role][pid] = t.user + t.system
+    return out
+
+
+def cpu_roles(node_pid: int, others: dict[str, int]) -> dict[str, list[int]]:
+    """The processes whose CPU a run counts, by role: the node, its map reader, this process (the replay and the
+    diagnostics client) and the viewer and query client where they run."""
+    readers = [c.pid for c in psutil.Process(node_pid).children() if "monovoc_ros.nodes.map_reader" in c.cmdline()]
+    return {"node": [node_pid], "map_reader": readers, "replay": [os.getpid()]} | {k: [v] for k, v in others.items()}
+
+
+def cpu_use(before: dict[str, dict[int, float]], after: dict[str, dict[int, float]], wall_s: float, keyframes: int):
+    """The CPU a run took, by role: core-seconds, and per keyframe processed; `cores_busy`: of the machine's cores,
+    how many the run kept busy on average (2 cores saturated: 2.0). A process started in between (a map reader
+    restarted) counts from its start; one gone by the end is left out."""
+    used = {
+        role: sum(t - before.get(role, {}).get(pid, 0.0) for pid, t in pids.items()) for role, pids in after.items()
+    }
+    return {
+        "core_s": {role: round(v, 1) for role, v in used.items()},
+        "core_ms_per_keyframe": {role: round(1e3 * v / max(1, keyframes)) for role, v in used.items()},
+        "cores_busy": round(sum(used.values()) / wall_s, 2),
+    }
+
+
 def worker_shares(values: dict[str, str], wall_s: float) -> dict:
     shares = {a: round(float(values[f"worker_s_{a}"]) / wall_s, 3) for a in ACTIVITIES}
     shares["total"] = round(sum(shares.values()), 3)
@@ -202,9 +238,13 @@ def run(
             wait_until(viewer_files["ready"].exists, 300.0, "the cloud viewer", process=cloud_viewer)
         diagnostics.wait_for(lambda d: float(d.get("warm_up_ms", 0)) > 0, 300.0, what="warm-up", process=node)
         started: list[float] = []
+        others = {"viewer": cloud_viewer.pid} if cloud_viewer is not None else {}
+        others |= {"query_load": querying.pid} if querying is not None else {}
+        cpu_before: dict[str, dict[int, float]] = {}
 
         def on_started() -> None:
             started.append(time.monotonic())
+            cpu_before.update(cpu_seconds(cpu_roles(node.pid, others)))
             start_file.touch()
 
         published = KeyframePublishTimes()
@@ -218,6 +258,8 @@ def run(
             900.0, what="all keyframes", process=node,
         )  # fmt: skip
         finished = time.monotonic()
+        # Read now: the map reader's count is lost once the node stops it.
+        cpu_after = cpu_seconds(cpu_roles(node.pid, others))
         queries: dict = {}
         if querying is not None:
             wait_until(lambda: not querying.running(), 120.0, "the query load to end", process=None)
@@ -262,6 +304,8 @@ def run(
             "cloud_viewer": cloud_viewer is not None,
             "clouds_skipped": int(values.get("clouds_skipped", 0)),
             "worker_share": worker_shares(values, wall),
+            # Every process of the run on the machine's cores, from the first message to the last keyframe integrated.
+            "cpu": cpu_use(cpu_before, cpu_after, wall, int(done["keyframes_processed"])),
             # What one publication took the worker: the labels, the object geometry, the messages.
             "publications": int(values["publishes"]),
             "publication_ms_mean": {
