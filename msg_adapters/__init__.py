@@ -15,7 +15,7 @@ from msg_adapters.gaussian_cloud import cloud_to_gaussian_map, gaussian_map_to_c
 from msg_adapters.image import image_to_numpy, numpy_to_image
 from msg_adapters.markers import object_markers
 from msg_adapters.message_cache import MessageCache
-from msg_adapters.point_cloud import point_cloud_from_cdr
+from msg_adapters.point_cloud import POINT_CLOUD_TYPE, point_cloud_from_cdr
 from msg_adapters.pose import (
     R_BODY_OPTICAL,
     keyframe_poses_to_path,
@@ -58,6 +58,7 @@ __all__ = [
     "numpy_to_image",
     "object_markers",
     "odometry_to_matrix",
+    "POINT_CLOUD_TYPE",
     "point_cloud_from_cdr",
     "pose_stamped_to_matrix",
     "pose_to_matrix",

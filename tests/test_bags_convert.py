@@ -223,6 +223,35 @@ def test_corrupted_messages_are_rejected_and_the_stream_continues(scene, bag: Pa
     assert sum(isinstance(e, GaussianMap) for e in events) == 1
 
 
+def test_map_messages_that_are_no_gaussian_cloud_are_rejected(scene, tmp_path: Path) -> None:
+    """The map topic is read from its bytes as the live node reads them (msg_adapters.point_cloud_from_cdr): a cut
+    message and one of another type are rejected as bad_gaussians, and the next map is read."""
+    from std_msgs.msg import String
+
+    good = ma.gaussian_map_to_cloud(scene.gaussians, stamp=MIN_START_NS + 2)
+    path = tmp_path / "maps.mcap"
+    cut = _serialized(good)[:3000]
+    with BagWriter(path) as w:
+        w.write(TOPICS["gaussians"], cut, MIN_START_NS + 1, type_name="sensor_msgs/msg/PointCloud2")
+        w.write(TOPICS["gaussians"], good, MIN_START_NS + 2)
+    events = list(bag_events(path, IngestConfig()))
+    assert isinstance(events[0], Rejection) and events[0].reason == "bad_gaussians"
+    assert "undecodable CDR" in events[0].detail and events[0].stamp_ns == MIN_START_NS + 1
+    assert_same_map(events[1], scene.gaussians)
+    other = tmp_path / "string.mcap"
+    with BagWriter(other) as w:
+        w.write(TOPICS["gaussians"], String(data="a map"), MIN_START_NS)
+    (event,) = bag_events(other, IngestConfig())
+    assert isinstance(event, Rejection) and event.reason == "bad_gaussians"
+    assert event.detail == "a std_msgs/msg/String, not a PointCloud2"
+
+
+def _serialized(msg) -> bytes:
+    from rclpy.serialization import serialize_message
+
+    return serialize_message(msg)
+
+
 def test_replica_office0_through_the_cli(replica_office0: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "replica.mcap"
     assert monovoc(["bag", "convert", str(replica_office0), "-o", str(out), "--max-keyframes", "3", "--quiet"]) == 0

@@ -11,7 +11,8 @@ import os
 from collections.abc import Iterator, Mapping
 
 import msg_adapters as ma
-from monovoc_ros.bags.reader import bag_info, iter_messages
+from monovoc_ros.bags.reader import BagMessage, bag_info, iter_messages
+from monovoc_ros.bags.schemas import normalize_type_name
 from monovoc_ros.contract import (
     BAD_MESSAGE,
     DEFAULT_NAMESPACE,
@@ -60,16 +61,13 @@ def bag_events(
     role_of = {topic: role for role, topic in names.items() if role in _OWN_ROLES or role in assembler.roles}
     for message in iter_messages(path, topics=list(role_of)):
         role = role_of[message.topic]
+        if role == MAP_ROLE:
+            yield _map_event(message)
+            continue
         try:
             decoded = message.decode()
         except Exception as exc:  # a CDR payload that does not match its schema (truncated, corrupt)
             yield from _undecodable(assembler, role, message.log_time_ns, exc)
-            continue
-        if role == MAP_ROLE:
-            try:
-                yield ma.cloud_to_gaussian_map(decoded)
-            except ValueError as exc:
-                yield Rejection(BAD_GAUSSIANS, MAP_ROLE, _stamp_or_none(decoded), str(exc))
             continue
         if role == KEYFRAME_POSES_ROLE:
             try:
@@ -82,6 +80,25 @@ def bag_events(
         yield from keyframes
 
 
+def _map_event(message: BagMessage) -> GaussianMap | Rejection:
+    """A map message as the live node reads the topic's bytes (msg_adapters.point_cloud_from_cdr, whose points are a
+    view of the message until cloud_to_gaussian_map copies them: mcap_ros2's decoder copied a 1M map's 57 MB)."""
+    try:
+        type_name = normalize_type_name(message.type_name)
+    except ValueError:
+        type_name = message.type_name
+    if type_name != ma.POINT_CLOUD_TYPE:
+        return Rejection(BAD_GAUSSIANS, MAP_ROLE, message.log_time_ns, f"a {message.type_name}, not a PointCloud2")
+    try:
+        cloud = ma.point_cloud_from_cdr(message.data)
+    except ValueError as exc:
+        return Rejection(BAD_GAUSSIANS, MAP_ROLE, message.log_time_ns, f"undecodable CDR ({exc})")
+    try:
+        return ma.cloud_to_gaussian_map(cloud)
+    except ValueError as exc:
+        return Rejection(BAD_GAUSSIANS, MAP_ROLE, _stamp_or_none(cloud), str(exc))
+
+
 def _stamp_or_none(msg) -> int | None:
     try:
         return ma.header_stamp_ns(msg)
@@ -91,9 +108,6 @@ def _stamp_or_none(msg) -> int | None:
 
 def _undecodable(assembler: KeyframeAssembler, role: str, log_time_ns: int, exc: Exception) -> Iterator[Rejection]:
     detail = f"undecodable CDR ({type(exc).__name__}: {exc})"
-    if role == MAP_ROLE:
-        yield Rejection(BAD_GAUSSIANS, MAP_ROLE, log_time_ns, detail)
-        return
     if role == KEYFRAME_POSES_ROLE:
         yield Rejection(BAD_MESSAGE[role], role, log_time_ns, detail)
         return
