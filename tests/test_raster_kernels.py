@@ -234,6 +234,19 @@ def test_ranks_by_index_is_the_argsort_of_the_depth_order():
         np.testing.assert_array_equal(nk.ranks_by_index(order, n), np.argsort(order))
 
 
+def test_voted_ranks_are_the_gaussians_with_a_positive_slot():
+    """Its NumPy twin: a Gaussian is voted when any channel of any of its pair slots is above 0 (NaN, 0 and negative
+    rounding are not); Gaussians without pairs are not."""
+    rng = np.random.default_rng(2)
+    for n, pairs in ((0, 0), (1, 0), (7, 30), (20_000, 60_000)):
+        cuts = np.sort(rng.integers(0, pairs + 1, max(0, n - 1)))
+        gauss_start = np.concatenate([[0], cuts, [pairs]]).astype(np.int64)
+        acc = rng.choice(np.array([0.0, 0.0, 0.0, -1e-9, np.nan, 0.25], np.float32), (pairs, 4))
+        positive = (acc > 0).any(axis=1)
+        want = np.flatnonzero([positive[a:b].any() for a, b in zip(gauss_start[:-1], gauss_start[1:], strict=True)])
+        np.testing.assert_array_equal(nk.voted_ranks(acc, gauss_start, 2), want)
+
+
 def test_tile_lists_are_depth_ordered_and_cull_no_reachable_tile():
     """Every tile holding a pixel with alpha >= 1/255 (float64) keeps the Gaussian; lists stay front to back."""
     for seed, kind in ((0, "mixed"), (3, "needles")):

@@ -206,7 +206,8 @@ def tile_slots(labels: np.ndarray, width: int, height: int) -> tuple[np.ndarray,
 def accumulate_votes(
     gmap: GaussianMap, labels: np.ndarray, view: View, weight_power: int, slots: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """Per visible Gaussian: map index, the `slots` heaviest labels and their votes, and the rest."""
+    """Per visible Gaussian with votes, in map order: map index, the `slots` heaviest labels and their votes, and the
+    rest; and the number of Gaussians in view."""
     n = len(gmap)
     empty = (np.zeros(0, np.int64), np.zeros((0, slots), np.int32), np.zeros((0, slots)), np.zeros(0), 0)
     if n == 0:
@@ -225,12 +226,15 @@ def accumulate_votes(
             _NO_MASK, np.float32(1.0), _NO_VALID, False, _ZERO_BG, False, np.int64(weight_power),
             True, slot_map, pair_acc, pair_tile, workers,
         )  # fmt: skip
-        out_labels = np.empty((nv, slots), np.int32)
-        out_weights = np.empty((nv, slots))
-        out_other = np.empty(nv)
+        # Only the Gaussians with votes are reduced (raster.accumulate_votes keeps no others).
+        voted = nk.voted_ranks(pair_acc, b.gauss_start, workers)
+        m = len(voted)
+        out_labels = np.empty((m, slots), np.int32)
+        out_weights = np.empty((m, slots))
+        out_other = np.empty(m)
         # Written in map order: merging them into the per-Gaussian state then walks it in memory order,
         # which took a third of the time of depth order's scattered rows (vote_kernels.merge_slots).
-        ranks = nk.ranks_by_index(b.order, n)
+        ranks = voted[nk.ranks_by_index(b.order[voted], n)]
         nk.reduce_votes(pair_acc, pair_tile, tile_labels, b.gauss_start, ranks, out_labels, out_weights, out_other,
                         workers)  # fmt: skip
         return b.order[ranks].astype(np.int64), out_labels, out_weights, out_other, nv
