@@ -29,9 +29,10 @@ POINT_CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
 def point_cloud_from_cdr(data: bytes | memoryview) -> Any:
     """The ``sensor_msgs/PointCloud2`` of a raw subscription's serialized message (CDR with its 4-byte
-    encapsulation header), for the readers here: rosbags' decoder, whose ``data`` is a read-only view of ``data``
-    where rclpy's deserializing copies the payload twice (a 1M-Gaussian map, 57 MB: ~120 ms of a 2-core
-    machine's CPU per map). Raises AdapterError for bytes that are no PointCloud2."""
+    encapsulation header), for the readers here: rosbags' decoder, whose ``data`` is a read-only view of ``data``,
+    where rclpy's deserializing copies the payload twice (a 1M-Gaussian map, 57 MB: ~120 ms in process; the whole
+    take of such a map, DDS's reassembly included, ~50 ms of CPU less: docs/results.md). Raises AdapterError for
+    bytes that are no PointCloud2."""
     from rosbags.serde import SerdeError
 
     from monovoc_ros.bags.schemas import deserialize_rosbags  # lazy: the bags package imports the adapters
