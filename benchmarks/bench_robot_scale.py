@@ -156,7 +156,11 @@ def cpu_seconds(roles: dict[str, list[int]]) -> dict[str, dict[int, float]]:
 def cpu_roles(node_pid: int, others: dict[str, int]) -> dict[str, list[int]]:
     """The processes whose CPU a run counts, by role: the node, its map reader, this process (the replay and the
     diagnostics client) and the viewer and query client where they run."""
-    readers = [c.pid for c in psutil.Process(node_pid).children() if "monovoc_ros.nodes.map_reader" in c.cmdline()]
+    readers = []
+    for child in psutil.Process(node_pid).children():
+        with contextlib.suppress(psutil.Error):  # a reader restarting: gone, or a zombie
+            if "monovoc_ros.nodes.map_reader" in child.cmdline():
+                readers.append(child.pid)
     return {"node": [node_pid], "map_reader": readers, "replay": [os.getpid()]} | {k: [v] for k, v in others.items()}
 
 

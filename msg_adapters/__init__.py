@@ -11,11 +11,11 @@ from msg_adapters.camera_info import camera_info_to_intrinsics, has_distortion, 
 from msg_adapters.colors import rgb_to_packed
 from msg_adapters.compressed_image import compressed_image_header, compressed_image_to_numpy, numpy_to_compressed_image
 from msg_adapters.errors import AdapterError
-from msg_adapters.gaussian_cloud import cloud_to_gaussian_map, gaussian_map_to_cloud
+from msg_adapters.gaussian_cloud import cloud_to_gaussian_map, gaussian_map_from_cdr, gaussian_map_to_cloud
 from msg_adapters.image import image_to_numpy, numpy_to_image
 from msg_adapters.markers import object_markers
 from msg_adapters.message_cache import MessageCache
-from msg_adapters.point_cloud import POINT_CLOUD_TYPE, point_cloud_from_cdr
+from msg_adapters.point_cloud import POINT_CLOUD_TYPE, point_cloud_from_cdr, prepare_point_cloud_decoder
 from msg_adapters.pose import (
     R_BODY_OPTICAL,
     keyframe_poses_to_path,
@@ -45,6 +45,7 @@ __all__ = [
     "compressed_image",
     "compressed_image_header",
     "compressed_image_to_numpy",
+    "gaussian_map_from_cdr",
     "gaussian_map_to_cloud",
     "has_distortion",
     "header_stamp_ns",
@@ -60,6 +61,7 @@ __all__ = [
     "odometry_to_matrix",
     "POINT_CLOUD_TYPE",
     "point_cloud_from_cdr",
+    "prepare_point_cloud_decoder",
     "pose_stamped_to_matrix",
     "pose_to_matrix",
     "rgb_to_packed",

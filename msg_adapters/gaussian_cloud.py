@@ -26,7 +26,7 @@ from monovoc_ros.contract import MAP_FRAME
 from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.core.map.ply import SH_C0
 from msg_adapters.errors import AdapterError
-from msg_adapters.point_cloud import FLOATS, INTEGERS, make_cloud, read_fields
+from msg_adapters.point_cloud import FLOATS, INTEGERS, make_cloud, point_cloud_from_cdr, read_fields
 from msg_adapters.stamps import header_stamp_ns
 
 POSITION_FIELDS = ("x", "y", "z")
@@ -115,6 +115,20 @@ def cloud_to_gaussian_map(msg: Any) -> GaussianMap:
         return GaussianMap(means, scales, quats, opacities, colors=colors, ids=ids, stamp_ns=_stamp_ns(msg))
     except ValueError as e:
         raise AdapterError(f"GaussianCloud: {e}") from None
+
+
+MAX_FRAME_ID = 1024  # characters of a map's frame_id (a name, not a payload: the map reader's header carries it)
+
+
+def gaussian_map_from_cdr(data: bytes | memoryview) -> tuple[GaussianMap, str]:
+    """A Gaussian map topic's serialized message (a raw subscription's bytes, a bag's record) -> the map (stamped
+    with its header's, ``GaussianMap.stamp_ns``) and its header's frame_id: ``point_cloud_from_cdr``, then
+    ``cloud_to_gaussian_map``, as the node, its map reader and offline mapping all read it. Raises AdapterError."""
+    msg = point_cloud_from_cdr(data)
+    frame_id = str(msg.header.frame_id)
+    if len(frame_id) > MAX_FRAME_ID:
+        raise AdapterError(f"GaussianCloud: frame_id of {len(frame_id)} characters (at most {MAX_FRAME_ID})")
+    return cloud_to_gaussian_map(msg), frame_id
 
 
 def _stamp_ns(msg: Any) -> int:

@@ -236,14 +236,14 @@ def test_map_messages_that_are_no_gaussian_cloud_are_rejected(scene, tmp_path: P
         w.write(TOPICS["gaussians"], good, MIN_START_NS + 2)
     events = list(bag_events(path, IngestConfig()))
     assert isinstance(events[0], Rejection) and events[0].reason == "bad_gaussians"
-    assert "undecodable CDR" in events[0].detail and events[0].stamp_ns == MIN_START_NS + 1
+    assert "not a serialized PointCloud2" in events[0].detail and events[0].stamp_ns == MIN_START_NS + 1
     assert_same_map(events[1], scene.gaussians)
     other = tmp_path / "string.mcap"
     with BagWriter(other) as w:
         w.write(TOPICS["gaussians"], String(data="a map"), MIN_START_NS)
     (event,) = bag_events(other, IngestConfig())
     assert isinstance(event, Rejection) and event.reason == "bad_gaussians"
-    assert event.detail == "a std_msgs/msg/String, not a PointCloud2"
+    assert event.detail == "std_msgs/msg/String in 'cdr', not a CDR PointCloud2"
 
 
 def _serialized(msg) -> bytes:

@@ -229,6 +229,32 @@ def test_gaussian_cloud_from_serialized_bytes_equals_rclpy_s(ids: bool) -> None:
     assert got.stamp_ns == want.stamp_ns == 12_500_000_000
 
 
+def test_gaussian_map_from_serialized_bytes_in_either_byte_order() -> None:
+    """What the node, its map reader and offline mapping read: the map and the frame; big-endian CDR (a publisher on
+    a big-endian machine) gives the same map; a frame_id that is no UTF-8 or too long refuses the message (rclpy
+    replaced such bytes: docs/robustness.md)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from msg_adapters import gaussian_map_from_cdr
+
+    gmap = _gaussians(300)
+    data = serialize_message(gaussian_map_to_cloud(gmap, frame_id="odom", stamp=3))
+    got, frame = gaussian_map_from_cdr(data)
+    assert frame == "odom" and got.stamp_ns == 3
+    store = get_typestore(Stores.ROS2_JAZZY)
+    big = bytes(store.serialize_cdr(point_cloud_from_cdr(data), "sensor_msgs/msg/PointCloud2", little_endian=False))
+    assert big[:2] == b"\x00\x00"
+    got_big, frame_big = gaussian_map_from_cdr(big)
+    assert frame_big == "odom"
+    for name in ("means", "scales", "quats", "opacities", "colors", "ids"):
+        np.testing.assert_array_equal(getattr(got_big, name), getattr(got, name))
+    at = data.index(b"odom")
+    with pytest.raises(AdapterError, match="not a serialized PointCloud2"):
+        gaussian_map_from_cdr(data[:at] + b"\xff\xfedm" + data[at + 4 :])
+    with pytest.raises(AdapterError, match="frame_id of 2000 characters"):
+        gaussian_map_from_cdr(serialize_message(gaussian_map_to_cloud(gmap, frame_id="f" * 2000)))
+
+
 def test_serialized_bytes_that_are_no_point_cloud_are_refused() -> None:
     from std_msgs.msg import String
 

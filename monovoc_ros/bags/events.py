@@ -81,22 +81,19 @@ def bag_events(
 
 
 def _map_event(message: BagMessage) -> GaussianMap | Rejection:
-    """A map message as the live node reads the topic's bytes (msg_adapters.point_cloud_from_cdr, whose points are a
-    view of the message until cloud_to_gaussian_map copies them: mcap_ros2's decoder copied a 1M map's 57 MB)."""
+    """A map message as the live node reads the topic's bytes (msg_adapters.gaussian_map_from_cdr, whose points are a
+    view of the message until they are copied: mcap_ros2's decoder copied a 1M map's 57 MB first)."""
     try:
         type_name = normalize_type_name(message.type_name)
     except ValueError:
         type_name = message.type_name
-    if type_name != ma.POINT_CLOUD_TYPE:
-        return Rejection(BAD_GAUSSIANS, MAP_ROLE, message.log_time_ns, f"a {message.type_name}, not a PointCloud2")
+    if message.encoding != "cdr" or type_name != ma.POINT_CLOUD_TYPE:
+        what = f"{message.type_name or 'a message without a schema'} in {message.encoding!r}"
+        return Rejection(BAD_GAUSSIANS, MAP_ROLE, message.log_time_ns, f"{what}, not a CDR PointCloud2")
     try:
-        cloud = ma.point_cloud_from_cdr(message.data)
+        return ma.gaussian_map_from_cdr(message.data)[0]
     except ValueError as exc:
-        return Rejection(BAD_GAUSSIANS, MAP_ROLE, message.log_time_ns, f"undecodable CDR ({exc})")
-    try:
-        return ma.cloud_to_gaussian_map(cloud)
-    except ValueError as exc:
-        return Rejection(BAD_GAUSSIANS, MAP_ROLE, _stamp_or_none(cloud), str(exc))
+        return Rejection(BAD_GAUSSIANS, MAP_ROLE, message.log_time_ns, str(exc))
 
 
 def _stamp_or_none(msg) -> int | None:

@@ -36,6 +36,7 @@ class BagMessage:
     log_time_ns: int
     data: bytes  # CDR, with its 4-byte encapsulation header
     publish_time_ns: int = 0
+    encoding: str = "cdr"  # the channel's message encoding
     _decoder: Callable[[bytes], Any] | None = field(default=None, repr=False, compare=False)
 
     def __iter__(self) -> Iterator[Any]:
@@ -207,6 +208,7 @@ def iter_messages(
                     message.log_time,
                     message.data,
                     message.publish_time,
+                    channel.message_encoding,
                     lazy[channel.id],
                 )
         except BagError:

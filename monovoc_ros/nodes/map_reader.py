@@ -2,7 +2,9 @@
 
 Why: rclpy takes a message holding the interpreter lock. A 1M-Gaussian map (a 56 MB PointCloud2) held it
 60-130 ms per message in the node's process (docs/results.md, "where the query tail goes"), and every query
-that arrived meanwhile waited: the query p99 of the 1M robot runs was 4x the one without map updates.
+that arrived meanwhile waited: the query p99 of the 1M robot runs was 4x the one without map updates. (Since
+2026-12-07 a map is taken serialized, without rclpy's deserializing: most of that hold is gone, the rest of the
+reasons stand: the decoding's copies, the registration below.)
 
 The child (``python -m monovoc_ros.nodes.map_reader``, a hidden node ``_<node>_map_reader`` in the node's
 namespace) subscribes to the map topic with the node's QoS, takes each message serialized and decodes it with the
@@ -78,8 +80,8 @@ _MOTION_BY = ("identity", "registration", "ids")
 # parameter changes; a plan compares it with its own (GivenMotion.motion_for).
 READER_MOTION = MotionConfig()
 _ALIGN = 64
-_HEADER_BYTES = 1 << 16  # a header names six arrays and a frame id of at most _MAX_FRAME_ID characters
-_MAX_FRAME_ID = 1024
+# A header names six arrays and a frame id of at most msg_adapters.gaussian_cloud.MAX_FRAME_ID characters.
+_HEADER_BYTES = 1 << 16
 # Sealed before it is sent: the node's arrays can then neither change nor lose their memory (a shrunk file
 # would be a SIGBUS in the node) whatever else holds the descriptor.
 _SEALS = (
@@ -635,12 +637,8 @@ def _child_main(argv: list[str] | None = None) -> int:
         # latched topic.
         start = time.perf_counter()
         try:
-            msg = ma.point_cloud_from_cdr(data)
-            frame_id = str(msg.header.frame_id)
-            if len(frame_id) > _MAX_FRAME_ID:
-                raise ValueError(f"frame_id of {len(frame_id)} characters")
-            gmap = ma.cloud_to_gaussian_map(msg)
-            newest.put((gmap, ma.header_stamp_ns(msg), frame_id, time.perf_counter() - start))
+            gmap, frame_id = ma.gaussian_map_from_cdr(data)
+            newest.put((gmap, gmap.stamp_ns, frame_id, time.perf_counter() - start))
         except ValueError as exc:
             with contextlib.suppress(OSError):
                 send_refusal(sock, Refusal(f"Gaussian map ignored: {exc}", bad_input=True))
@@ -652,6 +650,7 @@ def _child_main(argv: list[str] | None = None) -> int:
     rclpy.init(args=["--ros-args", "--disable-rosout-logs"], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(args.node_name, namespace=args.namespace)
     # The node's own QoS for `gaussians`; raw: the serialized message, decoded without rclpy's two copies of it.
+    ma.prepare_point_cloud_decoder()
     node.create_subscription(PointCloud2, args.topic, on_map, map_qos(), raw=True)
     executor = SingleThreadedExecutor()
     executor.add_node(node)

@@ -393,13 +393,14 @@ class MappingNode(Node):
                 callback_group=self.callback_groups[f"input.{role}"],
             )
         if self._map_reader is None:
+            ma.prepare_point_cloud_decoder()  # not in the first map's callback
             self.create_subscription(
                 PointCloud2,
                 "gaussians",
                 self._on_gaussians,
                 map_qos(),
                 callback_group=self.callback_groups["map"],
-                raw=True,  # decoded as the map reader decodes it (msg_adapters.point_cloud_from_cdr)
+                raw=True,  # decoded as the map reader decodes it (msg_adapters.gaussian_map_from_cdr)
             )
         # Volatile, so that a SLAM publishing its path either way (latched or not) matches.
         self.create_subscription(
@@ -477,12 +478,13 @@ class MappingNode(Node):
         # Counted once queued or refused: a --fast replay waits for the count before the keyframes after it.
         try:
             try:
-                msg = ma.point_cloud_from_cdr(data)
-                gaussians = ma.cloud_to_gaussian_map(msg)
+                gaussians, frame_id = ma.gaussian_map_from_cdr(data)
             except ValueError as exc:
                 self._refuse_map(f"Gaussian map ignored: {exc}")
                 return
-            self._accept_map(gaussians, ma.header_stamp_ns(msg), str(msg.header.frame_id), time.perf_counter() - start)
+            self._accept_map(gaussians, gaussians.stamp_ns, frame_id, time.perf_counter() - start)
+        except Exception as exc:  # a bug must cost one map, not the node (the executor would end it), and show as one
+            self._ingest_bug("gaussians: handling a map failed", exc)
         finally:
             self.stats.add(maps_received=1)
 

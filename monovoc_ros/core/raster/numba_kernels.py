@@ -728,8 +728,9 @@ def ranks_by_index(order, n):
 
 @njit(cache=True, nogil=True, parallel=True)
 def voted_ranks(pair_acc, gauss_start, n_workers):
-    """(V',) int64 ascending: the depth ranks of the Gaussians with any positive vote in their pair slots (the rows
-    reduce_votes would give a weight or an `other` above 0), in one pass over the slots in memory order. In a building
+    """(V',) int64 ascending: the depth ranks of the Gaussians with any positive vote in their pair slots, in one pass
+    over the slots in memory order: every row that reduce_votes gives a weight or an `other` above 0, and a few it
+    does not (a NaN beside a positive vote), which raster.accumulate_votes' filter drops as before. In a building
     most Gaussians in view are hidden (office_0 tiled to 1M: ~270k within 10 m, about half with any weight): the
     per-Gaussian reduction, whose reads follow map order and miss the cache, then skips them."""
     n = gauss_start.shape[0] - 1
