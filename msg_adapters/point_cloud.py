@@ -60,8 +60,9 @@ def prepare_point_cloud_decoder() -> None:
 
 # An empty PointCloud2, little-endian CDR: encapsulation, stamp, frame_id "" (length 1: its NUL, padded to 4),
 # height, width, no fields, is_bigendian (padded), point_step, row_step, no data, is_dense.
-_EMPTY_CLOUD_CDR = "000100000000000000000000010000000000000000000000000000000000000000000000"
-_EMPTY_CLOUD_CDR += "00000000000000000000000000"
+_EMPTY_CLOUD_CDR = (
+    "00010000 0000000000000000 0100000000000000 00000000 00000000 00000000 00000000 00000000 00000000 00000000 00"
+)
 
 
 def read_fields(
