@@ -2,9 +2,9 @@
 
 Why: rclpy takes a message holding the interpreter lock. A 1M-Gaussian map (a 56 MB PointCloud2) held it
 60-130 ms per message in the node's process (docs/results.md, "where the query tail goes"), and every query
-that arrived meanwhile waited: the query p99 of the 1M robot runs was 4x the one without map updates. (Since
-2026-12-07 a map is taken serialized, without rclpy's deserializing: most of that hold is gone, the rest of the
-reasons stand: the decoding's copies, the registration below.)
+that arrived meanwhile waited: the query p99 of the 1M robot runs was 4x the one without map updates. (A map is now
+taken serialized, without rclpy's deserializing, which removed most of that hold; the decoding's copies and the
+registration below still make a process of its own worth it.)
 
 The child (``python -m monovoc_ros.nodes.map_reader``, a hidden node ``_<node>_map_reader`` in the node's
 namespace) subscribes to the map topic with the node's QoS, takes each message serialized and decodes it with the
