@@ -29,11 +29,12 @@ POINT_CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
 
 @functools.cache
-def _cdr_decoder():
-    """rosbags' decoder of a serialized PointCloud2 (a stock Jazzy type: no registration), built once."""
+def _typestore():
+    """rosbags' stock Jazzy typestore (PointCloud2 needs no registration; monovoc_ros.bags.schemas has the one that
+    registers the project's own types, which msg_adapters does not import)."""
     from rosbags.typesys import Stores, get_typestore
 
-    return get_typestore(Stores.ROS2_JAZZY).deserialize_cdr
+    return get_typestore(Stores.ROS2_JAZZY)
 
 
 def point_cloud_from_cdr(data: bytes | memoryview) -> Any:
@@ -45,24 +46,17 @@ def point_cloud_from_cdr(data: bytes | memoryview) -> Any:
     encapsulations than plain CDR, four or more trailing bytes, and strings that are not UTF-8 are refused."""
     try:
         # A memoryview: rosbags slices off the encapsulation header, which on bytes copies the payload.
-        return _cdr_decoder()(memoryview(data), POINT_CLOUD_TYPE)
+        return _typestore().deserialize_cdr(memoryview(data), POINT_CLOUD_TYPE)
+    except MemoryError:
+        raise
     except Exception as e:  # rosbags' SerdeError, and whatever else hostile bytes may raise
-        if isinstance(e, MemoryError):
-            raise
         raise AdapterError(f"PointCloud2: not a serialized PointCloud2 ({type(e).__name__}: {e})") from None
 
 
 def prepare_point_cloud_decoder() -> None:
     """Builds the decoder now (rosbags' typestore and the type's generated code: ~0.1-0.2 s), so that a node's first
     map does not pay for it."""
-    point_cloud_from_cdr(bytes.fromhex(_EMPTY_CLOUD_CDR))
-
-
-# An empty PointCloud2, little-endian CDR: encapsulation, stamp, frame_id "" (length 1: its NUL, padded to 4),
-# height, width, no fields, is_bigendian (padded), point_step, row_step, no data, is_dense.
-_EMPTY_CLOUD_CDR = (
-    "00010000 0000000000000000 0100000000000000 00000000 00000000 00000000 00000000 00000000 00000000 00000000 00"
-)
+    _typestore().get_msgdef(POINT_CLOUD_TYPE)
 
 
 def read_fields(
