@@ -365,6 +365,47 @@ def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scra
         assert_same_geometry(result.objects(second), scratch)
 
 
+def _updated_with_seed(seed: Future) -> tuple[SemanticMapper, GaussianMap, object]:
+    """A mapper of two keyframes whose map was updated with `seed` as the carried labels' Future; and the new map and
+    the labels the seed should hold."""
+    first = plane_map(400, ids=False)
+    second = _without_ids_moved(first, 0.01, seed=1)
+    session = MappingSession(MapperConfig())
+    session.add_map(first)
+    for stamp in (1, 2):
+        session.add_keyframe(keyframe(stamp, shift=stamp))
+        session.integrate_next()
+    before = session.mapper.result()
+    before.objects(first)
+    sources = session.plan_map(None, second).follow.sources
+    session.mapper.take_map(second, sources, seed)
+    return session.mapper, second, before.carried(sources, second)
+
+
+def test_the_labels_after_a_map_update_do_not_wait_for_the_geometry_it_carries():
+    seed = Future()
+    mapper, second, carried = _updated_with_seed(seed)
+    with ThreadPoolExecutor(1) as pool:
+        try:  # the cloud is made of these labels: they are there while the seed is still being computed
+            after = pool.submit(mapper.result).result(timeout=30)
+            assert not seed.done()
+        finally:  # (and a result() that waits for the seed ends)
+            threading.Timer(0.2, seed.set_result, (carried,)).start()
+    np.testing.assert_array_equal(after.object_ids, carried.object_ids)
+    assert_same_geometry(after.objects(second), object_geometry(second, after.object_ids, after.confidence))
+    assert seed.done() and after._before is None  # it waited for the seed, then let it go
+
+
+def test_a_seed_that_failed_is_raised_by_the_geometry_once_then_it_is_computed_from_scratch():
+    seed = Future()
+    mapper, second, _ = _updated_with_seed(seed)
+    after = mapper.result()
+    seed.set_exception(RuntimeError("the carried geometry failed"))
+    with pytest.raises(RuntimeError, match="carried geometry failed"):
+        after.objects(second)
+    assert_same_geometry(after.objects(second), object_geometry(second, after.object_ids, after.confidence))
+
+
 def test_same_geometry():
     a = plane_map()
     assert same_geometry(a, plane_map())

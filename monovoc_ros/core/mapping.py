@@ -192,18 +192,31 @@ class SemanticResult:
     quantization: Quantization | None = None  # SCD mode only
     _objects: tuple[GaussianMap, ObjectGeometry] | None = field(default=None, init=False, repr=False, compare=False)
     _objects_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
-    # The result this one follows (``follows``): its geometry, once computed, is where ours starts.
-    _before: SemanticResult | None = field(default=None, init=False, repr=False, compare=False)
+    # The result this one follows (``follows``): its geometry, once computed, is where ours starts; or a Future of it
+    # (a map update's seed), waited for by ``objects`` only.
+    _before: SemanticResult | Future | None = field(default=None, init=False, repr=False, compare=False)
     objects_seconds: float | None = field(default=None, init=False, repr=False, compare=False)  # once computed
 
-    def follows(self, previous: SemanticResult | None) -> None:
+    def follows(self, previous: SemanticResult | Future | None) -> None:
         """Lets ``objects`` start from ``previous``'s geometry (the result of the keyframe before, or the labels a
-        map update carried over: ``carried``): only the
-        objects whose Gaussians changed are computed again. A result whose geometry was never computed is
+        map update carried over: ``carried``, possibly a Future of it still being computed beside the mapper): only
+        the objects whose Gaussians changed are computed again. A result whose geometry was never computed is
         skipped over, so no chain of results is kept alive."""
-        if previous is not None and previous._objects is None:
+        if isinstance(previous, SemanticResult) and previous._objects is None:
             previous = previous._before
         self._before = previous
+
+    def _settled_before(self) -> SemanticResult | None:
+        """``_before``, a Future of it waited for: only here, so that labels and the cloud made of them never wait
+        for a map update's seed (1M Gaussians: ~0.1-0.25 s on a busy node). A seed that failed is raised here, once;
+        the geometry is then computed from scratch."""
+        while isinstance(self._before, Future):
+            seed, self._before = self._before, None
+            try:
+                self.follows(seed.result())
+            except CancelledError:
+                pass
+        return self._before
 
     def objects(self, gaussians: GaussianMap) -> ObjectGeometry:
         """The objects' geometry in ``gaussians``, the map this result labels (core.object_geometry.object_geometry).
@@ -214,9 +227,10 @@ class SemanticResult:
         of office_0; else (a map update) from scratch, 23 / 127 ms at 200k / 1M (bench_object_geometry.py)."""
         with self._objects_lock:
             if self._objects is None or self._objects[0] is not gaussians:
-                before = self._before._objects if self._before is not None else None
-                previous = before[1] if before is not None and before[0] is gaussians else None
                 start = time.perf_counter()
+                settled = self._settled_before()
+                before = settled._objects if settled is not None else None
+                previous = before[1] if before is not None and before[0] is gaussians else None
                 geometry = object_geometry(gaussians, self.object_ids, self.confidence, previous=previous)
                 self.objects_seconds = time.perf_counter() - start
                 self._objects, self._before = (gaussians, geometry), None
@@ -437,17 +451,13 @@ class SemanticMapper:
             self._last_result = (self.gaussians, self._result)
         return self._result
 
-    def _previous_result(self) -> SemanticResult | None:
-        """Where the next result's geometry starts: the newest result, or after a map update its seed (waited
-        for: it is computed beside the update's end and the next keyframe). A seed that failed is raised here,
-        once; the geometry is then computed from scratch."""
+    def _previous_result(self) -> SemanticResult | Future | None:
+        """Where the next result's geometry starts: the newest result, or after a map update its seed (a Future,
+        computed beside the update's end and the next keyframe: `SemanticResult.objects` waits for it)."""
         if self._seed is None:
             return self._last_result[1] if self._last_result is not None else None
         seed, self._seed = self._seed, None
-        try:
-            return seed.result()
-        except CancelledError:
-            return None
+        return seed
 
     def labelling(self) -> tuple[GaussianMap, SemanticResult] | None:
         """The newest result and the map it labels, None before the first `result` of this map: read in one
