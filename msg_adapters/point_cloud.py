@@ -26,6 +26,10 @@ INTEGERS = (INT8, UINT8, INT16, UINT16, INT32, UINT32)
 
 
 POINT_CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+# Characters of a field's name: a name, not a payload (errors quote names; a node logs them).
+MAX_FIELD_NAME = 1024
+# Field names an error lists, each cut to this many characters: a cloud may carry thousands of fields.
+_LISTED_NAMES, _LISTED_CHARS = 16, 40
 
 
 @functools.cache
@@ -76,12 +80,14 @@ def read_fields(
     fields: dict[str, Any] = {}
     for f in msg.fields:
         name = str(f.name)
+        if len(name) > MAX_FIELD_NAME:
+            raise AdapterError(f"{what}: a field name of {len(name)} characters (at most {MAX_FIELD_NAME})")
         if name in fields and (name in required or name in optional):
             raise AdapterError(f"{what}: field {name!r} appears more than once")
         fields.setdefault(name, f)
     missing = [name for name in required if name not in fields]
     if missing:
-        raise AdapterError(f"{what}: missing required fields {missing} (has {list(fields)})")
+        raise AdapterError(f"{what}: missing required fields {missing} (has {_listed(list(fields))})")
 
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
@@ -130,6 +136,13 @@ def read_fields(
     layout = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
     points = packed.view(layout)
     return {name: points[name] for name in names}
+
+
+def _listed(names: list[str]) -> str:
+    """`names` for an error message, bounded: the first _LISTED_NAMES, each cut to _LISTED_CHARS characters."""
+    shown = [n if len(n) <= _LISTED_CHARS else n[:_LISTED_CHARS] + "..." for n in names[:_LISTED_NAMES]]
+    more = f" and {len(names) - _LISTED_NAMES} more" if len(names) > _LISTED_NAMES else ""
+    return f"{shown}{more}"
 
 
 def make_cloud(columns: Iterable[tuple[str, np.ndarray]], *, frame_id: str, stamp: Any = 0, is_dense: bool = True):

@@ -107,20 +107,30 @@ def test_refusals_end_of_stream_and_malformed_messages():
         refusal = map_reader.Refusal("Gaussian map ignored: no x field", bad_input=True)
         map_reader.send_refusal(ours, refusal)
         assert map_reader.receive(theirs) == refusal
+        # A hostile message's error may quote anything: its refusal still fits one socket message.
+        huge = map_reader.Refusal("Gaussian map ignored: " + "\U0001f600" * 300_000, bad_input=True)
+        map_reader.send_refusal(ours, huge)
+        received = map_reader.receive(theirs)
+        cut = len(huge.message) - map_reader.MAX_REFUSAL_CHARS
+        assert received.message == f"{huge.message[: map_reader.MAX_REFUSAL_CHARS]}... ({cut} characters more)"
         ours.send(json.dumps({"kind": "map", "stamp_ns": 1}).encode())  # a map without its descriptor
-        with pytest.raises(ValueError, match="unexpected message 'map' with 0 descriptors"):
+        with pytest.raises(ValueError, match="unexpected message 'map' with 0 descriptors") as error:
             map_reader.receive(theirs)
+        assert not error.value.map_lost  # no descriptor came: no map was lost, no credit is due
         for header, error in lies:
             _send_header(ours, header)
-            with pytest.raises(ValueError, match=re.escape(error)):
+            with pytest.raises(ValueError, match=re.escape(error)) as refused:
                 map_reader.receive(theirs)
+            assert refused.value.map_lost  # a descriptor came with it: it may have been a map
+            del refused  # its traceback holds the frame that mapped the file
             assert _maps_open() == 0, header
         _send_header(ours, base, seal=False)  # a file that could still shrink under the node's arrays
         with pytest.raises(ValueError, match="not sealed"):
             map_reader.receive(theirs)
         ours.send(b"{not json")
-        with pytest.raises(ValueError, match="malformed message"):
+        with pytest.raises(ValueError, match="malformed message") as error:
             map_reader.receive(theirs)
+        assert not error.value.map_lost
         ours.shutdown(socket.SHUT_RDWR)
         assert map_reader.receive(theirs) is None
     assert _maps_open() == 0
@@ -376,16 +386,26 @@ def test_map_bytes_that_are_no_point_cloud_are_refused_and_counted(tmp_path, rea
     """The map topic is taken serialized (msg_adapters.point_cloud_from_cdr) in the reader and in the node alike: bytes
     a broken publisher sent are refused as bad input and counted, and the next map is taken."""
     from rclpy.serialization import serialize_message
-    from sensor_msgs.msg import PointCloud2
+    from sensor_msgs.msg import PointCloud2, PointField
 
     scene = small_scene()
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "map_reader_process": reader_process}
     smaller = scene.gaussians.subset(np.arange(len(scene.gaussians) - 100))
+
+    def with_fields(names: list[str], drop: str = "") -> bytes:
+        msg = ma.gaussian_map_to_cloud(scene.gaussians)
+        msg.fields = [f for f in msg.fields if f.name != drop]
+        msg.fields += [PointField(name=name, offset=0, datatype=PointField.UINT8, count=1) for name in names]
+        return serialize_message(msg)
+
     garbage = [
         serialize_message(ma.gaussian_map_to_cloud(scene.gaussians))[:5000],  # cut in its point data
         b"\x00\x01\x00\x00" + bytes(range(256)),  # a CDR header and noise
         b"\x07",  # no CDR header
+        # Errors that would quote 300 kB: their refusals crossed no socket (lost unlogged, or counted as the node's).
+        with_fields(["n" * 300_000]),
+        with_fields([f"f{k}" for k in range(20_000)], drop="x"),
     ]
     with (
         NodeProcess.python([*NODE, *ros_args(params)], env, name="mapping_node") as node,

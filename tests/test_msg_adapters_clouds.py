@@ -193,6 +193,20 @@ def test_gaussian_cloud_rejects_bad_input() -> None:
     short.data = array.array("B", bytes(good.data)[:-1])
     with pytest.raises(AdapterError, match="data has 599 bytes, 10x1 points need 600"):
         cloud_to_gaussian_map(short)
+    # Names are names, not payloads: an error quotes them, and the map reader sends its errors in one message.
+    extra = _wire(good)
+    extra.fields = list(extra.fields) + [PointField(name="n" * 1025, offset=0, datatype=PointField.UINT8, count=1)]
+    with pytest.raises(AdapterError, match="a field name of 1025 characters \\(at most 1024\\)"):
+        cloud_to_gaussian_map(extra)
+    extra.fields[-1].name = "n" * 1024  # at the limit: an extra field like any other
+    assert len(cloud_to_gaussian_map(extra)) == 10
+    many = without("x")
+    many.fields = list(many.fields) + [
+        PointField(name=f"{k:05d}" + "m" * 1000, offset=0, datatype=PointField.UINT8, count=1) for k in range(20000)
+    ]
+    with pytest.raises(AdapterError, match="missing required fields \\['x'\\]") as refused:
+        cloud_to_gaussian_map(many)
+    assert "and 19998 more" in str(refused.value) and len(str(refused.value)) < 2000
     dup = _wire(good)
     dup.fields = list(dup.fields) + [PointField(name="x", offset=4, datatype=PointField.FLOAT32, count=1)]
     with pytest.raises(AdapterError, match="field 'x' appears more than once"):

@@ -212,9 +212,9 @@ def test_go_to_publishes_on_the_goal_topic_and_approach_pose_answers(tmp_path):
         assert planned.success and planned.object.id == room_id("chair", 1), planned.message
         ceiling = call_service(service, ApproachPose.Request(text="the ceiling"), 20.0, process=node)
         assert not ceiling.success and "overhead" in ceiling.message
-        for standoff in (-1.0, float("nan")):  # a caller's mistake, refused (0 is the default)
+        for standoff in (-1.0, float("nan"), float("inf"), 100.5):  # a caller's mistake, refused (0 is the default)
             bad = call_service(service, ApproachPose.Request(text="the sofa", standoff=standoff), 20.0, process=node)
-            assert not bad.success and "standoff must be >= 0" in bad.message, bad.message
+            assert not bad.success and "standoff must be 0-100 metres" in bad.message, bad.message
 
         action = LockedActionClient(client.node, GoTo, "/monovoc/go_to")
         wait_until(lambda: action.wait_for_server(timeout_sec=0.1), 30.0, "the go_to action", process=node)

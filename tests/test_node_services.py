@@ -145,6 +145,16 @@ def test_services(tmp_path):
         diagnostics.wait_for(lambda v: v["has_map"] == "true" and v["observed_gaussians"] == "0", 10.0, process=node)
         response = call("load_map", LoadMap.Request(directory=str(tmp_path / "missing")))
         assert not response.success and "missing does not exist" in response.message
+        loop = tmp_path / "loop"
+        loop.symlink_to(loop)  # a caller's bad path: refused with its reason, not counted as the node's failure
+        for service, request in (("load_map", LoadMap.Request), ("save_map", SaveMap.Request)):
+            response = call(service, request(directory=str(loop / "map")))
+            assert not response.success and str(loop) in response.message, response.message
+        # Counted (or not) before they answered: the diagnostics of a publication after them tell.
+        published = int(diagnostics.values()["publishes"])
+        assert call("publish", Trigger.Request()).success
+        values = diagnostics.wait_for(lambda v: int(v["publishes"]) > published, 10.0, process=node)
+        assert values["service_errors"] == "0"
 
         assert node.stop() == 0
     # A clean shutdown saved the fresh PLY map (new since the last save) as the final snapshot.

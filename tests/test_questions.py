@@ -75,6 +75,10 @@ def test_unknown_questions_say_what_is_understood():
     for question in ("where is the", "is there a", "how many are there?"):
         with pytest.raises(QueryError, match="the question names no object; I understand: how many"):
             ask(index, question)
+    limit = index.config.max_query_chars
+    assert ask(index, "how many chairs are there" + " " * (limit - 25)).success  # at the limit: answered
+    with pytest.raises(QueryError, match=f"a question of {limit + 1} characters \\(at most {limit}"):
+        ask(index, "how many chairs are there" + " " * (limit - 24))
 
 
 def test_offline_monovoc_ask(capsys):

@@ -82,6 +82,8 @@ READER_MOTION = MotionConfig()
 _ALIGN = 64
 # A header names six arrays and a frame id of at most msg_adapters.gaussian_cloud.MAX_FRAME_ID characters.
 _HEADER_BYTES = 1 << 16
+# Characters of a refusal's message (JSON escapes a character in at most 12 bytes: it fits _HEADER_BYTES).
+MAX_REFUSAL_CHARS = 4096
 # Sealed before it is sent: the node's arrays can then neither change nor lose their memory (a shrunk file
 # would be a SIGBUS in the node) whatever else holds the descriptor.
 _SEALS = (
@@ -118,11 +120,13 @@ class Refusal:
 
 
 class MalformedMessage(ValueError):
-    """A message from the child that the node cannot read; ``kind`` as its header says, when it could be read."""
+    """A message from the child that the node cannot read; ``kind`` as its header says, when it could be read;
+    ``map_lost``: it may have been a map (one always comes with its descriptor), which spent the child's credit."""
 
-    def __init__(self, message: str, kind: str | None) -> None:
+    def __init__(self, message: str, kind: str | None, map_lost: bool = True) -> None:
         super().__init__(message)
         self.kind = kind
+        self.map_lost = map_lost
 
 
 @dataclass(frozen=True)
@@ -206,8 +210,12 @@ def send_alive(sock: socket.socket) -> None:
 
 
 def send_refusal(sock: socket.socket, refusal: Refusal) -> None:
-    """Tells the node that a map message was not handed over, and why."""
-    sock.send(json.dumps({"kind": "refusal", "message": refusal.message, "bad_input": refusal.bad_input}).encode())
+    """Tells the node that a map message was not handed over, and why (at most MAX_REFUSAL_CHARS of it: one socket
+    message must hold it, and a hostile message's error may quote anything)."""
+    message = refusal.message
+    if len(message) > MAX_REFUSAL_CHARS:
+        message = f"{message[:MAX_REFUSAL_CHARS]}... ({len(message) - MAX_REFUSAL_CHARS} characters more)"
+    sock.send(json.dumps({"kind": "refusal", "message": message, "bad_input": refusal.bad_input}).encode())
 
 
 def receive(sock: socket.socket) -> ReceivedMap | ReceivedMotion | Refusal | bool | None:
@@ -241,7 +249,8 @@ def receive(sock: socket.socket) -> ReceivedMap | ReceivedMotion | Refusal | boo
             int(header["seq"]),
         )
     except Exception as exc:  # whatever the header holds, one clear error
-        raise MalformedMessage(f"map reader: malformed message ({type(exc).__name__}: {exc})", kind) from None
+        map_lost = kind in (None, "map") and bool(fds or flags & socket.MSG_CTRUNC)
+        raise MalformedMessage(f"map reader: malformed message ({type(exc).__name__}: {exc})", kind, map_lost) from None
     finally:
         for fd in fds:
             os.close(fd)
@@ -477,9 +486,8 @@ class MapReaderProcess:
             except MalformedMessage as exc:
                 # A map or a motion lost: the next map's motion may not be of the map the node has before it.
                 self._motions.reset()
-                of_map = exc.kind != "motion"
-                item = Refusal(str(exc), bad_input=False, of_map=of_map)
-                if of_map:  # it may have been a map, which spent the child's credit: give another
+                item = Refusal(str(exc), bad_input=False, of_map=exc.kind != "motion")
+                if exc.map_lost:  # it may have been a map, which spent the child's credit: give another
                     with contextlib.suppress(OSError):
                         sock.send(_CREDIT)
             except OSError:

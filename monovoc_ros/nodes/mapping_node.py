@@ -571,7 +571,10 @@ class MappingNode(Node):
         directory = requested or self.params.map_directory
         if not directory:
             raise ValueError("no directory given and parameter map_directory is not set")
-        return str(Path(directory).expanduser().resolve())
+        try:
+            return str(Path(directory).expanduser().resolve())
+        except (OSError, RuntimeError) as exc:  # a symlink loop (RuntimeError before Python 3.13), no home
+            raise ValueError(f"{directory}: {exc}") from None
 
     def _on_save(self, request: Any, response: Any) -> Any:
         try:

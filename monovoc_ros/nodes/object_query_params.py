@@ -16,7 +16,7 @@ NAVIGATION_MODES = ("none", "goal_topic", "nav2")
 # Order = order in config/object_query.yaml and in the README table.
 PARAMETERS: tuple[Param, ...] = (
     Param("query.top_k", _INDEX.default_top_k, "objects returned when a TextQuery asks for top_k = 0", low=1),
-    Param("query.max_text_chars", _INDEX.max_query_chars, "longer query texts are truncated (the answer's message says so)", low=1),
+    Param("query.max_text_chars", _INDEX.max_query_chars, "longer query texts are truncated (the answer's message says so), longer questions (ask) refused", low=1),
     Param("query.highlight", True, "publish query/highlight (Gaussians) and query/markers for answers"),
     Param("query.highlight_rate_hz", 5.0, "max highlight publications per second (the newest answer wins)", above=0),
     Param("objects.backend", "conse", "embedding backend: 'conse' (offline default) or 'clip_onnx' (user-supplied)", choices=BACKENDS),

@@ -53,6 +53,9 @@ def ask(index, question: str, view: Viewpoint | None = None) -> Answer:
     (default the latest keyframe's). Raises QueryError for an empty question or missing models."""
     if not isinstance(question, str) or not question.strip():
         raise QueryError("empty question: ask e.g. 'how many chairs are there'")
+    limit = index.config.max_query_chars
+    if len(question) > limit:  # refused, not cut: a cut question asks something else (parsing 200 kB took ~2 s)
+        raise QueryError(f"a question of {len(question)} characters (at most {limit}: query.max_text_chars)")
     words = re.sub(r"[?.!,]", " ", question.lower()).split()
     text = " ".join(words)
     if not index.records():
