@@ -681,6 +681,9 @@ def test_rejection_log_throttles_per_reason():
     now[0] = 6.0
     assert log("bad_pose", "d")
     assert lines[-1] == "rejected (bad_pose): d (+1 more since the last report)"
+    # A detail quoting a hostile input (a 1 MB image encoding) is a line, not a dump.
+    assert log("bad_image", "Image: unsupported encoding " + "e" * 1_000_000)
+    assert lines[-1].endswith("... (999028 characters more)") and len(lines[-1]) < 1100
 
 
 def test_stats_snapshot_mean():

@@ -127,6 +127,10 @@ class Longest:
             return dict(zip(self._keys, (round(self._max_ms, 1), round(self._at, 3), self._over), strict=True))
 
 
+# Characters of a rejection's detail in the log.
+MAX_DETAIL_CHARS = 1000
+
+
 class RejectionLog:
     """Logs rejections per reason: the first at once, then at most one line per `interval_s` per reason
     with the number suppressed since, so a stream of bad messages cannot flood the log."""
@@ -152,5 +156,7 @@ class RejectionLog:
             more = self._suppressed.pop(reason, 0)
             self._last[reason] = now
         suffix = f" (+{more} more since the last report)" if more else ""
+        if len(detail) > MAX_DETAIL_CHARS:  # a detail may quote the input (an encoding, a format): a line, not a dump
+            detail = f"{detail[:MAX_DETAIL_CHARS]}... ({len(detail) - MAX_DETAIL_CHARS} characters more)"
         self._log(f"rejected ({reason}): {detail}{suffix}")
         return True
