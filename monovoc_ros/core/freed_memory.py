@@ -11,6 +11,11 @@ into a fresh block took 45 ms, into a reused one 5 ms, and a subscriber's take a
 of it is free at its top (M_TRIM_THRESHOLD): a process's resident memory then stays near its peak. A user's own
 MALLOC_MMAP_MAX_, MALLOC_TRIM_THRESHOLD_ or glibc.malloc tunables are left as they are; without glibc's
 `mallopt` (another C library) nothing changes.
+
+For the map reader process only (nodes/map_reader.py), which copies and decodes maps. Not for the mapping node: there
+numpy's big arrays, taken from the heap instead of fresh mappings, lose the transparent huge pages numpy asks the
+kernel for, and the rasterizer's passes over them slow down (1M fast runs, two pairs: integration 101-103 ->
+116-117 ms a keyframe, 6.05-6.31 -> 4.95-5.35 keyframes/s).
 """
 
 from __future__ import annotations
