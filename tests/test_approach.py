@@ -102,6 +102,9 @@ def test_offline_monovoc_approach_json_and_plot(capsys, tmp_path):
     assert cli_main(["approach", "--map", str(room_directory()), "the ceiling"]) == 1
     assert "overhead" in capsys.readouterr().err
     assert cli_main(["approach", "--map", str(room_directory()), "the sofa", "--standoff", "0"]) == 1
+    capsys.readouterr()
+    assert cli_main(["approach", "--map", str(room_directory()), "the sofa", "--standoff", "inf"]) == 1
+    assert "--standoff must be > 0 and <= 100 metres, got inf" in capsys.readouterr().err
     assert cli_main(["approach", "--map", str(tmp_path), "the sofa"]) == 2
     # A plot into a folder that does not exist is refused before the work, in one line.
     capsys.readouterr()

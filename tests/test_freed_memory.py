@@ -4,8 +4,14 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import subprocess
 import sys
+
+import pytest
+
+# mallopt is glibc's (other C libraries: keep_freed_memory does nothing, and says so).
+pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only")
 
 _PROBE = """
 import json, resource, sys
@@ -30,10 +36,11 @@ def _faults(mode: str, **env: str) -> dict:
 
 def test_a_freed_block_serves_the_next_without_faulting_its_pages_again():
     default, kept = _faults("default"), _faults("keep")
-    assert not default["kept"] and default["faults"] > 10_000  # 57 MB of 4 KiB pages, mapped afresh
-    assert kept["kept"] and kept["faults"] < 100
+    # Mapped afresh: 57 MB of pages faulted in again (13.9k of 4 KiB; ~30 where huge pages are on for everything).
+    assert not default["kept"] and default["faults"] >= 20
+    assert kept["kept"] and 10 * kept["faults"] < default["faults"]
 
 
 def test_a_users_own_allocator_settings_are_left_as_they_are():
-    theirs = _faults("keep", MALLOC_TRIM_THRESHOLD_="131072")
-    assert not theirs["kept"] and theirs["faults"] > 10_000
+    theirs, default = _faults("keep", MALLOC_TRIM_THRESHOLD_="131072"), _faults("default")
+    assert not theirs["kept"] and theirs["faults"] > default["faults"] // 2

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -21,7 +22,7 @@ from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import Intrinsics
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.map_store import current_snapshot, load_deferred, load_snapshot
-from monovoc_ros.core.mapping import MapperConfig, SemanticMapper
+from monovoc_ros.core.mapping import MapperConfig, SemanticMapper, SemanticResult
 from monovoc_ros.core.object_geometry import object_geometry
 from monovoc_ros.core.session import MappingSession
 from monovoc_ros.nodes.diagnostics import MapperStats, RejectionLog
@@ -365,7 +366,7 @@ def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scra
         assert_same_geometry(result.objects(second), scratch)
 
 
-def _updated_with_seed(seed: Future) -> tuple[SemanticMapper, GaussianMap, object]:
+def _updated_with_seed(seed: Future) -> tuple[SemanticMapper, GaussianMap, SemanticResult]:
     """A mapper of two keyframes whose map was updated with `seed` as the carried labels' Future; and the new map and
     the labels the seed should hold."""
     first = plane_map(400, ids=False)
@@ -382,25 +383,45 @@ def _updated_with_seed(seed: Future) -> tuple[SemanticMapper, GaussianMap, objec
     return session.mapper, second, before.carried(sources, second)
 
 
-def test_the_labels_after_a_map_update_do_not_wait_for_the_geometry_it_carries():
-    seed = Future()
-    mapper, second, carried = _updated_with_seed(seed)
+def _labels_while_the_seed_is_computed(
+    mapper: SemanticMapper, seed: Future, settle: Callable[[], None]
+) -> SemanticResult:
+    """`mapper.result()` while `seed` is pending (a result() that waited for it would fail here, not hang: the
+    seed is settled by `settle` 0.2 s after the check either way)."""
     with ThreadPoolExecutor(1) as pool:
-        try:  # the cloud is made of these labels: they are there while the seed is still being computed
+        try:
             after = pool.submit(mapper.result).result(timeout=30)
             assert not seed.done()
-        finally:  # (and a result() that waits for the seed ends)
-            threading.Timer(0.2, seed.set_result, (carried,)).start()
+        finally:
+            threading.Timer(0.2, settle).start()
+    return after
+
+
+def test_the_labels_after_a_map_update_do_not_wait_for_the_geometry_it_carries(monkeypatch):
+    import monovoc_ros.core.mapping as mapping
+
+    starts: list = []  # the geometry each object_geometry call started from
+
+    def spied(*args, previous=None, **kwargs):
+        starts.append(previous)
+        return object_geometry(*args, previous=previous, **kwargs)
+
+    monkeypatch.setattr(mapping, "object_geometry", spied)
+    seed = Future()
+    mapper, second, carried = _updated_with_seed(seed)
+    # The cloud is made of these labels: they are there while the seed is still being computed.
+    after = _labels_while_the_seed_is_computed(mapper, seed, lambda: seed.set_result(carried))
     np.testing.assert_array_equal(after.object_ids, carried.object_ids)
     assert_same_geometry(after.objects(second), object_geometry(second, after.object_ids, after.confidence))
-    assert seed.done() and after._before is None  # it waited for the seed, then let it go
+    assert starts[-1] is carried.objects(second)  # the geometry waited for the seed and started from it
 
 
 def test_a_seed_that_failed_is_raised_by_the_geometry_once_then_it_is_computed_from_scratch():
     seed = Future()
     mapper, second, _ = _updated_with_seed(seed)
-    after = mapper.result()
-    seed.set_exception(RuntimeError("the carried geometry failed"))
+    failure = RuntimeError("the carried geometry failed")
+    after = _labels_while_the_seed_is_computed(mapper, seed, lambda: seed.set_exception(failure))
+    wait_until(seed.done, 10.0, "the seed to fail")
     with pytest.raises(RuntimeError, match="carried geometry failed"):
         after.objects(second)
     assert_same_geometry(after.objects(second), object_geometry(second, after.object_ids, after.confidence))

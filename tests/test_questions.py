@@ -76,9 +76,9 @@ def test_unknown_questions_say_what_is_understood():
         with pytest.raises(QueryError, match="the question names no object; I understand: how many"):
             ask(index, question)
     limit = index.config.max_query_chars
-    assert ask(index, "how many chairs are there" + " " * (limit - 25)).success  # at the limit: answered
+    assert ask(index, "how many chairs are there" + " " * (5 * limit) + "?").success  # a run of spaces counts one
     with pytest.raises(QueryError, match=f"a question of {limit + 1} characters \\(at most {limit}"):
-        ask(index, "how many chairs are there" + " " * (limit - 24))
+        ask(index, "how many " + "x" * (limit - 15) + " chairs")
 
 
 def test_offline_monovoc_ask(capsys):

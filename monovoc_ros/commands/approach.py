@@ -46,8 +46,8 @@ def run(args: argparse.Namespace) -> int:
              "min_obstacle_height": args.min_obstacle_height}  # fmt: skip
     try:
         shape = ap.RobotShape(**{k: v for k, v in given.items() if v is not None})
-        if not args.standoff > 0:
-            raise ValueError(f"--standoff must be > 0, got {args.standoff}")
+        if not 0 < args.standoff <= ap.MAX_STANDOFF_M:
+            raise ValueError(f"--standoff must be > 0 and <= {ap.MAX_STANDOFF_M:g} metres, got {args.standoff}")
         if args.plot and not Path(args.plot).resolve().parent.is_dir():  # checked before the work, not after it
             raise ValueError(f"--plot {args.plot}: no such directory {Path(args.plot).resolve().parent}")
     except ValueError as exc:

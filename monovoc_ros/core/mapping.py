@@ -211,11 +211,16 @@ class SemanticResult:
         for a map update's seed (1M Gaussians: ~0.1-0.25 s on a busy node). A seed that failed is raised here, once;
         the geometry is then computed from scratch."""
         while isinstance(self._before, Future):
-            seed, self._before = self._before, None
             try:
-                self.follows(seed.result())
+                settled = self._before.result()
             except CancelledError:
-                pass
+                settled = None
+            except BaseException:
+                self._before = None
+                raise
+            # Replaced only now: a result made meanwhile (`follows` on another thread) still inherits the Future.
+            self._before = None
+            self.follows(settled)
         return self._before
 
     def objects(self, gaussians: GaussianMap) -> ObjectGeometry:

@@ -49,7 +49,7 @@ class MapperStats(SessionStats):
     worker_s_reintegration: float = 0.0  # re-integration steps after a map update that bent the map
     reintegration_steps: int = 0  # logged keyframes integrated again (one per step)
     worker_s_labels: float = 0.0  # the semantic result (labels of every Gaussian) for a publication
-    worker_s_objects: float = 0.0  # the object geometry of a publication
+    worker_s_objects: float = 0.0  # the object geometry of a publication (after a map update: waiting for its seed)
     worker_s_publish: float = 0.0  # the cloud, objects and markers messages and the result listeners
     worker_s_snapshots: float = 0.0  # periodic snapshots into map_directory
     worker_s_calls: float = 0.0  # services and other calls run on the worker (save, load, queries of it)
@@ -131,6 +131,11 @@ class Longest:
 MAX_DETAIL_CHARS = 1000
 
 
+def clipped(text: str, limit: int) -> str:
+    """`text`, or its first `limit` characters and how many more there were: a report may quote a hostile input."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text) - limit} characters more)"
+
+
 class RejectionLog:
     """Logs rejections per reason: the first at once, then at most one line per `interval_s` per reason
     with the number suppressed since, so a stream of bad messages cannot flood the log."""
@@ -156,7 +161,5 @@ class RejectionLog:
             more = self._suppressed.pop(reason, 0)
             self._last[reason] = now
         suffix = f" (+{more} more since the last report)" if more else ""
-        if len(detail) > MAX_DETAIL_CHARS:  # a detail may quote the input (an encoding, a format): a line, not a dump
-            detail = f"{detail[:MAX_DETAIL_CHARS]}... ({len(detail) - MAX_DETAIL_CHARS} characters more)"
-        self._log(f"rejected ({reason}): {detail}{suffix}")
+        self._log(f"rejected ({reason}): {clipped(detail, MAX_DETAIL_CHARS)}{suffix}")
         return True

@@ -65,6 +65,7 @@ from monovoc_ros.core.freed_memory import keep_freed_memory
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.thread_pools import single_threaded_blas
 from monovoc_ros.fastdds_profile import child_environment
+from monovoc_ros.nodes.diagnostics import clipped
 
 # The arrays of a GaussianMap that a map message carries (cloud_to_gaussian_map fills no others), as the
 # GaussianMap holds them: the only dtypes a header may name.
@@ -124,7 +125,7 @@ class MalformedMessage(ValueError):
     """A message from the child that the node cannot read; ``kind`` as its header says, when it could be read;
     ``map_lost``: it may have been a map (one always comes with its descriptor), which spent the child's credit."""
 
-    def __init__(self, message: str, kind: str | None, map_lost: bool = True) -> None:
+    def __init__(self, message: str, kind: str | None, map_lost: bool) -> None:
         super().__init__(message)
         self.kind = kind
         self.map_lost = map_lost
@@ -213,9 +214,7 @@ def send_alive(sock: socket.socket) -> None:
 def send_refusal(sock: socket.socket, refusal: Refusal) -> None:
     """Tells the node that a map message was not handed over, and why (at most MAX_REFUSAL_CHARS of it: one socket
     message must hold it, and a hostile message's error may quote anything)."""
-    message = refusal.message
-    if len(message) > MAX_REFUSAL_CHARS:
-        message = f"{message[:MAX_REFUSAL_CHARS]}... ({len(message) - MAX_REFUSAL_CHARS} characters more)"
+    message = clipped(refusal.message, MAX_REFUSAL_CHARS)
     sock.send(json.dumps({"kind": "refusal", "message": message, "bad_input": refusal.bad_input}).encode())
 
 

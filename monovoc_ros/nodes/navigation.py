@@ -33,8 +33,6 @@ from monovoc_ros.objects import approach as ap
 from monovoc_ros.objects.records import QueryError
 
 POLL_S = 0.05
-# Metres: the largest standoff a request may ask for (an inf one searched the whole floor to answer "inf m").
-MAX_STANDOFF_M = 100.0
 
 
 class NavigationUnavailable(ValueError):
@@ -131,8 +129,8 @@ class NavigationComponent:
     def plan(self, text: str, standoff: float) -> ap.Goal:
         """The object `text` names and the approach pose (never raises for a bad map: a failed Goal)."""
         standoff = float(standoff)
-        if not 0 <= standoff <= MAX_STANDOFF_M:  # NaN, negative, inf: a caller's mistake, not "the default" (0 is)
-            reason = f"standoff must be 0-{MAX_STANDOFF_M:g} metres (0: approach.standoff), got {standoff}"
+        if not 0 <= standoff <= ap.MAX_STANDOFF_M:  # NaN, negative, inf: a caller's mistake, not "the default" (0 is)
+            reason = f"standoff must be 0-{ap.MAX_STANDOFF_M:g} metres (0: approach.standoff), got {standoff}"
             return ap.Goal(ap.Approach(False, reason))
         index = self._index()
         gaussians, object_ids = self._labelled_map()

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from monovoc_ros.embed.backend import BACKENDS
 from monovoc_ros.nodes.param_spec import Param
-from monovoc_ros.objects.approach import RobotShape
+from monovoc_ros.objects.approach import MAX_STANDOFF_M, RobotShape
 from monovoc_ros.objects.index import CROP_MODES, LIVE_OBJECTS_PER_REFRESH, UP_AXES, IndexConfig
 
 _INDEX = IndexConfig()
@@ -34,7 +34,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("navigation.nav2_action", "/navigate_to_pose", "Nav2's NavigateToPose action (navigation.mode nav2)"),
     Param("navigation.nav2_wait_s", 5.0, "how long go_to waits for Nav2's action server before failing", above=0),
     Param("navigation.goal_frame", "", "frame_id of approach poses (empty: frame_id, the gaussians topic's map frame; no tf here)"),
-    Param("approach.standoff", 0.6, "metres between the robot and the object's footprint when a request gives 0", above=0),
+    Param("approach.standoff", 0.6, "metres between the robot and the object's footprint when a request gives 0", above=0, high=MAX_STANDOFF_M),
     Param("approach.robot_radius", _SHAPE.robot_radius, "metres: obstacles are inflated by this", low=0),
     Param("approach.robot_height", _SHAPE.robot_height, "metres above the floor: higher Gaussians are passed under", above=0),
     Param("approach.min_obstacle_height", _SHAPE.min_obstacle_height, "metres above the floor: lower Gaussians are floor", low=0),

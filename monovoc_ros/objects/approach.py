@@ -30,6 +30,9 @@ OPACITY_MIN = 0.3  # fainter Gaussians are not trusted to be surfaces
 UNKNOWN, FREE, OCCUPIED, INFLATED = 0, 1, 2, 3
 FOOTPRINT_CLOSING_M = 0.2  # gaps between an object's Gaussians closed to make its footprint
 STANDOFF_TOLERANCE_M = 0.1  # an approach pose misses the standoff by at most this much, or it is a failure
+# The largest standoff (metres) a request, the CLI or approach.standoff may give: an inf one searched the whole floor
+# to answer "inf m".
+MAX_STANDOFF_M = 100.0
 
 
 @dataclass(frozen=True)
@@ -138,8 +141,8 @@ def approach_pose(
 ) -> Approach:
     """The pose to stand at `standoff` metres from the object whose Gaussian means are `object_points`
     (M, 3), map frame; `robot_position` (3,) map frame restricts it to free space the robot can reach."""
-    if not standoff > 0:
-        raise ValueError(f"standoff must be > 0, got {standoff}")
+    if not 0 < standoff <= MAX_STANDOFF_M:
+        raise ValueError(f"standoff must be > 0 and <= {MAX_STANDOFF_M:g} metres, got {standoff}")
     points = np.asarray(object_points, np.float64) @ grid.rotation.T
     if len(points) == 0:
         return Approach(False, "the object has no Gaussians")

@@ -90,7 +90,8 @@ class IndexConfig:
     up_axis: str = "auto"  # see the module docstring; "+z" for REP-103 maps known to be level
     floor_percentile: float = 1.0  # the floor height: this percentile of all Gaussians' heights
     default_top_k: int = 5  # what top_k = 0 means
-    max_query_chars: int = 1000  # longer texts are truncated (the text encoder reads 256 tokens anyway)
+    max_query_chars: int = 1000  # longer query texts are truncated (the text encoder reads 256 tokens anyway), longer
+    # questions refused (objects.questions)
     min_view_pixels: int = 20
     max_view_side: int = 448
 
