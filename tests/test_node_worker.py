@@ -341,9 +341,9 @@ def test_the_worker_takes_a_given_motion_only_for_the_map_its_update_starts_from
     assert worker.stats.map_motions_given == 2
 
 
-def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scratch():
+def _two_keyframes_then_a_moved_map() -> tuple[MappingSession, GaussianMap, SemanticResult]:
+    """A session of two keyframes on a map without ids whose newest result has its geometry; the map moved 1 cm."""
     first = plane_map(400, ids=False)
-    second = _without_ids_moved(first, 0.01, seed=1)
     session = MappingSession(MapperConfig())
     session.add_map(first)
     for stamp in (1, 2):
@@ -351,6 +351,11 @@ def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scra
         session.integrate_next()
     before = session.mapper.result()
     assert len(before.objects(first).objects) == 2
+    return session, _without_ids_moved(first, 0.01, seed=1), before
+
+
+def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scratch():
+    session, second, before = _two_keyframes_then_a_moved_map()
     plan = session.plan_map(None, second)
     session.add_map(second, plan=plan)
     mapper = session.mapper
@@ -369,15 +374,7 @@ def test_a_map_update_carries_the_labels_and_their_geometry_equals_one_from_scra
 def _updated_with_seed(seed: Future) -> tuple[SemanticMapper, GaussianMap, SemanticResult]:
     """A mapper of two keyframes whose map was updated with `seed` as the carried labels' Future; and the new map and
     the labels the seed should hold."""
-    first = plane_map(400, ids=False)
-    second = _without_ids_moved(first, 0.01, seed=1)
-    session = MappingSession(MapperConfig())
-    session.add_map(first)
-    for stamp in (1, 2):
-        session.add_keyframe(keyframe(stamp, shift=stamp))
-        session.integrate_next()
-    before = session.mapper.result()
-    before.objects(first)
+    session, second, before = _two_keyframes_then_a_moved_map()
     sources = session.plan_map(None, second).follow.sources
     session.mapper.take_map(second, sources, seed)
     return session.mapper, second, before.carried(sources, second)
