@@ -16,6 +16,7 @@ import shlex
 import shutil
 import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -49,10 +50,13 @@ def readme_session() -> list[str]:
 
 
 @pytest.fixture()
-def env(tmp_path) -> dict:
+def env(tmp_path) -> Iterator[dict]:
     if shutil.which("ros2") is None:
         pytest.fail("no `ros2` on PATH: scripts/install.sh installs it from ../shared/ros2_tools")
-    return ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
+    env = ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
+    yield env
+    # `ros2 param` and `ros2 node` start a daemon for the test's domain, which outlived the test run.
+    ros2("ros2 daemon stop", env)
 
 
 def ros2(command: str, env: dict, timeout: float = 60.0) -> subprocess.CompletedProcess:
