@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from monovoc_ros.core.clipped_text import clipped
 from msg_adapters.buffers import byte_array, bytes_view
 from msg_adapters.errors import AdapterError
 from msg_adapters.stamps import make_header
@@ -140,7 +141,7 @@ def read_fields(
 
 def _listed(names: list[str]) -> str:
     """`names` for an error message, bounded: the first _LISTED_NAMES, each cut to _LISTED_CHARS characters."""
-    shown = [n if len(n) <= _LISTED_CHARS else n[:_LISTED_CHARS] + "..." for n in names[:_LISTED_NAMES]]
+    shown = [clipped(n, _LISTED_CHARS) for n in names[:_LISTED_NAMES]]
     more = f" and {len(names) - _LISTED_NAMES} more" if len(names) > _LISTED_NAMES else ""
     return f"{shown}{more}"
 

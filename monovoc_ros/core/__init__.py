@@ -8,7 +8,8 @@
 - ``evaluation/``: scoring and the dataset readers.
 
 A stage imports from itself and from the stages listed before it, never from one after it. At the root:
-``thread_pools`` (idle thread pools sleep; imports nothing of ours) comes before every stage; ``keyframe`` and ``sync``
+``thread_pools`` (idle thread pools sleep), ``freed_memory`` (glibc keeps freed blocks) and ``clipped_text`` (input
+quoted in reports, bounded) import nothing of ours and come before every stage; ``keyframe`` and ``sync``
 (a keyframe, and pairing messages into keyframes) import nothing from core but ``map/`` and every stage may
 take them; ``mapping`` (SemanticMapper), ``session`` (its life), ``map_store`` (crash-safe snapshots),
 ``warm_up`` and ``object_geometry`` (an object's one geometry) sit above every stage and may import all of

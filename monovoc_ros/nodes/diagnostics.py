@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from monovoc_ros.contract import REJECTION_REASONS
+from monovoc_ros.core.clipped_text import clipped
 from monovoc_ros.core.session import SESSION_REASONS, SessionStats
 
 # Rejections the mapper adds to the ingest reasons (monovoc_ros.contract.REJECTION_REASONS): the session's
@@ -129,11 +130,6 @@ class Longest:
 
 # Characters of a rejection's detail in the log.
 MAX_DETAIL_CHARS = 1000
-
-
-def clipped(text: str, limit: int) -> str:
-    """`text`, or its first `limit` characters and how many more there were: a report may quote a hostile input."""
-    return text if len(text) <= limit else f"{text[:limit]}... ({len(text) - limit} characters more)"
 
 
 class RejectionLog:

@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from monovoc_ros.core.clipped_text import clipped
 from monovoc_ros.core.follow.map_follow import map_motion
 from monovoc_ros.core.follow.map_motion import MapMotion, MotionConfig
 from monovoc_ros.core.follow.map_updater import GivenMotion
@@ -65,7 +66,6 @@ from monovoc_ros.core.freed_memory import keep_freed_memory
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
 from monovoc_ros.core.thread_pools import single_threaded_blas
 from monovoc_ros.fastdds_profile import child_environment
-from monovoc_ros.nodes.diagnostics import clipped
 
 # The arrays of a GaussianMap that a map message carries (cloud_to_gaussian_map fills no others), as the
 # GaussianMap holds them: the only dtypes a header may name.
