@@ -224,6 +224,29 @@ def test_save_load_round_trip_and_foreign_files(tmp_path):
         SemanticState.load(tmp_path / "votes.npz")
 
 
+def test_empty_stores_equal_the_checked_constructors_and_check_their_ids():
+    """`zeros` builds without the constructor's copies and checks; it must give what the constructor gives."""
+    from monovoc_ros.core.evidence.state import SemanticState
+
+    ids = np.arange(6, dtype=np.int32) * 3
+    fast = VoteState.zeros(6, 3, ids=ids)
+    checked = VoteState(np.full((6, 3), EMPTY_SLOT, np.uint32), np.zeros((6, 3)), np.zeros(6), ids)
+    fast_scd, checked_scd = SemanticState.zeros(6, ids), SemanticState(np.zeros((6, 3)), np.zeros(6), ids)
+    for a, b in ((fast, checked), (fast_scd, checked_scd)):
+        assert type(a) is type(b)
+        for name in (*a.ARRAYS, "ids", "stamps_ns"):
+            got, want = getattr(a, name), getattr(b, name)
+            assert got.dtype == want.dtype and got.shape == want.shape
+            np.testing.assert_array_equal(got, want)
+    fast.add(*random_votes(np.random.default_rng(1), 6, 4), 9)  # the arrays are its own and writable
+    assert fast.stamps_ns.tolist() == [9] and (VoteState.zeros(6, 3).votes == 0).all()
+    for make in (lambda bad: VoteState.zeros(3, 2, ids=bad), lambda bad: SemanticState.zeros(3, bad)):
+        with pytest.raises(ValueError, match="ids must be unique"):
+            make(np.array([1, 1, 2]))
+        with pytest.raises(ValueError, match=r"expected shape \(3,\)"):
+            make(np.arange(4))
+
+
 def test_carried_over_carries_votes():
     rng = np.random.default_rng(4)
     state = VoteState.zeros(50, 2, ids=np.arange(50))

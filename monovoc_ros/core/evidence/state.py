@@ -73,6 +73,23 @@ class GaussianEvidence:
         """A store of the same kind (and shape per Gaussian) for `n` Gaussians without evidence."""
         raise NotImplementedError
 
+    @classmethod
+    def _built(cls, ids: np.ndarray | None, stamps_ns: np.ndarray, **arrays: np.ndarray):
+        """A store of arrays made here, valid by construction (`ARRAYS` by name, `ids` unique int64 or None):
+        without the constructor's copies and checks, which for an empty 1M-Gaussian vote state touched 130 MB
+        of fresh pages (~0.5 s) where the arrays alone take 56 MB."""
+        out = cls.__new__(cls)
+        for name in cls.ARRAYS:
+            setattr(out, name, arrays[name])
+        out.ids = ids
+        out.stamps_ns = stamps_ns
+        return out
+
+    @classmethod
+    def _zeros(cls, n: int, ids: np.ndarray | None, **arrays: np.ndarray):
+        """An empty store of the given arrays for `n` Gaussians, its `ids` checked as the constructor checks them."""
+        return cls._built(_as_ids(ids, n, f"{cls.__name__}.ids"), np.zeros(0, np.int64), **arrays)
+
     def __len__(self) -> int:
         return getattr(self, self.ARRAYS[0]).shape[0]
 
@@ -190,18 +207,16 @@ class GaussianEvidence:
         rows = np.maximum(source_rows, 0)
         miss = np.flatnonzero(source_rows < 0)
         template = self.empty_like(1, None)  # the values of a Gaussian without evidence
-        out = copy.copy(template)
+        arrays = {}
         for name in self.ARRAYS:
             empty_row = getattr(template, name)[0]
             if len(self):
-                values = _gathered(getattr(self, name), rows)
-                values[miss] = empty_row
+                arrays[name] = _gathered(getattr(self, name), rows)
+                arrays[name][miss] = empty_row
             else:
-                values = np.repeat(getattr(template, name), len(rows), axis=0)
-            setattr(out, name, values)
-        out.ids = None if new_ids is None else np.asarray(new_ids, np.int64)
-        out.stamps_ns = self.stamps_ns.copy()
-        return out
+                arrays[name] = np.repeat(getattr(template, name), len(rows), axis=0)
+        ids = None if new_ids is None else np.asarray(new_ids, np.int64)
+        return self._built(ids, self.stamps_ns.copy(), **arrays)
 
 
 @dataclass(eq=False)
@@ -232,7 +247,8 @@ class SemanticState(GaussianEvidence):
         """An empty state for a map of `n` Gaussians."""
         if int(n) < 0:
             raise ValueError(f"SemanticState.zeros: n must be >= 0, got {n}")
-        return cls(np.zeros((int(n), 3)), np.zeros(int(n)), ids, None)
+        n = int(n)
+        return cls._zeros(n, ids, color_sum=np.zeros((n, 3)), weight_sum=np.zeros(n))
 
     def empty_like(self, n: int, ids: np.ndarray | None) -> SemanticState:
         return SemanticState.zeros(n, ids)

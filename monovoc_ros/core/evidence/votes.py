@@ -93,7 +93,8 @@ class VoteState(GaussianEvidence):
         if int(n) < 0 or int(slots) < 1:
             raise ValueError(f"VoteState.zeros: need n >= 0 and slots >= 1, got {n}, {slots}")
         n, slots = int(n), int(slots)
-        return cls(np.full((n, slots), EMPTY_SLOT, np.uint32), np.zeros((n, slots)), np.zeros(n), ids, None)
+        objects = np.full((n, slots), EMPTY_SLOT, np.uint32)
+        return cls._zeros(n, ids, objects=objects, votes=np.zeros((n, slots)), other=np.zeros(n))
 
     @property
     def slots(self) -> int:
