@@ -63,6 +63,7 @@ from monovoc_ros.core.session import (
     MappingSession,
     SaveListener,
 )
+from monovoc_ros.core.thread_pools import lower_priority
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
@@ -302,7 +303,9 @@ class MapWorker:
         self._result_listeners: list[ResultListener] = []
         self._thread: threading.Thread | None = None
         # Map updates are prepared here, beside the worker (numba kernels and numpy release the interpreter).
-        self._planner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-map-plan")
+        self._planner = ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="monovoc-map-plan", initializer=lower_priority
+        )
         # Periodic snapshots are written here, one at a time (`_maybe_save`).
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-snapshot")
         self._writing: Future | None = None
