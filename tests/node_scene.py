@@ -8,13 +8,16 @@ import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.mapping import SemanticMapper
 from monovoc_ros.ingest import KeyframeAssembler
 from monovoc_ros.nodes.keyframe_publisher import ROLE_ORDER, KeyframePublisher, keyframe_messages
 from monovoc_ros.synthetic import SceneConfig, SyntheticScene, generate_scene
+
+if TYPE_CHECKING:
+    from monovoc_ros.ros_harness import ClientNode, NodeProcess
 
 NODE = ["-m", "monovoc_ros.nodes.mapping_node"]
 N_KEYFRAMES = 16
@@ -67,38 +70,53 @@ class RecordingLog:
         self.lines.append(("error", msg))
 
 
+@contextlib.contextmanager
+def mapper_with_client(
+    env: dict,
+    params: dict,
+    node_env: dict | None = None,
+    *,
+    remaps: dict[str, str] | None = None,
+    name: str = "semantic_mapper",
+) -> Iterator[tuple[NodeProcess, ClientNode]]:
+    """The mapping node started with `params` (and topic `remaps`) in the ROS environment `env` (plus `node_env`,
+    the node's only), its process called `name`, and a client node in `env`: (node, client), both stopped on exit."""
+    from monovoc_ros.ros_harness import ClientNode, NodeProcess, ros_args
+
+    with (
+        NodeProcess.python([*NODE, *ros_args(params, remaps)], {**env, **(node_env or {})}, name=name) as node,
+        ClientNode(env) as client,
+    ):
+        yield node, client
+
+
 @dataclass(frozen=True)
 class RunningMapper:
     node: Any  # the mapping node's NodeProcess
     diagnostics: Any  # DiagnosticsMonitor of its /diagnostics
     publisher: Any  # KeyframePublisher of its inputs (and its map)
-    save: Any  # client of /monovoc/save_map
+    save: Any  # client of /monovoc/save_map (None when not asked for)
+    env: dict  # the test's ROS environment (the client's; the node's less `node_env`)
 
 
 @contextlib.contextmanager
-def running_mapper(tmp_path: Path, params: dict, node_env: dict | None = None) -> Iterator[RunningMapper]:
+def running_mapper(
+    tmp_path: Path, params: dict, node_env: dict | None = None, *, save_map: bool = True
+) -> Iterator[RunningMapper]:
     """The mapping node started with `params` in a test's own ROS environment (plus `node_env`, the node's
-    only), and a client ready to talk to it: every input publisher matched and the save_map service up."""
+    only), and a client ready to talk to it: every input publisher matched and, with `save_map`, the save_map
+    service up (without it no save_map client is made)."""
     from monovoc_interfaces.srv import SaveMap
-    from monovoc_ros.ros_harness import (
-        ClientNode,
-        DiagnosticsMonitor,
-        NodeProcess,
-        ros_args,
-        wait_for_service,
-        wait_for_subscribers,
-    )
+    from monovoc_ros.ros_harness import DiagnosticsMonitor, wait_for_service, wait_for_subscribers
     from tests.rosutil import ros_environment
 
     env = ros_environment(tmp_path)
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], {**env, **(node_env or {})}, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params, node_env) as (node, client):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher = KeyframePublisher(client.node)
-        save = client.node.create_client(SaveMap, "/monovoc/save_map")
+        save = client.node.create_client(SaveMap, "/monovoc/save_map") if save_map else None
         for pub in publisher.all_publishers():
             wait_for_subscribers(pub, timeout=20.0, process=node)
-        wait_for_service(save, process=node)
-        yield RunningMapper(node, diagnostics, publisher, save)
+        if save is not None:
+            wait_for_service(save, process=node)
+        yield RunningMapper(node, diagnostics, publisher, save, env)

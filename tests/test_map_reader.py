@@ -25,14 +25,12 @@ from monovoc_ros.core.map.gaussians import GaussianMap
 from monovoc_ros.nodes import map_reader
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.ros_harness import (
-    ClientNode,
     DiagnosticsMonitor,
     NodeProcess,
-    ros_args,
     wait_for_subscribers,
     wait_until,
 )
-from tests.node_scene import NODE, running_mapper, small_scene
+from tests.node_scene import mapper_with_client, running_mapper, small_scene
 from tests.rosutil import ros_environment
 
 
@@ -251,11 +249,7 @@ def test_a_reader_that_dies_is_replaced_and_the_latched_map_is_not_applied_twice
     scene = small_scene()
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
-    args = ros_args(params, remaps={"gaussians": "/slam/map"})
-    with (
-        NodeProcess.python([*NODE, *args], env, name="mapping_node") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params, remaps={"gaussians": "/slam/map"}, name="mapping_node") as (node, client):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         maps = client.node.create_publisher(PointCloud2, "/slam/map", latched_qos())
 
@@ -358,10 +352,7 @@ def test_a_burst_of_maps_loses_none_silently(tmp_path, reader_process):
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "map_reader_process": reader_process}
     burst = 6
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="mapping_node") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params, name="mapping_node") as (node, client):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         # As the replayer's: transient-local, the whole burst in its history.
         maps = client.node.create_publisher(
@@ -407,10 +398,7 @@ def test_map_bytes_that_are_no_point_cloud_are_refused_and_counted(tmp_path, rea
         with_fields(["n" * 300_000]),
         with_fields([f"f{k}" for k in range(20_000)], drop="x"),
     ]
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="mapping_node") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params, name="mapping_node") as (node, client):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         maps = client.node.create_publisher(PointCloud2, "/monovoc/gaussians", latched_qos())
         wait_for_subscribers(maps, timeout=30.0, process=node)

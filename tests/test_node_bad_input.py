@@ -16,18 +16,15 @@ from monovoc_ros.core.map_store import load_snapshot
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.ros_harness import (
-    ClientNode,
     DiagnosticsMonitor,
     MessageCollector,
-    NodeProcess,
     call_service,
-    ros_args,
     wait_for_service,
     wait_for_subscribers,
     wait_until,
 )
 from tests.evidence import assert_same_evidence
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, small_scene
+from tests.node_scene import N_KEYFRAMES, assemble, mapper_with_client, offline_mapper, small_scene
 from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
@@ -115,10 +112,7 @@ def test_bad_messages_are_counted_and_change_nothing(tmp_path):
     reference = offline_mapper(scene.gaussians, keyframes)
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params) as (node, client):
         clouds = MessageCollector()
         client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")

@@ -13,10 +13,8 @@ import numpy as np
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_messages
-from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, ros_args, wait_for_subscribers
-from tests.node_scene import NODE, scene_messages, small_scene
-from tests.rosutil import ros_environment
+from monovoc_ros.nodes.keyframe_publisher import keyframe_messages
+from tests.node_scene import running_mapper, scene_messages, small_scene
 
 pytestmark = pytest.mark.ros
 
@@ -83,38 +81,32 @@ def test_bombs_are_refused_before_decoding(tmp_path):
     expected: dict[str, int] = {}
     for _, _, counter in bombs:
         expected[counter] = expected.get(counter, 0) + 1
-    env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        publisher = KeyframePublisher(client.node)
-        for pub in publisher.all_publishers():
-            wait_for_subscribers(pub, timeout=20.0, process=node)
-        publisher.publish_map(scene.gaussians)
+    with running_mapper(tmp_path, params, save_map=False) as run:
+        run.publisher.publish_map(scene.gaussians)
         for msgs in messages[:4]:
-            publisher.publish_messages(msgs)
-        diagnostics.wait_for(lambda v: v["keyframes_processed"] == "4" and v["queue_length"] == "0", 30.0, process=node)
-        steady, peak_before = _kib(node.pid, "VmRSS"), _kib(node.pid, "VmHWM")
+            run.publisher.publish_messages(msgs)
+        run.diagnostics.wait_for(
+            lambda v: v["keyframes_processed"] == "4" and v["queue_length"] == "0", 30.0, process=run.node
+        )
+        steady, peak_before = _kib(run.node.pid, "VmRSS"), _kib(run.node.pid, "VmHWM")
         last = max(ma.header_stamp_ns(m["mask"]) for m in messages[:4])
         for k, (role, payload, _) in enumerate(bombs):
             msgs = keyframe_messages(scene.keyframe(4), stamp_ns=last + (k + 1) * S // 10)
             msgs[role].data = payload
             msgs[role].format = "png" if payload.startswith(b"\x89PNG") else "jpeg"
-            publisher.publish_messages(msgs)
+            run.publisher.publish_messages(msgs)
         # A good keyframe after the bombs is integrated: nothing stalled.
-        publisher.publish_messages(keyframe_messages(scene.keyframe(5), stamp_ns=last + S))
-        done = diagnostics.wait_for(
+        run.publisher.publish_messages(keyframe_messages(scene.keyframe(5), stamp_ns=last + S))
+        done = run.diagnostics.wait_for(
             lambda v: (
                 v["keyframes_processed"] == "5" and all(v[f"rejected.{c}"] == str(n) for c, n in expected.items())
             ),
             30.0,
-            process=node,
+            process=run.node,
         )
-        peak = _kib(node.pid, "VmHWM")
-        node.check_running()
+        peak = _kib(run.node.pid, "VmHWM")
+        run.node.check_running()
     print(f"steady RSS {steady / 1024:.0f} MiB, peak before {peak_before / 1024:.0f} MiB, after {peak / 1024:.0f} MiB")
     assert peak < 2 * steady, (steady, peak)
     assert peak - peak_before < 128 * 1024, (peak_before, peak)  # the smallest bomb alone decodes to 144 MB

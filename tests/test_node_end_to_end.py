@@ -17,17 +17,21 @@ from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, pack_rgb
 from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.ros_harness import (
-    ClientNode,
     DiagnosticsMonitor,
     MessageCollector,
-    NodeProcess,
     call_service,
-    ros_args,
     wait_for_service,
     wait_for_subscribers,
     wait_until,
 )
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
+from tests.node_scene import (
+    N_KEYFRAMES,
+    assemble,
+    mapper_with_client,
+    offline_mapper,
+    scene_messages,
+    small_scene,
+)
 from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
@@ -71,10 +75,7 @@ def test_live_node_matches_offline_mapping(tmp_path, scene):
 
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "labels_file": str(labels_file), "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params) as (node, client):
         clouds, objects, markers = MessageCollector(), MessageCollector(), MessageCollector()
         client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())
         client.node.create_subscription(SemanticObjectArray, "/monovoc/objects", objects, latched_qos())

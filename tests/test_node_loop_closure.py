@@ -31,7 +31,7 @@ from monovoc_ros.ros_harness import (
 )
 from monovoc_ros.synthetic import churn
 from tests.evidence import assert_same_evidence
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, scene_messages, small_scene
+from tests.node_scene import N_KEYFRAMES, assemble, mapper_with_client, scene_messages, small_scene
 from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
@@ -62,10 +62,7 @@ def test_loop_closure_without_ids_then_corrected_poses_live_equals_offline(tmp_p
 
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params) as (node, client):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         publisher = KeyframePublisher(client.node)
         path_pub = client.node.create_publisher(
@@ -197,10 +194,7 @@ def test_a_bag_with_a_loop_closure_maps_the_same_live_and_offline(tmp_path, fast
 
     env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params) as (node, client):
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
         save = client.node.create_client(SaveMap, "/monovoc/save_map")
         wait_for_service(save, process=node)

@@ -16,17 +16,21 @@ from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher, keyframe_mes
 from monovoc_ros.nodes.qos import latched_qos
 from monovoc_ros.nodes.service_call import RESEND_S
 from monovoc_ros.ros_harness import (
-    ClientNode,
     DiagnosticsMonitor,
     MessageCollector,
-    NodeProcess,
     call_service,
-    ros_args,
     wait_for_service,
     wait_for_subscribers,
     wait_until,
 )
-from tests.node_scene import N_KEYFRAMES, NODE, assemble, offline_mapper, scene_messages, small_scene
+from tests.node_scene import (
+    N_KEYFRAMES,
+    assemble,
+    mapper_with_client,
+    offline_mapper,
+    scene_messages,
+    small_scene,
+)
 from tests.rosutil import ros_environment
 
 pytestmark = pytest.mark.ros
@@ -48,10 +52,7 @@ def test_services(tmp_path):
     save_ply(ply, scene.gaussians)
     env = ros_environment(tmp_path)
     params = {"map_directory": str(map_dir), "save_period_s": 0.0, "queue_size": 200, "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
+    with mapper_with_client(env, params) as (node, client):
         clouds = MessageCollector()
         client.node.create_subscription(PointCloud2, "/monovoc/semantic_cloud", clouds, latched_qos())
         diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")

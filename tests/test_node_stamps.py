@@ -12,10 +12,7 @@ from pathlib import Path
 import pytest
 
 import msg_adapters as ma
-from monovoc_ros.nodes.keyframe_publisher import KeyframePublisher
-from monovoc_ros.ros_harness import ClientNode, DiagnosticsMonitor, NodeProcess, ros_args, wait_for_subscribers
-from tests.node_scene import NODE, running_mapper, scene_messages, small_scene
-from tests.rosutil import ros_environment
+from tests.node_scene import running_mapper, scene_messages, small_scene
 
 pytestmark = pytest.mark.ros
 
@@ -24,34 +21,26 @@ def test_a_far_future_pose_does_not_block_mapping(tmp_path):
     scene, messages = small_scene(), scene_messages()
     outlier = copy.deepcopy(messages[3]["pose"])
     outlier.header.stamp = ma.ns_to_time((2**31 - 1) * 1_000_000_000)
-    env = ros_environment(tmp_path)
     # With the interpreter's holds traced (what a user sets to find what stalls the node): the watch's file.
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2, "interpreter_hold_trace_ms": 250.0}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        publisher = KeyframePublisher(client.node)
-        for pub in publisher.all_publishers():
-            wait_for_subscribers(pub, timeout=20.0, process=node)
-        publisher.publish_map(scene.gaussians)
+    with running_mapper(tmp_path, params, save_map=False) as run:
+        run.publisher.publish_map(scene.gaussians)
         for msgs in messages[:3]:
-            publisher.publish_messages(msgs)
-        diagnostics.wait_for(lambda v: v["keyframes_processed"] == "3", 20.0, process=node)
-        publisher.publishers["pose"].publish(outlier)
+            run.publisher.publish_messages(msgs)
+        run.diagnostics.wait_for(lambda v: v["keyframes_processed"] == "3", 20.0, process=run.node)
+        run.publisher.publishers["pose"].publish(outlier)
         for msgs in messages[3:8]:
-            publisher.publish_messages(msgs)
-        done = diagnostics.wait_for(
-            lambda v: v["keyframes_processed"] == "8" and v["rejected.stamp_future"] == "1", 20.0, process=node
+            run.publisher.publish_messages(msgs)
+        done = run.diagnostics.wait_for(
+            lambda v: v["keyframes_processed"] == "8" and v["rejected.stamp_future"] == "1", 20.0, process=run.node
         )
-        node.check_running()
+        run.node.check_running()
     assert done["rejected.stamp_out_of_order"] == "0" and done["rejected_total"] == "1"
     assert done["stamp_epochs"] == "0" and done["stamps_held"] == "0"
     # Start-up's objects out of the garbage collector's full collections (rclpy, the kernels, the components).
     assert int(done["gc_frozen_objects"]) > 50_000
     trace = Path(done["interpreter_hold_trace_file"])
-    assert trace.parent == Path(env["ROS_LOG_DIR"]) and trace.name.startswith("monovoc_interpreter_holds_")
+    assert trace.parent == Path(run.env["ROS_LOG_DIR"]) and trace.name.startswith("monovoc_interpreter_holds_")
     assert trace.is_file()
 
 
@@ -66,23 +55,17 @@ def restamped(msgs: dict, shift_ns: int) -> dict:
 
 def test_keyframes_after_a_pause_of_100_s_and_of_1_h_are_all_integrated(tmp_path):
     scene, messages = small_scene(), scene_messages()
-    env = ros_environment(tmp_path)
     params = {"publish_rate_hz": 0.0, "diagnostics_period_s": 0.2}
-    with (
-        NodeProcess.python([*NODE, *ros_args(params)], env, name="semantic_mapper") as node,
-        ClientNode(env) as client,
-    ):
-        diagnostics = DiagnosticsMonitor(client.node, "semantic_mapper")
-        publisher = KeyframePublisher(client.node)
-        for pub in publisher.all_publishers():
-            wait_for_subscribers(pub, timeout=20.0, process=node)
-        publisher.publish_map(scene.gaussians)
+    with running_mapper(tmp_path, params, save_map=False) as run:
+        run.publisher.publish_map(scene.gaussians)
         # The same stretch of keyframes three times: as recorded, 100 s later, then an hour after that.
         for n, shift_s in enumerate((0, 100, 3700), start=1):
             for msgs in messages[:4]:
-                publisher.publish_messages(restamped(msgs, shift_s * 1_000_000_000))
-            done = diagnostics.wait_for(lambda v, n=n: v["keyframes_processed"] == str(4 * n), 30.0, process=node)
-        node.check_running()
+                run.publisher.publish_messages(restamped(msgs, shift_s * 1_000_000_000))
+            done = run.diagnostics.wait_for(
+                lambda v, n=n: v["keyframes_processed"] == str(4 * n), 30.0, process=run.node
+            )
+        run.node.check_running()
     assert done["rejected_total"] == "0" and done["stamp_epochs"] == "2" and done["stamps_held"] == "0"
 
 

@@ -15,6 +15,8 @@ import json
 import sqlite3
 import subprocess
 import time
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -57,6 +59,26 @@ def _query(client, text, top_k=0, min_score=-1.0, process=None, timeout=20.0):
 def _environment(tmp_path):
     """Loopback ROS environment; its HOME is a temporary folder, so point it at the exported models."""
     return ros_environment(tmp_path, extra={"MONOVOC_MODEL_DIR": str(default_model_dir())})
+
+
+@contextlib.contextmanager
+def _node_with_objects(
+    env: dict, params: dict
+) -> Iterator[tuple[NodeProcess, ClientNode, MessageCollector, MessageCollector, Any]]:
+    """The full node started with `params` and a client of it: (node, client, objects, markers, service), the
+    client collecting the objects topic and its markers, its text-query client's service up."""
+    from visualization_msgs.msg import MarkerArray
+
+    from monovoc_interfaces.msg import SemanticObjectArray
+    from monovoc_interfaces.srv import TextQuery
+
+    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
+        objects, markers = MessageCollector(), MessageCollector()
+        client.node.create_subscription(SemanticObjectArray, "/monovoc/objects", objects, latched_qos())
+        client.node.create_subscription(MarkerArray, "/monovoc/objects/markers", markers, latched_qos())
+        service = client.node.create_client(TextQuery, "/monovoc/query")
+        wait_for_service(service, 30.0, process=node)
+        yield node, client, objects, markers, service
 
 
 def test_query_service_on_a_resumed_map(tmp_path):
@@ -249,10 +271,6 @@ def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path,
     One label (core.segments.object_labels) too, without a labels_file: "restored", the names objects.db was
     written with; "guessed", a database without names (written before label sources had names), whose
     objects the component names by the model's guess after the first result was published."""
-    from visualization_msgs.msg import MarkerArray
-
-    from monovoc_interfaces.msg import SemanticObjectArray
-    from monovoc_interfaces.srv import TextQuery
 
     directory = copy_directory(room_directory(), tmp_path / "map")
     _, index = room_map()
@@ -261,12 +279,7 @@ def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path,
             db.execute("UPDATE objects SET label = '', label_source = 'imagenet'")
     env = _environment(tmp_path)
     params = {"map_directory": str(directory), "resume": True, "diagnostics_period_s": 5.0}
-    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
-        objects, markers = MessageCollector(), MessageCollector()
-        client.node.create_subscription(SemanticObjectArray, "/monovoc/objects", objects, latched_qos())
-        client.node.create_subscription(MarkerArray, "/monovoc/objects/markers", markers, latched_qos())
-        service = client.node.create_client(TextQuery, "/monovoc/query")
-        wait_for_service(service, 30.0, process=node)
+    with _node_with_objects(env, params) as (node, client, objects, markers, service):
         answer = _query(service, "anything", top_k=1000, process=node)
         assert answer.success and len(answer.objects) == len(index) >= 20, answer.message
         objects.wait_for(1, 20.0, process=node)
@@ -301,10 +314,8 @@ def test_client_without_a_node_exits_2(tmp_path):
 
 def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
     from sensor_msgs.msg import PointCloud2
-    from visualization_msgs.msg import MarkerArray
 
-    from monovoc_interfaces.msg import SemanticObjectArray
-    from monovoc_interfaces.srv import LoadMap, Reset, SaveMap, TextQuery
+    from monovoc_interfaces.srv import LoadMap, Reset, SaveMap
 
     scene = room()
     directory = tmp_path / "map"
@@ -318,12 +329,7 @@ def test_live_node_indexes_keyframes_and_saves_objects(tmp_path):
         "labels_file": str(labels_file),
         "diagnostics_period_s": 5.0,
     }
-    with NodeProcess.python([*NODE, *ros_args(params)], env, name="object_query") as node, ClientNode(env) as client:
-        objects, markers = MessageCollector(), MessageCollector()
-        client.node.create_subscription(SemanticObjectArray, "/monovoc/objects", objects, latched_qos())
-        client.node.create_subscription(MarkerArray, "/monovoc/objects/markers", markers, latched_qos())
-        service = client.node.create_client(TextQuery, "/monovoc/query")
-        wait_for_service(service, 30.0, process=node)
+    with _node_with_objects(env, params) as (node, client, objects, markers, service):
         before = _query(service, "a sofa", process=node)
         assert not before.success and "no objects" in before.message
 
