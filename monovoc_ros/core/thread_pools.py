@@ -17,15 +17,9 @@ that has work, so every pool the package drives waits passively unless the user 
 
 from __future__ import annotations
 
-import contextlib
 import os
-import threading
 
 import threadpoolctl
-
-# Added to the nice value of background work (the object index and its encoder threads, the objects.db writer,
-# the map updates' plans and the map reader process): keyframes and the cloud come first.
-BACKGROUND_NICENESS = 10
 
 
 def single_threaded_blas() -> None:
@@ -37,10 +31,3 @@ def single_threaded_blas() -> None:
 def passive_openmp() -> None:
     if not os.environ.get("OMP_WAIT_POLICY"):
         os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
-
-
-def lower_priority() -> None:
-    """This thread below the mapping worker in the scheduler (Linux niceness is per thread; the threads it creates
-    afterwards inherit it); nothing where the platform has no per-thread niceness."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), BACKGROUND_NICENESS)

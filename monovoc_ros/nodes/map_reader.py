@@ -64,7 +64,7 @@ from monovoc_ros.core.follow.map_motion import MapMotion, MotionConfig
 from monovoc_ros.core.follow.map_updater import GivenMotion
 from monovoc_ros.core.freed_memory import keep_freed_memory
 from monovoc_ros.core.map.gaussians import GaussianMap, same_geometry
-from monovoc_ros.core.thread_pools import lower_priority, single_threaded_blas
+from monovoc_ros.core.thread_pools import single_threaded_blas
 from monovoc_ros.fastdds_profile import child_environment
 
 # The arrays of a GaussianMap that a map message carries (cloud_to_gaussian_map fills no others), as the
@@ -584,7 +584,6 @@ def _child_main(argv: list[str] | None = None) -> int:
     # whole process group would otherwise end the reader first and count as a crash.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    lower_priority()  # before any thread starts (they inherit it): keyframes and the cloud come first
     keep_freed_memory()  # each map's 57 MB buffers (DDS's reassembly, the take) reuse the last one's pages
     single_threaded_blas()  # as in the node (core.thread_pools): the registration's numpy hands BLAS small matrices
     sock = socket.socket(fileno=args.fd)

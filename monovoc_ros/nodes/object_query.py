@@ -35,6 +35,8 @@ exist only after embedding) and asks for the objects and markers again when they
 
 from __future__ import annotations
 
+import contextlib
+import os
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -47,7 +49,6 @@ import numpy as np
 
 import msg_adapters as ma
 from monovoc_ros.core.segments.object_labels import ObjectLabel, display
-from monovoc_ros.core.thread_pools import lower_priority
 from monovoc_ros.embed.backend import backend_class
 from monovoc_ros.embed.model_store import ModelMissingError
 from monovoc_ros.nodes.component import MappingHost
@@ -74,6 +75,8 @@ REFRESH_DEFER_S = 5.0  # longest time embedding waits while the worker is busy
 IDLE_WAIT_S = 1.0  # the indexing thread's wait for a new result with nothing to embed
 YIELD_POLL_S = 0.05  # its wait while objects wait to be embedded: it looks for the worker's idle moments
 SLOW_ANSWER_MS = 50.0  # answers slower than this in the handler are counted (issue 25's query p99 target)
+# Added to the nice value of the indexing thread (and its encoder threads) and of the objects.db writer.
+BACKGROUND_NICENESS = 10
 
 
 class HandlerTimes:
@@ -97,6 +100,13 @@ class HandlerTimes:
 
     def diagnostics(self) -> dict[str, Any]:
         return self._longest.values()
+
+
+def _lower_priority() -> None:
+    """This thread below the mapping worker in the scheduler (Linux niceness is per thread; threads it
+    creates inherit it)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), BACKGROUND_NICENESS)
 
 
 # Metres from the map's origin beyond which a request's viewpoint is refused (a robot's pose is far closer).
@@ -203,7 +213,7 @@ class ObjectQueryComponent:
         self._highlight_wake = threading.Event()
         self._highlighter = threading.Thread(target=self._run_highlights, name="monovoc-query-highlight", daemon=True)
         # objects.db writes, one at a time, in order (`save`).
-        self._db_writer = ThreadPoolExecutor(1, "monovoc-objects-db", initializer=lower_priority)
+        self._db_writer = ThreadPoolExecutor(1, "monovoc-objects-db", initializer=_lower_priority)
         self._db_write: Future | None = None
 
     # ------------------------------------------------------------------ life cycle
@@ -318,7 +328,7 @@ class ObjectQueryComponent:
     # ------------------------------------------------------------------ indexing thread
 
     def _run(self) -> None:
-        lower_priority()  # background work, as are onnxruntime's pool threads, created with the models below
+        _lower_priority()  # background work, as are onnxruntime's pool threads, created with the models below
         try:
             _ = self.index.backend  # load the models now, so the first query does not pay for it
         except (ModelMissingError, ValueError, OSError, ImportError) as exc:  # bad clip_onnx files: ValueError

@@ -63,7 +63,6 @@ from monovoc_ros.core.session import (
     MappingSession,
     SaveListener,
 )
-from monovoc_ros.core.thread_pools import lower_priority
 from monovoc_ros.nodes.diagnostics import MapperStats
 
 ResultListener = Callable[[SemanticMapper, SemanticResult], None]
@@ -303,9 +302,7 @@ class MapWorker:
         self._result_listeners: list[ResultListener] = []
         self._thread: threading.Thread | None = None
         # Map updates are prepared here, beside the worker (numba kernels and numpy release the interpreter).
-        self._planner = ThreadPoolExecutor(
-            max_workers=1, thread_name_prefix="monovoc-map-plan", initializer=lower_priority
-        )
+        self._planner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-map-plan")
         # Periodic snapshots are written here, one at a time (`_maybe_save`).
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-snapshot")
         self._writing: Future | None = None

@@ -45,7 +45,6 @@ from monovoc_ros.core.keyframe import Keyframe
 from monovoc_ros.core.map.camera import validate_pose
 from monovoc_ros.core.map.gaussians import GaussianMap, removed_gaussians
 from monovoc_ros.core.segments.object_match import match_objects
-from monovoc_ros.core.thread_pools import lower_priority
 
 # Metres: a map update bending the map this much re-integrates (its evidence was rendered on the unbent map).
 REINTEGRATE_BEND_M = 0.02
@@ -66,7 +65,7 @@ GIVEN_MOTION_WAIT_S = 3.0
 # is applied (`update_map`). Threads kept for the process: threads started per plan raised the 1M robot run's
 # peak RSS from 1.5-1.7 to 1.8-2.2 GB (glibc gives a new thread's allocations an arena of its own). Nothing on
 # them waits for anything on them.
-_BESIDE = ThreadPoolExecutor(2, thread_name_prefix="monovoc-map-beside", initializer=lower_priority)
+_BESIDE = ThreadPoolExecutor(2, thread_name_prefix="monovoc-map-beside")
 
 
 class Mapper(Protocol):
