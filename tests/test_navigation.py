@@ -39,6 +39,8 @@ class FakeNav2:
 
     def __init__(self, env: dict, finish: bool) -> None:
         self.env, self.finish = env, finish  # finish: succeed each goal, else drive until canceled
+        self.accept_after_s = 0.0  # how long a goal request waits for its acceptance (a busy Nav2)
+        self.requested = threading.Event()  # a goal request arrived
         self.goals: list = []
         self.canceled = threading.Event()
 
@@ -46,7 +48,7 @@ class FakeNav2:
     def running(self):
         import rclpy
         from nav2_msgs.action import NavigateToPose
-        from rclpy.action import ActionServer, CancelResponse
+        from rclpy.action import ActionServer, CancelResponse, GoalResponse
         from rclpy.callback_groups import ReentrantCallbackGroup
         from rclpy.executors import MultiThreadedExecutor
 
@@ -67,12 +69,17 @@ class FakeNav2:
             goal_handle.succeed()
             return NavigateToPose.Result()
 
+        def accept(_request):
+            self.requested.set()
+            time.sleep(self.accept_after_s)
+            return GoalResponse.ACCEPT
+
         with ClientNode(self.env, name="fake_nav2") as holder:
             # The holder's single-threaded executor only keeps the context; the server gets its own executor.
             node = rclpy.create_node("fake_bt_navigator", context=holder.context)
             group = ReentrantCallbackGroup()
             server = ActionServer(node, NavigateToPose, "navigate_to_pose", execute, callback_group=group,
-                                  cancel_callback=lambda _g: CancelResponse.ACCEPT)  # fmt: skip
+                                  goal_callback=accept, cancel_callback=lambda _g: CancelResponse.ACCEPT)  # fmt: skip
             executor = MultiThreadedExecutor(num_threads=4, context=holder.context)
             executor.add_node(node)
             thread = threading.Thread(target=executor.spin, daemon=True)
@@ -184,6 +191,17 @@ def test_go_to_drives_through_nav2_relays_feedback_and_cancels(tmp_path):
             assert nav2.canceled.wait(20.0)  # the cancel reached Nav2
             done = result_of(handle)
             assert not done.result.success and "Nav2's goal canceled too" in done.result.message
+
+            # Canceled while Nav2 is still deciding on the goal: Nav2's goal, once accepted, is canceled as well, and
+            # the result says so as it does when the cancel comes later (the order of the two on a busy node).
+            nav2.accept_after_s, nav2.goals = 1.0, []
+            nav2.canceled, nav2.requested = threading.Event(), threading.Event()
+            handle = send(action, GoTo.Goal(text="the table"), [], node)
+            wait_until(nav2.requested.is_set, 20.0, "Nav2's goal request", process=node)
+            answered(handle.cancel_goal_async, "the cancel answer", 20.0, process=node)
+            done = result_of(handle)
+            assert not done.result.success and "Nav2's goal canceled too" in done.result.message, done.result.message
+            assert nav2.canceled.wait(20.0) and len(nav2.goals) == 1
 
         with ClientNode(env) as client:  # no Nav2 at all: a clear failure, not a hang
             action = LockedActionClient(client.node, GoTo, "/monovoc/go_to")

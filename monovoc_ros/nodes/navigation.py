@@ -270,10 +270,9 @@ class NavigationComponent:
         if sent is None:
             # Canceled or stopping before Nav2 answered: if it accepts after all, its goal is canceled too.
             late = self._wait(sending, None, wait_s)
-            if late is not None and late.accepted:
-                self._wait(late.cancel_goal_async(), None, wait_s)
+            note = self._cancel_nav2(late, wait_s) if late is not None and late.accepted else ""
             if goal_handle.is_cancel_requested or self._stopping.is_set():
-                return self._end(goal_handle, result, "canceled", "canceled before Nav2 started")
+                return self._end(goal_handle, result, "canceled", note or "canceled before Nav2 started")
             return self._end(goal_handle, result, "failed", f"Nav2's {name} did not answer in {wait_s:g} s")
         if not sent.accepted:
             return self._end(goal_handle, result, "failed", f"Nav2 rejected the goal ({name})")
@@ -283,10 +282,7 @@ class NavigationComponent:
                 goal_handle.publish_feedback(feedback)
         outcome = self._wait(sent.get_result_async(), goal_handle)
         if outcome is None:  # canceled (or the node stopping)
-            canceling = self._wait(sent.cancel_goal_async(), None, wait_s)
-            accepted = canceling is not None and len(canceling.goals_canceling) > 0
-            note = "canceled; Nav2's goal canceled too" if accepted else "canceled; Nav2 did not confirm its cancel"
-            return self._end(goal_handle, result, "canceled", note)
+            return self._end(goal_handle, result, "canceled", self._cancel_nav2(sent, wait_s))
         from action_msgs.msg import GoalStatus
 
         status = outcome.status
@@ -294,6 +290,14 @@ class NavigationComponent:
             return self._end(goal_handle, result, "succeeded", "Nav2 reached the pose")
         why = {GoalStatus.STATUS_CANCELED: "Nav2 canceled the goal", GoalStatus.STATUS_ABORTED: "Nav2 aborted the goal"}
         return self._end(goal_handle, result, "failed", why.get(status, f"Nav2 ended with status {status}"))
+
+    def _cancel_nav2(self, sent: Any, wait_s: float) -> str:
+        """Cancels Nav2's accepted goal (`sent`, its goal handle); what go_to's result says of it. The same whether
+        go_to's cancel came before or after Nav2's acceptance reached this node."""
+        canceling = self._wait(sent.cancel_goal_async(), None, wait_s)
+        if canceling is not None and len(canceling.goals_canceling) > 0:
+            return "canceled; Nav2's goal canceled too"
+        return "canceled; Nav2 did not confirm its cancel"
 
     def _wait(self, future: Any, goal_handle: Any | None, timeout_s: float | None = None) -> Any:
         """The future's result once done; None when `goal_handle` is canceled first, the node stops or
