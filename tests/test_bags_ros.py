@@ -269,6 +269,11 @@ def test_record_stops_on_ctrl_c_and_on_duration(tmp_path: Path, monkeypatch) -> 
     failed = subprocess.run([sys.executable, "-m", "monovoc_ros.cli", "record", "-o", str(nowhere), "/x"], env=env,
                             capture_output=True, text=True, timeout=60)  # fmt: skip
     assert failed.returncode == 1 and failed.stderr.startswith("monovoc record: ") and "Traceback" not in failed.stderr
+    # A bag that exists is never replaced (it replaced a 9 MB recording with an empty one and said nothing).
+    kept = (tmp_path / "timed.mcap").read_bytes()
+    with pytest.raises(ValueError, match="already exists"):
+        record(tmp_path / "timed.mcap", ["/nobody/either"], duration=0.1)
+    assert (tmp_path / "timed.mcap").read_bytes() == kept
 
 
 def test_replay_errors(bag: Path, tmp_path: Path, monkeypatch) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,10 @@ from mcap_ros2.decoder import DecoderFactory
 
 from monovoc_ros.bags.qos import OFFERED_QOS_KEY, OfferedQos, parse_qos_yaml
 from monovoc_ros.bags.schemas import TYPE_HASH_KEY
+
+# What mcap raises on a file that ends inside a record (a recorder that died, a copy cut short): struct's error
+# when fewer bytes are left than a record's fixed fields.
+_CUT = (McapError, EOFError, ValueError, struct.error)
 
 
 class BagError(ValueError):
@@ -156,7 +161,7 @@ def _scan(f) -> Iterator[tuple[Schema | None, Channel, Message]]:
             elif isinstance(record, Message) and record.channel_id in channels:
                 channel = channels[record.channel_id]
                 yield schemas.get(channel.schema_id), channel, record
-    except (McapError, EOFError, ValueError):
+    except _CUT:
         return  # the truncated tail (e.g. the chunk being written when the recorder died)
 
 
@@ -164,7 +169,7 @@ def _finished(reader) -> bool:
     try:
         reader.get_summary()
         return True
-    except (McapError, EOFError, ValueError):
+    except _CUT:
         return False
 
 

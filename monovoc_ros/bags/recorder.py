@@ -146,7 +146,7 @@ def record(
     ``on_ready()`` is called once the node is up, ``on_subscribed(topic, type_name)`` as each topic gets
     subscribed. ``node``: a node
     that its owner spins (else an own node in a new context, spun here). ``bag_format``: "mcap" (``out_path``
-    is the file) or "rosbag2" (``out_path`` is the bag directory, which must not exist yet).
+    is the file) or "rosbag2" (``out_path`` is the bag directory); either must not exist yet.
     """
     if log_time not in LOG_TIMES:
         raise ValueError(f"log_time must be one of {LOG_TIMES}, got {log_time!r}")
@@ -155,6 +155,8 @@ def record(
     wanted = list(dict.fromkeys(_absolute(t) for t in topics))
     if not wanted:
         raise ValueError("record: no topics given")
+    if bag_format == "mcap" and os.path.lexists(out_path):  # a recording is not to be had again: never replaced
+        raise ValueError(f"{out_path}: already exists (a recording goes to a new file)")
     stop = stop_event or threading.Event()
     interrupted = False
     start = time.monotonic()

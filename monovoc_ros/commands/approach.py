@@ -12,6 +12,8 @@ import json
 import sys
 from pathlib import Path
 
+from monovoc_ros.commands.numbers import finite, non_negative, positive
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -24,11 +26,11 @@ def register(subparsers) -> None:
     )
     p.add_argument("text", help="e.g. 'the sofa', 'the chair next to the table'")
     p.add_argument("--map", metavar="DIR", required=True, help="a saved map directory (snapshot and objects.db)")
-    p.add_argument("--standoff", type=float, default=0.6, help="metres from the object (default 0.6)")
+    p.add_argument("--standoff", type=finite, default=0.6, help="metres from the object (default 0.6)")
     # Defaults: objects.approach.RobotShape's (imported in run: building the parser stays light).
-    p.add_argument("--robot-radius", type=float, help="inflation, metres (default 0.25)")
-    p.add_argument("--robot-height", type=float, help="metres; higher is passed under (default 1.2)")
-    p.add_argument("--min-obstacle-height", type=float, help="metres; lower is floor (default 0.1)")
+    p.add_argument("--robot-radius", type=non_negative, help="inflation, metres (default 0.25)")
+    p.add_argument("--robot-height", type=positive, help="metres; higher is passed under (default 1.2)")
+    p.add_argument("--min-obstacle-height", type=non_negative, help="metres; lower is floor (default 0.1)")
     p.add_argument("--frame-id", default="map", help="frame of the printed pose (default map)")
     p.add_argument("--json", action="store_true", help='print {"success", "message", "pose", "object"}')
     p.add_argument("--plot", metavar="PNG", help="draw the grid, the objects and the pose into this image")

@@ -12,6 +12,7 @@ import argparse
 import json
 import sys
 
+from monovoc_ros.commands.numbers import non_negative
 from monovoc_ros.contract import DEFAULT_NAMESPACE
 
 
@@ -27,7 +28,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--namespace", default=DEFAULT_NAMESPACE, help=f"namespace of the node (default {DEFAULT_NAMESPACE})"
     )
-    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the service (default 10)")
+    p.add_argument("--timeout", type=non_negative, default=10.0, help="seconds to wait for the service (default 10)")
     p.add_argument("--json", action="store_true", help='print {"success", "answer", "count", "objects"}')
     p.set_defaults(func=run)
 

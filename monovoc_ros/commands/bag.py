@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from monovoc_ros.commands.numbers import at_least
 from monovoc_ros.commands.sources import SOURCE_HELP, add_segment_names_option, add_sequence_options, open_source_args
 from monovoc_ros.contract import DEFAULT_NAMESPACE
 
@@ -34,7 +35,7 @@ def register(subparsers) -> None:
         default="png",
         help="mask topic (default png); none: no masks and no segments, a camera-only bag for segmenter:=true",
     )
-    c.add_argument("--jpeg-quality", type=int, default=95)
+    c.add_argument("--jpeg-quality", type=at_least(1, 100), default=95)
     c.add_argument("--namespace", default=DEFAULT_NAMESPACE)
     c.add_argument("--no-map", action="store_true", help="leave the Gaussian map out")
     c.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -22,6 +22,7 @@ import types
 from pathlib import Path
 from typing import Any
 
+from monovoc_ros.commands.numbers import at_least, non_negative, positive
 from monovoc_ros.ros_harness import (
     NAMESPACE,
     SEMANTIC_MAPPER,
@@ -56,13 +57,15 @@ def register(subparsers) -> None:
     p.add_argument("--bag", default=None, help="MCAP bag to replay (default: bags/synthetic_room.mcap)")
     p.add_argument("-o", "--out", default="out/demo", help="output directory (default out/demo; its map/ is replaced)")
     speed = p.add_mutually_exclusive_group()
-    speed.add_argument("--rate", type=float, default=None, help="replay at R times the recorded rate")
+    speed.add_argument("--rate", type=positive, default=None, help="replay at R times the recorded rate")
     speed.add_argument("--fast", action="store_true", help="replay as fast as possible (the default)")
     p.add_argument(
         "--query", action="append", default=None, metavar="TEXT", help="a text query (repeatable; default: a few)"
     )
-    p.add_argument("--top-k", type=int, default=3, help="answers per query (default 3)")
-    p.add_argument("--timeout", type=float, default=300.0, help="seconds allowed for each waiting step (default 300)")
+    p.add_argument("--top-k", type=at_least(1), default=3, help="answers per query (default 3)")
+    p.add_argument(
+        "--timeout", type=non_negative, default=300.0, help="seconds allowed for each waiting step (default 300)"
+    )
     p.set_defaults(func=run)
 
 

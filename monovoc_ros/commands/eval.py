@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monovoc_ros.commands.numbers import at_least, positive
 from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
 from monovoc_ros.core.evaluation.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
 from monovoc_ros.core.evaluation.instance_eval import renamed, score_matched
@@ -32,10 +33,10 @@ def register(subparsers) -> None:
     )
     p.add_argument("map_dir", help="a map directory written by `monovoc map` or the node")
     add_source_options(p)
-    p.add_argument("--every", type=int, default=3, help="evaluate every N-th keyframe (default 3)")
+    p.add_argument("--every", type=at_least(1), default=3, help="evaluate every N-th keyframe (default 3)")
     p.add_argument("--metrics", default="all", help=f"comma-separated subset of {','.join(METRICS)} or all")
     p.add_argument("--protocols", default="points,splats", help="points, splats or both (default)")
-    p.add_argument("--point-size", type=float, default=0.05, help="disc world radius, metres (default 0.05)")
+    p.add_argument("--point-size", type=positive, default=0.05, help="disc world radius, metres (default 0.05)")
     p.add_argument("-o", "--out", default=None, help="JSON report path (default MAP_DIR/eval.json)")
     p.add_argument("--figure", default=None, help="PNG figure path (default MAP_DIR/eval.png)")
     p.set_defaults(func=run)

@@ -14,6 +14,7 @@ import json
 import math
 import sys
 
+from monovoc_ros.commands.numbers import at_least, finite, non_negative
 from monovoc_ros.contract import DEFAULT_NAMESPACE
 
 
@@ -26,12 +27,14 @@ def register(subparsers) -> None:
         "<namespace>/query of a running semantic_mapper node (python -m monovoc_ros.nodes.semantic_mapper).",
     )
     p.add_argument("text", help="what to look for, e.g. 'the sofa'")
-    p.add_argument("--top-k", type=int, default=0, help="objects to return (default 0: the node's / index's default)")
-    p.add_argument("--min-score", type=float, default=-1.0, help="drop objects scoring below this (default -1)")
+    p.add_argument(
+        "--top-k", type=at_least(0), default=0, help="objects to return (default 0: the node's / index's default)"
+    )
+    p.add_argument("--min-score", type=finite, default=-1.0, help="drop objects scoring below this (default -1)")
     p.add_argument(
         "--namespace", default=DEFAULT_NAMESPACE, help=f"namespace of the node (default {DEFAULT_NAMESPACE})"
     )
-    p.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the service (default 10)")
+    p.add_argument("--timeout", type=non_negative, default=10.0, help="seconds to wait for the service (default 10)")
     p.add_argument("--map", metavar="DIR", help="query a saved map directory's objects.db instead of the node")
     p.add_argument("--json", action="store_true", help="print the answer as JSON")
     p.set_defaults(func=run)

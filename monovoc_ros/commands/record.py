@@ -7,6 +7,8 @@ import json
 import sys
 import threading
 
+from monovoc_ros.commands.numbers import at_least, non_negative
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -17,7 +19,9 @@ def register(subparsers) -> None:
         "file. Prints a JSON summary.",
     )
     p.add_argument("topics", nargs="+", metavar="TOPIC")
-    p.add_argument("-o", "--out", required=True, help="output .mcap file, or bag directory with --format rosbag2")
+    p.add_argument(
+        "-o", "--out", required=True, help="output .mcap file, or bag directory with --format rosbag2 (must not exist)"
+    )
     p.add_argument(
         "--format",
         choices=("mcap", "rosbag2"),
@@ -25,8 +29,8 @@ def register(subparsers) -> None:
         help="mcap: one .mcap file (default); rosbag2: a new directory with metadata.yaml and <name>_0.mcap, "
         "as `ros2 bag record -s mcap` writes",
     )
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-    p.add_argument("--count", type=int, default=None, metavar="N", help="stop after N messages in all")
+    p.add_argument("--duration", type=non_negative, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--count", type=at_least(1), default=None, metavar="N", help="stop after N messages in all")
     p.add_argument(
         "--log-time",
         choices=("receive", "header"),

@@ -7,6 +7,8 @@ import json
 import sys
 import threading
 
+from monovoc_ros.commands.numbers import non_negative, positive
+
 # The exit code of a replay that published nothing (the launch file ends the launch on it: nothing will come).
 NOT_STARTED = 3
 
@@ -23,7 +25,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("bag", help="MCAP bag (e.g. bags/synthetic_room.mcap)")
     speed = p.add_mutually_exclusive_group()
-    speed.add_argument("--rate", type=float, default=1.0, help="multiple of the recorded rate (default 1)")
+    speed.add_argument("--rate", type=positive, default=1.0, help="multiple of the recorded rate (default 1)")
     speed.add_argument(
         "--fast",
         action="store_true",
@@ -31,7 +33,7 @@ def register(subparsers) -> None:
         "it taken (/diagnostics maps_received), so the keyframes posed in it do not overtake it",
     )
     p.add_argument("--clock", action="store_true", help="publish /clock (rosgraph_msgs/Clock) with the bag time")
-    p.add_argument("--clock-hz", type=float, default=40.0, help="/clock rate between messages (default 40)")
+    p.add_argument("--clock-hz", type=positive, default=40.0, help="/clock rate between messages (default 40)")
     p.add_argument(
         "--remap", nargs="+", action="extend", default=[], metavar="FROM:=TO", help="rename topics, e.g. /a:=/b"
     )
@@ -46,10 +48,16 @@ def register(subparsers) -> None:
         help="start once every replayed topic has N subscribers (0: start at once; default: once each of the bag's "
         "keyframe and map topics, the node's inputs, has one, so a node still starting misses nothing)",
     )
-    p.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for subscribers (default 30)")
+    p.add_argument(
+        "--wait-timeout", type=non_negative, default=30.0, help="seconds to wait for subscribers (default 30)"
+    )
     p.add_argument("--loop", action="store_true", help="replay again and again until Ctrl-C")
     p.add_argument(
-        "--hold", type=float, default=0.0, metavar="S", help="keep the publishers (latched map) alive S s at the end"
+        "--hold",
+        type=non_negative,
+        default=0.0,
+        metavar="S",
+        help="keep the publishers (latched map) alive S s at the end",
     )
     p.set_defaults(func=run)
 

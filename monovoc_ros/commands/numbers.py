@@ -1,0 +1,48 @@
+"""argparse types for the command line's numbers: a NaN timeout never passes (a command waited forever), a negative
+duration or a zero step made no sense; each is refused with argparse's one line (exit code 2)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+
+def _number(text: str, kind: type, low: float, low_open: bool, high: float = math.inf) -> float | int:
+    try:
+        value = kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    if value < low or (low_open and value == low) or value > high:
+        bound = f"> {low:g}" if low_open else f">= {low:g}"
+        raise argparse.ArgumentTypeError(
+            f"must be {bound}" + (f" and <= {high:g}" if high < math.inf else "") + f", got {text!r}"
+        )
+    return value
+
+
+def finite(text: str) -> float:
+    """Any finite float (a score, a coordinate)."""
+    return _number(text, float, -math.inf, False)
+
+
+def non_negative(text: str) -> float:
+    """A duration, a timeout, a distance: finite, >= 0."""
+    return _number(text, float, 0.0, False)
+
+
+def positive(text: str) -> float:
+    """A rate, a size: finite, > 0."""
+    return _number(text, float, 0.0, True)
+
+
+def at_least(low: int, high: float = math.inf) -> Callable[[str], int]:
+    """An integer in [low, high] (a step, a count)."""
+
+    def parse(text: str) -> int:
+        return _number(text, int, low, False, high)
+
+    parse.__name__ = "integer"  # argparse names the type in its message
+    return parse
