@@ -78,3 +78,29 @@ def test_map_into_a_directory_it_cannot_write_is_one_line(tmp_path):
     with pytest.raises(SystemExit) as info:
         main(["map", "--bag", str(BAG), "--max-keyframes", "2", "-o", str(blocker / "map"), "--quiet"])
     assert str(info.value).startswith("monovoc map: ") and "a_file" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("argv", "problem"),
+    [
+        (["replay", "--fast", "--wait-timeout", "nan", "b.mcap"], "--wait-timeout: must be a finite number"),
+        (["query", "--timeout", "nan", "sofa"], "--timeout: must be a finite number"),
+        (["ask", "--timeout", "-1", "how many chairs"], "--timeout: must be >= 0"),
+        (["record", "-o", "x.mcap", "--duration", "inf", "/a"], "--duration: must be a finite number"),
+        (["record", "-o", "x.mcap", "--count", "0", "/a"], "--count: must be >= 1"),
+        (["eval", "m", "--every", "0"], "--every: must be >= 1"),
+        (["eval", "m", "--point-size", "nan"], "--point-size: must be a finite number"),
+        (["demo", "--top-k", "-1"], "--top-k: must be >= 1"),
+        (["replay", "--rate", "0", "b.mcap"], "--rate: must be > 0"),
+        (["bag", "convert", "d", "-o", "b.mcap", "--jpeg-quality", "500"], "--jpeg-quality: must be >= 1 and <= 100"),
+        (["approach", "sofa", "--map", "m", "--robot-radius", "abc"], "--robot-radius: not a number"),
+    ],
+)
+def test_numbers_are_checked_before_anything_runs(tmp_path, capsys, monkeypatch, argv, problem):
+    """A NaN timeout never passes (replay, query, ask and record waited forever): refused with argparse's one line,
+    before anything is written (the relative paths above would land in tmp_path)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2 and problem in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
