@@ -75,7 +75,7 @@ def map_sequence(
 ) -> tuple[SemanticMapper, RunStats]:
     gaussians = sequence.load_gaussians()
     if gaussians is None:
-        raise ValueError(f"{sequence.name}: the sequence has no Gaussian map (give one with --gaussians)")
+        raise NoMapError(f"{sequence.name}: the sequence has no Gaussian map (give one with --gaussians)")
     n = len(sequence) if max_keyframes is None else min(len(sequence), max_keyframes)
     events = (gaussians, *(sequence.keyframe(i) for i in range(n)))
     return _run(events, config, DEFAULT_MAX_SHRINK, None, progress, n, on_keyframe)

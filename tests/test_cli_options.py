@@ -104,3 +104,32 @@ def test_numbers_are_checked_before_anything_runs(tmp_path, capsys, monkeypatch,
         main(argv)
     assert info.value.code == 2 and problem in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_paths_a_command_cannot_write_or_read_are_one_line(tmp_path, capsys):
+    """A file where a folder goes, a map that is not there, a source without a Gaussian map: one line, no traceback,
+    and no report left as if the command had finished."""
+    from monovoc_ros.core.evaluation.datasets import write_plain
+    from monovoc_ros.synthetic import SceneConfig, generate_scene
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("in the way")
+    assert main(["demo", "-o", str(blocker / "demo")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("monovoc demo: ") and "Not a directory" in err
+    (tmp_path / "bag_dir").mkdir()
+    assert main(["bag", "convert", "synthetic", "-o", str(tmp_path / "bag_dir"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("monovoc bag: ") and "Traceback" not in err and "Is a directory" in err
+    with pytest.raises(SystemExit) as info:
+        main(["eval", str(tmp_path / "no_map"), "--bag", str(BAG)])
+    assert str(info.value).startswith("monovoc eval: ") and "no saved map" in str(info.value)
+    cfg = SceneConfig(width=64, height=48, fx=60.0, fy=60.0, cx=32.0, cy=24.0)
+    cfg.n_gaussians, cfg.n_keyframes = 500, 3
+    scene = generate_scene(cfg)
+    write_plain(scene, tmp_path / "no_ply", gaussians=None)
+    (tmp_path / "no_ply" / "gaussians.ply").unlink(missing_ok=True)
+    with pytest.raises(SystemExit) as info:
+        main(["map", str(tmp_path / "no_ply"), "-o", str(tmp_path / "out"), "--quiet"])
+    assert str(info.value).startswith("monovoc map: ") and "no Gaussian map" in str(info.value)
+    assert not (tmp_path / "out" / "summary.json").exists()

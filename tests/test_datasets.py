@@ -126,6 +126,15 @@ def test_plain_layout_errors_name_the_path(scene: SyntheticScene, tmp_path: Path
     (root / "stamps.txt").write_text("1\n2\n")
     with pytest.raises(SequenceError, match=r"stamps\.txt: 2 timestamps for 6 keyframes"):
         open_sequence(root)
+    # Beyond int64 (OverflowError was a traceback), negative, repeated: refused as the live node refuses them.
+    for stamps, problem in (
+        (["99999999999999999999", *map(str, range(1, 6))], r"timestamp \(0 \.\. 2\^63-1\) per line"),
+        (["-5", *map(str, range(1, 6))], "negative timestamps"),
+        (["1", "2", "2", "3", "4", "5"], "timestamps decrease or repeat"),
+    ):
+        (root / "stamps.txt").write_text("\n".join(stamps) + "\n")
+        with pytest.raises(SequenceError, match=problem):
+            open_sequence(root)
     (root / "stamps.txt").unlink()
     assert np.array_equal(open_sequence(root).stamps_ns, np.arange(6) * 100_000_000)  # synthesized 10 Hz
 

@@ -120,6 +120,19 @@ def _public(result: dict, names: dict[int, str]) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from monovoc_ros.bags.reader import BagError
+    from monovoc_ros.core.evaluation.datasets import SequenceError
+    from monovoc_ros.core.map.ply import PlyError
+    from monovoc_ros.core.map_store import MapStoreError
+
+    try:
+        return _eval(args)
+    # The operator's input, as `monovoc map` says it: a missing map, source or bag, an OUT it cannot write.
+    except (BagError, SequenceError, PlyError, MapStoreError, OSError) as exc:
+        raise SystemExit(f"monovoc eval: {exc}") from None
+
+
+def _eval(args: argparse.Namespace) -> int:
     if bool(args.source) == bool(args.bag):
         raise SystemExit("monovoc eval: give either SOURCE or --bag BAG")
     check_source_options(args)
@@ -161,11 +174,11 @@ def run(args: argparse.Namespace) -> int:
             p: _public(score(mapper.gaussians, truth, frames, p, args.point_size)[0], names) for p in protocols
         }
     report["seconds"] = round(time.perf_counter() - start, 1)
-    out = Path(args.out or Path(args.map_dir) / "eval.json")
-    out.write_text(json.dumps(report, indent=1))
     figure = Path(args.figure or Path(args.map_dir) / "eval.png")
     if figure_rows is not None:
         write_figure(figure, frames, figure_rows, names, mapper.config.metric)
+    out = Path(args.out or Path(args.map_dir) / "eval.json")
+    out.write_text(json.dumps(report, indent=1))  # last: a report means the evaluation is complete
     print(_table(report, metrics, protocols))
     if mapper.config.mask_ids == "per_frame":
         for protocol in protocols:

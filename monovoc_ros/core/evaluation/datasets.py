@@ -430,12 +430,15 @@ def read_stamps(path: str | os.PathLike, count: int) -> np.ndarray:
     lines = [s for s in path.read_text().split() if s]
     try:
         stamps = np.array([int(s) for s in lines], dtype=np.int64)
-    except ValueError:
-        raise SequenceError(f"{path}: expected one integer nanosecond timestamp per line") from None
+    except (ValueError, OverflowError):  # OverflowError: beyond int64
+        raise SequenceError(f"{path}: expected one integer nanosecond timestamp (0 .. 2^63-1) per line") from None
     if len(stamps) != count:
         raise SequenceError(f"{path}: {len(stamps)} timestamps for {count} keyframes")
-    if np.any(np.diff(stamps) < 0):
-        raise SequenceError(f"{path}: timestamps decrease")
+    if len(stamps) and stamps.min() < 0:
+        raise SequenceError(f"{path}: negative timestamps")
+    # A keyframe's stamp names it (the live node refuses a stamp it has integrated already).
+    if np.any(np.diff(stamps) <= 0):
+        raise SequenceError(f"{path}: timestamps decrease or repeat")
     return stamps
 
 
