@@ -20,6 +20,8 @@ tests/test_colcon.py that every executable and file it names is installed by col
 """
 
 import difflib
+import math
+import os
 
 from launch import LaunchDescription
 from launch.actions import (
@@ -47,6 +49,29 @@ LAUNCH_OWN = {"ros_namespace", "global_params", "ros_remaps", "emulate_tty", "si
 # `monovoc replay`'s exit code when it published nothing (monovoc_ros.commands.replay.NOT_STARTED: this file imports
 # only launch packages).
 REPLAY_NOT_STARTED = 3
+
+
+def _stop(reason: str) -> list:
+    """Says why and ends the launch."""
+    return [LogInfo(msg=f"monovoc: {reason}; stopping the launch"), EmitEvent(event=Shutdown(reason=reason))]
+
+
+def unusable_arguments(context) -> list:
+    """Values the launch cannot run with end it at once with one line, instead of a node on its defaults (launch_ros
+    only warns about a parameter file that is not there) or a replay that exits on its own arguments."""
+    for name in ("params_file", "query_params_file"):
+        path = context.launch_configurations.get(name, "")
+        if path and not os.path.isfile(path):
+            return _stop(f"{name}:={path} is not a file")
+    if context.launch_configurations.get("bag", ""):
+        rate = context.launch_configurations.get("bag_rate", "")
+        try:
+            ok = math.isfinite(float(rate)) and float(rate) > 0
+        except ValueError:
+            ok = False
+        if not ok:
+            return _stop(f"bag_rate:={rate} is not a positive number")
+    return []
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -209,8 +234,14 @@ def generate_launch_description() -> LaunchDescription:
         if event.returncode != REPLAY_NOT_STARTED:
             ended = f"monovoc: the bag replay ended with exit code {event.returncode} (see its error above)"
             return [LogInfo(msg=ended)]
-        reason = "the bag replay failed (its error is above): nothing was replayed; stopping the launch"
-        return [LogInfo(msg=f"monovoc: {reason}"), EmitEvent(event=Shutdown(reason=reason))]
+        return _stop("the bag replay failed (its error is above): nothing was replayed")
+
+    def segmenter_ended(event, context) -> list:
+        """A segmenter that stopped by itself (no such model, a model it cannot run) ends the launch: without it no
+        mask comes, and a mapper waiting for masks looks like a working one."""
+        if event.returncode in (0, 130) or event.returncode < 0 or context.is_shutdown:  # stopped with the launch
+            return []
+        return _stop(f"the segmenter ended with exit code {event.returncode} (its error is above): no masks will come")
 
     rviz = Node(
         package="rviz2",
@@ -220,6 +251,7 @@ def generate_launch_description() -> LaunchDescription:
         condition=IfCondition(LaunchConfiguration("rviz")),
     )
     on_replay_exit = RegisterEventHandler(OnProcessExit(target_action=replay, on_exit=replay_ended))
+    on_segmenter_exit = RegisterEventHandler(OnProcessExit(target_action=segmenter, on_exit=segmenter_ended))
     declared = {a.name for a in arguments}
 
     def misspelt_arguments(context) -> list:
@@ -236,5 +268,10 @@ def generate_launch_description() -> LaunchDescription:
                                         f"ignored (did you mean {close[0]}? see docs/parameters.md)"))  # fmt: skip
         return said
 
-    checks = [OpaqueFunction(function=misspelt_arguments), on_replay_exit]
+    checks = [
+        OpaqueFunction(function=misspelt_arguments),
+        OpaqueFunction(function=unusable_arguments),
+        on_replay_exit,
+        on_segmenter_exit,
+    ]
     return LaunchDescription([*arguments, *checks, *mappers, segmenter, replay, rviz])

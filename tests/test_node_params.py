@@ -164,6 +164,22 @@ def test_invalid_parameter_stops_the_node_with_a_clear_message(tmp_path):
 
 
 @pytest.mark.ros
+def test_ros_arguments_rcl_cannot_parse_stop_the_node_with_one_line(tmp_path):
+    """A parameter file that is no YAML, a remapping rule that is none: rclpy's RCLError was a traceback."""
+    env = ros_environment(tmp_path)
+    garbage = tmp_path / "garbage.yaml"
+    garbage.write_text("not: [valid yaml\n")
+    for ros, problem in (
+        (["--params-file", str(garbage)], "Couldn't parse params file"),
+        (["-r", "bad remap"], "Couldn't parse remap rule"),
+    ):
+        proc = subprocess.run([str(VENV_PYTHON), *NODE, "--ros-args", *ros], env=env, capture_output=True, text=True,
+                              timeout=60)  # fmt: skip
+        assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert f"semantic_mapper: cannot start: failed to initialize rcl: {problem}" in proc.stderr
+
+
+@pytest.mark.ros
 def test_params_file_loads_under_a_remapped_name_and_namespace(tmp_path):
     from rcl_interfaces.srv import GetParameters
     from std_srvs.srv import Trigger

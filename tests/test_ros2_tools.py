@@ -198,3 +198,23 @@ def test_a_bag_that_cannot_be_replayed_ends_the_launch_with_the_reason_and_a_typ
         out = process.output()
         assert "no such bag file" in out and "the bag replay failed" in out, process.describe()
         assert "map_directry is not an argument of monovoc.launch.py, ignored (did you mean map_directory?" in out
+
+
+@pytest.mark.parametrize(
+    ("arguments", "reason"),
+    [
+        ("bag:=bags/synthetic_room.mcap bag_rate:=abc", "bag_rate:=abc is not a positive number"),
+        ("params_file:={tmp}/no_such.yaml", "no_such.yaml is not a file"),
+        ("segmenter:=true segmenter_model:={tmp}/no_such.onnx", "the segmenter ended with exit code"),
+    ],
+)
+def test_arguments_the_launch_cannot_run_with_end_it_with_the_reason(env, tmp_path, arguments, reason):
+    """A bad replay rate, a parameter file that is not there (launch_ros only warns and the node ran on its
+    defaults), a segmenter that cannot start: each ended nothing, and a mapper waited for inputs that never came."""
+    line = f"ros2 launch monovoc_ros monovoc.launch.py map_directory:={tmp_path / 'map'} " + arguments.format(
+        tmp=tmp_path
+    )
+    with launch(line, env, "ros2_launch_unusable") as process:
+        wait_until(lambda: not process.running(), 120.0, "the launch to end by itself")
+        out = process.output()
+        assert reason in out and "stopping the launch" in out, process.describe()
