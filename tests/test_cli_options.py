@@ -94,9 +94,12 @@ def test_map_into_a_directory_it_cannot_write_is_one_line(tmp_path):
         (["replay", "--rate", "0", "b.mcap"], "--rate: must be > 0"),
         (["bag", "convert", "d", "-o", "b.mcap", "--jpeg-quality", "500"], "--jpeg-quality: must be >= 1 and <= 100"),
         (["approach", "sofa", "--map", "m", "--robot-radius", "abc"], "--robot-radius: not a number"),
+        (["query", "--namespace", "bad ns", "sofa"], "--namespace: not a ROS namespace: 'bad ns'"),
+        (["ask", "--namespace", "/a//b", "how many chairs"], "--namespace: not a ROS namespace: '/a//b'"),
+        (["bag", "convert", "d", "-o", "b.mcap", "--namespace", "/x/"], "--namespace: not a ROS namespace: '/x/'"),
     ],
 )
-def test_numbers_are_checked_before_anything_runs(tmp_path, capsys, monkeypatch, argv, problem):
+def test_numbers_and_names_are_checked_before_anything_runs(tmp_path, capsys, monkeypatch, argv, problem):
     """A NaN timeout never passes (replay, query, ask and record waited forever): refused with argparse's one line,
     before anything is written (the relative paths above would land in tmp_path)."""
     monkeypatch.chdir(tmp_path)
@@ -133,3 +136,10 @@ def test_paths_a_command_cannot_write_or_read_are_one_line(tmp_path, capsys):
         main(["map", str(tmp_path / "no_ply"), "-o", str(tmp_path / "out"), "--quiet"])
     assert str(info.value).startswith("monovoc map: ") and "no Gaussian map" in str(info.value)
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_a_namespace_without_its_slash_is_taken_as_absolute():
+    from monovoc_ros.cli import build_parser
+
+    assert build_parser().parse_args(["query", "--namespace", "robot1/monovoc", "x"]).namespace == "/robot1/monovoc"
+    assert build_parser().parse_args(["query", "x"]).namespace == "/monovoc"

@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from monovoc_ros.commands.numbers import finite, non_negative, positive
+from monovoc_ros.commands.argument_types import finite, non_negative, positive
 
 
 def register(subparsers) -> None:

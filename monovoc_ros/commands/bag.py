@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from monovoc_ros.commands.numbers import at_least
+from monovoc_ros.commands.argument_types import at_least, ros_namespace
 from monovoc_ros.commands.sources import SOURCE_HELP, add_segment_names_option, add_sequence_options, open_source_args
 from monovoc_ros.contract import DEFAULT_NAMESPACE
 
@@ -36,7 +36,7 @@ def register(subparsers) -> None:
         help="mask topic (default png); none: no masks and no segments, a camera-only bag for segmenter:=true",
     )
     c.add_argument("--jpeg-quality", type=at_least(1, 100), default=95)
-    c.add_argument("--namespace", default=DEFAULT_NAMESPACE)
+    c.add_argument("--namespace", type=ros_namespace, default=DEFAULT_NAMESPACE)
     c.add_argument("--no-map", action="store_true", help="leave the Gaussian map out")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=run_convert)

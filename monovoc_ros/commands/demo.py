@@ -22,7 +22,7 @@ import types
 from pathlib import Path
 from typing import Any
 
-from monovoc_ros.commands.numbers import at_least, non_negative, positive
+from monovoc_ros.commands.argument_types import at_least, non_negative, positive
 from monovoc_ros.ros_harness import (
     NAMESPACE,
     SEMANTIC_MAPPER,

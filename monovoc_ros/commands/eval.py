@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monovoc_ros.commands.numbers import at_least, positive
+from monovoc_ros.commands.argument_types import at_least, positive
 from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
 from monovoc_ros.core.evaluation.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
 from monovoc_ros.core.evaluation.instance_eval import renamed, score_matched

@@ -14,7 +14,7 @@ import json
 import math
 import sys
 
-from monovoc_ros.commands.numbers import at_least, finite, non_negative
+from monovoc_ros.commands.argument_types import at_least, finite, non_negative, ros_namespace
 from monovoc_ros.contract import DEFAULT_NAMESPACE
 
 
@@ -32,7 +32,10 @@ def register(subparsers) -> None:
     )
     p.add_argument("--min-score", type=finite, default=-1.0, help="drop objects scoring below this (default -1)")
     p.add_argument(
-        "--namespace", default=DEFAULT_NAMESPACE, help=f"namespace of the node (default {DEFAULT_NAMESPACE})"
+        "--namespace",
+        type=ros_namespace,
+        default=DEFAULT_NAMESPACE,
+        help=f"namespace of the node (default {DEFAULT_NAMESPACE})",
     )
     p.add_argument("--timeout", type=non_negative, default=10.0, help="seconds to wait for the service (default 10)")
     p.add_argument("--map", metavar="DIR", help="query a saved map directory's objects.db instead of the node")

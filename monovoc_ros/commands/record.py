@@ -7,7 +7,7 @@ import json
 import sys
 import threading
 
-from monovoc_ros.commands.numbers import at_least, non_negative
+from monovoc_ros.commands.argument_types import at_least, non_negative
 
 
 def register(subparsers) -> None:

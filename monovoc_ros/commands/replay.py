@@ -7,7 +7,7 @@ import json
 import sys
 import threading
 
-from monovoc_ros.commands.numbers import non_negative, positive
+from monovoc_ros.commands.argument_types import non_negative, positive
 
 # The exit code of a replay that published nothing (the launch file ends the launch on it: nothing will come).
 NOT_STARTED = 3

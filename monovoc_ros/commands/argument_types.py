@@ -1,5 +1,6 @@
-"""argparse types for the command line's numbers: a NaN timeout never passes (a command waited forever), a negative
-duration or a zero step made no sense; each is refused with argparse's one line (exit code 2)."""
+"""argparse types for the command line's arguments: a NaN timeout never passes (a command waited forever), a negative
+duration or a zero step made no sense, a namespace with a space made a service name rclpy refused with a traceback;
+each is refused with argparse's one line (exit code 2)."""
 
 from __future__ import annotations
 
@@ -46,3 +47,17 @@ def at_least(low: int, high: float = math.inf) -> Callable[[str], int]:
 
     parse.__name__ = "integer"  # argparse names the type in its message
     return parse
+
+
+def ros_namespace(text: str) -> str:
+    """A ROS namespace as rclpy validates one, made absolute (monovoc: /monovoc, as a node in / resolves it)."""
+    from rclpy.exceptions import InvalidNamespaceException
+    from rclpy.validate_namespace import validate_namespace
+
+    name = text if text.startswith("/") else "/" + text
+    try:
+        validate_namespace(name)
+    except InvalidNamespaceException as exc:
+        why = str(exc).splitlines()[0].rstrip(":")
+        raise argparse.ArgumentTypeError(f"not a ROS namespace: {text!r} ({why})") from None
+    return name
