@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from monovoc_ros.cli import main as cli_main
 from tests.object_room import room_directory, room_id
 
@@ -25,7 +27,9 @@ def test_offline_query_json_and_errors(capsys, tmp_path):
     assert "empty query" in capsys.readouterr().err
     assert cli_main(["query", "--map", str(tmp_path), "a chair"]) == 2
     assert "no object database" in capsys.readouterr().err
-    assert cli_main(["query", "--map", str(room_directory()), "a chair", "--top-k", "-1"]) == 1
+    with pytest.raises(SystemExit) as info:  # refused while parsing (argparse's one line)
+        cli_main(["query", "--map", str(room_directory()), "a chair", "--top-k", "-1"])
+    assert info.value.code == 2 and "--top-k: must be >= 0" in capsys.readouterr().err
 
 
 def test_offline_query_reads_spatial_language(capsys):
