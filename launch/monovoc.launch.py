@@ -57,8 +57,9 @@ def _stop(reason: str) -> list:
 
 
 def unusable_arguments(context) -> list:
-    """Values the launch cannot run with end it at once with one line, instead of a node on its defaults (launch_ros
-    only warns about a parameter file that is not there) or a replay that exits on its own arguments."""
+    """Values the launch cannot run with end it with one line (its nodes may start, and are stopped at once), instead
+    of a node on its defaults (launch_ros only warns about a parameter file that is not there) or a replay that exits
+    on its own arguments."""
     for name in ("params_file", "query_params_file"):
         path = context.launch_configurations.get(name, "")
         if path and not os.path.isfile(path):

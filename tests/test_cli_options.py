@@ -26,7 +26,6 @@ def test_max_keyframes_is_honoured_for_bags(tmp_path):
         (["--gaussians", "map.ply"], "--gaussians cannot be used with --bag"),
         (["--masks", "m", "--rgb", "r"], "--masks, --rgb cannot be used with --bag"),
         (["--layout", "hislam2"], "--layout cannot be used with --bag"),
-        (["--max-keyframes", "0"], "--max-keyframes must be >= 1, got 0"),
     ],
 )
 def test_options_a_bag_cannot_use_are_refused(tmp_path, extra, problem):
@@ -89,6 +88,10 @@ def test_map_into_a_directory_it_cannot_write_is_one_line(tmp_path):
         (["record", "-o", "x.mcap", "--duration", "inf", "/a"], "--duration: must be a finite number"),
         (["record", "-o", "x.mcap", "--count", "0", "/a"], "--count: must be >= 1"),
         (["eval", "m", "--every", "0"], "--every: must be >= 1"),
+        (["eval", "m", "--every", "1.5"], "--every: not an integer: '1.5'"),
+        (["map", "synthetic", "-o", "out", "--max-keyframes", "0"], "--max-keyframes: must be >= 1"),
+        (["bag", "convert", "d", "-o", "b.mcap", "--max-keyframes", "-2"], "--max-keyframes: must be >= 1"),
+        (["replay", "--wait-subscribers", "-1", "b.mcap"], "--wait-subscribers: must be >= 0"),
         (["eval", "m", "--point-size", "nan"], "--point-size: must be a finite number"),
         (["demo", "--top-k", "-1"], "--top-k: must be >= 1"),
         (["replay", "--rate", "0", "b.mcap"], "--rate: must be > 0"),

@@ -169,14 +169,16 @@ def test_ros_arguments_rcl_cannot_parse_stop_the_node_with_one_line(tmp_path):
     env = ros_environment(tmp_path)
     garbage = tmp_path / "garbage.yaml"
     garbage.write_text("not: [valid yaml\n")
-    for ros, problem in (
-        (["--params-file", str(garbage)], "Couldn't parse params file"),
-        (["-r", "bad remap"], "Couldn't parse remap rule"),
+    for module, name, ros, problem in (
+        (NODE, "semantic_mapper", ["--params-file", str(garbage)], "Couldn't parse params file"),
+        (NODE, "semantic_mapper", ["-r", "bad remap"], "Couldn't parse remap rule"),
+        (["-m", "monovoc_ros.nodes.segmenter"], "segmenter", ["-r", "bad remap"], "Couldn't parse remap rule"),
     ):
-        proc = subprocess.run([str(VENV_PYTHON), *NODE, "--ros-args", *ros], env=env, capture_output=True, text=True,
-                              timeout=60)  # fmt: skip
+        proc = subprocess.run([str(VENV_PYTHON), *module, "--ros-args", *ros], env=env, capture_output=True,
+                              text=True, timeout=60)  # fmt: skip
         assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
-        assert f"semantic_mapper: cannot start: failed to initialize rcl: {problem}" in proc.stderr
+        line = next(x for x in proc.stderr.splitlines() if x.startswith(f"{name}: cannot start: "))
+        assert f"failed to initialize rcl: {problem}" in line and ", at " not in line, line
 
 
 @pytest.mark.ros

@@ -271,7 +271,6 @@ def test_objects_topic_markers_and_query_answers_agree_on_every_object(tmp_path,
     One label (core.segments.object_labels) too, without a labels_file: "restored", the names objects.db was
     written with; "guessed", a database without names (written before label sources had names), whose
     objects the component names by the model's guess after the first result was published."""
-
     directory = copy_directory(room_directory(), tmp_path / "map")
     _, index = room_map()
     if labels == "guessed":

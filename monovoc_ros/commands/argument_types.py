@@ -8,12 +8,14 @@ import argparse
 import math
 from collections.abc import Callable
 
+from monovoc_ros.contract import DEFAULT_NAMESPACE
+
 
 def _number(text: str, kind: type, low: float, low_open: bool, high: float = math.inf) -> float | int:
     try:
         value = kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        raise argparse.ArgumentTypeError(f"not {'an integer' if kind is int else 'a number'}: {text!r}") from None
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
     if value < low or (low_open and value == low) or value > high:
@@ -45,16 +47,17 @@ def at_least(low: int, high: float = math.inf) -> Callable[[str], int]:
     def parse(text: str) -> int:
         return _number(text, int, low, False, high)
 
-    parse.__name__ = "integer"  # argparse names the type in its message
     return parse
 
 
 def ros_namespace(text: str) -> str:
     """A ROS namespace as rclpy validates one, made absolute (monovoc: /monovoc, as a node in / resolves it)."""
+    name = text if text.startswith("/") else "/" + text
+    if name == DEFAULT_NAMESPACE:  # argparse checks the default too: no rclpy import for it
+        return name
     from rclpy.exceptions import InvalidNamespaceException
     from rclpy.validate_namespace import validate_namespace
 
-    name = text if text.startswith("/") else "/" + text
     try:
         validate_namespace(name)
     except InvalidNamespaceException as exc:

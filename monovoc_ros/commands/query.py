@@ -4,14 +4,14 @@
     monovoc query --map DIR "the sofa"        # offline, no ROS graph
 
 This machine has no ros2 CLI; this is the client. Exit codes: 0 answered, 1 the query failed (empty text,
-no objects yet, models missing), 2 the service is absent or did not answer in time, or the map is unreadable.
+no objects yet, models missing), 2 the service is absent or did not answer in time, the map is unreadable, or an
+argument is refused (argparse's line).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
 from monovoc_ros.commands.argument_types import at_least, finite, non_negative, ros_namespace
@@ -44,12 +44,6 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.top_k < 0:
-        print("monovoc query: --top-k must be >= 0", file=sys.stderr)
-        return 1
-    if math.isnan(args.min_score):
-        print("monovoc query: --min-score is NaN", file=sys.stderr)
-        return 1
     if args.map:
         return _offline(args)
     return _online(args)

@@ -7,7 +7,7 @@ import json
 import sys
 import threading
 
-from monovoc_ros.commands.argument_types import non_negative, positive
+from monovoc_ros.commands.argument_types import at_least, non_negative, positive
 
 # The exit code of a replay that published nothing (the launch file ends the launch on it: nothing will come).
 NOT_STARTED = 3
@@ -42,7 +42,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--wait-subscribers",
-        type=int,
+        type=at_least(0),
         default=None,
         metavar="N",
         help="start once every replayed topic has N subscribers (0: start at once; default: once each of the bag's "

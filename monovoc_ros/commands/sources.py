@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 
+from monovoc_ros.commands.argument_types import at_least
+
 SOURCE_HELP = "a dataset folder (plain, nice-slam or hislam2 layout) or synthetic[:VARIANT]"
 
 
@@ -15,7 +17,7 @@ def add_sequence_options(parser: argparse.ArgumentParser, noise_note: str) -> No
     parser.add_argument("--gaussians", help="Gaussian map PLY (nice-slam / hislam2 layouts)")
     parser.add_argument("--masks", help="mask folder (nice-slam / hislam2 layouts)")
     parser.add_argument("--rgb", help="RGB folder (hislam2 layout)")
-    parser.add_argument("--max-keyframes", type=int, default=None)
+    parser.add_argument("--max-keyframes", type=at_least(1), default=None)
     parser.add_argument(
         "--mask-noise",
         default=None,
@@ -44,8 +46,6 @@ def add_source_options(parser: argparse.ArgumentParser) -> None:
 
 def check_source_options(args: argparse.Namespace) -> None:
     """Refuses options that would be ignored (a bag carries its own Gaussian map, masks and RGB)."""
-    if args.max_keyframes is not None and args.max_keyframes < 1:
-        raise SystemExit(f"monovoc: --max-keyframes must be >= 1, got {args.max_keyframes}")
     if args.bag:
         ignored = [f"--{k}" for k in ("gaussians", "masks", "rgb") if getattr(args, k)]
         if args.layout != "auto":

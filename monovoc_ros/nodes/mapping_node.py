@@ -41,7 +41,6 @@ from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup,
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 import msg_adapters as ma
@@ -73,7 +72,7 @@ from monovoc_ros.nodes.params import PARAMETERS, NodeParams
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, SERVICE_QOS, input_qos, map_qos, output_events
 from monovoc_ros.nodes.reorder import StampReorder
 from monovoc_ros.nodes.services import guarded
-from monovoc_ros.nodes.startup import StartupAborted, check_stop, compile_kernels
+from monovoc_ros.nodes.startup import StartupAborted, check_stop, compile_kernels, init_rclpy
 from monovoc_ros.nodes.worker import CoalescedCall, MapWorker, ResultListener, WorkerSettings, WorkerStopped
 
 NODE_NAME = "semantic_mapper"
@@ -678,15 +677,6 @@ def run(args: list[str] | None = None, compose: Callable[[MappingNode], list[Com
             signal.signal(signum, signal.SIG_IGN)
 
 
-def _init_rclpy(args: list[str] | None) -> None:
-    """rclpy.init; --ros-args it cannot take (a parameter file that is no YAML, a bad remapping) are the operator's
-    ValueError, said in one line, where rclpy raises RCLError with rcl's source locations."""
-    try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except RuntimeError as exc:  # rclpy's RCLError
-        raise ValueError(str(exc).split(", at /")[0].replace("\n", " ").strip()) from None
-
-
 def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component]] | None, stop: StopSignals) -> int:
     # rclpy's own handlers would shut the context down under the final snapshot's feet: ours only ask to stop.
     node = None
@@ -694,7 +684,7 @@ def _run(args: list[str] | None, compose: Callable[[MappingNode], list[Component
         # The participant comes with the first node: its reliable writers (the query's answers among them)
         # repair a lost sample within 50 ms, not Fast DDS's 3 s (monovoc_ros.fastdds_profile).
         with writer_heartbeat(WRITER_HEARTBEAT_MS) as ours:
-            _init_rclpy(args)
+            init_rclpy(args)
             node = MappingNode(stop=stop.requested)
         node.get_logger().info(describe_dds(ours))
         components = compose(node) if compose is not None else []

@@ -23,7 +23,6 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 
 import msg_adapters as ma
 from monovoc_ros.contract import (
@@ -36,6 +35,7 @@ from monovoc_ros.contract import (
 from monovoc_ros.nodes.mapping_node import StopSignals
 from monovoc_ros.nodes.param_spec import Param, ParameterError, declare
 from monovoc_ros.nodes.qos import DIAGNOSTICS_QOS, input_qos
+from monovoc_ros.nodes.startup import init_rclpy
 from monovoc_ros.segment.backend import SegmenterModelError, load_segmenter
 from monovoc_ros.segment.model_files import CHECKPOINTS, DEFAULT_MODEL
 from monovoc_ros.segment.options import OPTION_SPECS, SegmenterOptions, option_defaults, parse_class_map
@@ -207,7 +207,11 @@ class SegmenterNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     stop = StopSignals(NODE_NAME)
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        init_rclpy(args)
+    except ValueError as exc:
+        print(f"{NODE_NAME}: cannot start: {exc}", file=sys.stderr)
+        return 1
     try:
         node = SegmenterNode()
     except ParameterError as exc:

@@ -9,6 +9,7 @@ which a stop signal kills at once, and only then loads the kernels itself and su
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import tempfile
@@ -18,6 +19,19 @@ import time
 from monovoc_ros.fastdds_profile import child_environment
 
 POLL_S = 0.05
+
+
+def init_rclpy(args: list[str] | None) -> None:
+    """rclpy.init without its signal handlers; --ros-args rcl cannot take (a parameter file that is no YAML, a remapping
+    rule that is none) are the operator's ValueError, one line without rcl's source locations (`, at ./src/x.c:12` or
+    `, at /project/src/x.c:12`, by how rcl was built), where rclpy raises RCLError."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except RuntimeError as exc:  # rclpy's RCLError
+        raise ValueError(" ".join(re.sub(r", at \S+:\d+", "", str(exc)).split())) from None
 
 
 class StartupAborted(Exception):
