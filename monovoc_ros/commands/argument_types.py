@@ -1,6 +1,7 @@
 """argparse types for the command line's arguments: a NaN timeout never passes (a command waited forever), a negative
 duration or a zero step made no sense, a namespace with a space made a service name rclpy refused with a traceback;
-each is refused with argparse's one line (exit code 2)."""
+each is refused with argparse's one line (exit code 2). And the options of the commands that call the node's
+services."""
 
 from __future__ import annotations
 
@@ -64,3 +65,16 @@ def ros_namespace(text: str) -> str:
         why = str(exc).splitlines()[0].rstrip(":")
         raise argparse.ArgumentTypeError(f"not a ROS namespace: {text!r} ({why})") from None
     return name
+
+
+def add_service_options(parser: argparse.ArgumentParser) -> None:
+    """--namespace and --timeout of a command that calls a service of the running node (query, ask)."""
+    parser.add_argument(
+        "--namespace",
+        type=ros_namespace,
+        default=DEFAULT_NAMESPACE,
+        help=f"namespace of the node (default {DEFAULT_NAMESPACE})",
+    )
+    parser.add_argument(
+        "--timeout", type=non_negative, default=10.0, help="seconds to wait for the service (default 10)"
+    )

@@ -12,8 +12,7 @@ import argparse
 import json
 import sys
 
-from monovoc_ros.commands.argument_types import non_negative, ros_namespace
-from monovoc_ros.contract import DEFAULT_NAMESPACE
+from monovoc_ros.commands.argument_types import add_service_options
 
 
 def register(subparsers) -> None:
@@ -25,13 +24,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("question", help="e.g. 'how many chairs are there'")
     p.add_argument("--map", metavar="DIR", help="a saved map directory (its objects.db) instead of the node")
-    p.add_argument(
-        "--namespace",
-        type=ros_namespace,
-        default=DEFAULT_NAMESPACE,
-        help=f"namespace of the node (default {DEFAULT_NAMESPACE})",
-    )
-    p.add_argument("--timeout", type=non_negative, default=10.0, help="seconds to wait for the service (default 10)")
+    add_service_options(p)
     p.add_argument("--json", action="store_true", help='print {"success", "answer", "count", "objects"}')
     p.set_defaults(func=run)
 

@@ -14,8 +14,7 @@ import argparse
 import json
 import sys
 
-from monovoc_ros.commands.argument_types import at_least, finite, non_negative, ros_namespace
-from monovoc_ros.contract import DEFAULT_NAMESPACE
+from monovoc_ros.commands.argument_types import add_service_options, at_least, finite
 
 
 def register(subparsers) -> None:
@@ -31,13 +30,7 @@ def register(subparsers) -> None:
         "--top-k", type=at_least(0), default=0, help="objects to return (default 0: the node's / index's default)"
     )
     p.add_argument("--min-score", type=finite, default=-1.0, help="drop objects scoring below this (default -1)")
-    p.add_argument(
-        "--namespace",
-        type=ros_namespace,
-        default=DEFAULT_NAMESPACE,
-        help=f"namespace of the node (default {DEFAULT_NAMESPACE})",
-    )
-    p.add_argument("--timeout", type=non_negative, default=10.0, help="seconds to wait for the service (default 10)")
+    add_service_options(p)
     p.add_argument("--map", metavar="DIR", help="query a saved map directory's objects.db instead of the node")
     p.add_argument("--json", action="store_true", help="print the answer as JSON")
     p.set_defaults(func=run)
