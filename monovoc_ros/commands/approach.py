@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from monovoc_ros.commands.argument_types import finite, non_negative, positive
+from monovoc_ros.commands.argument_types import non_negative, positive
 
 
 def register(subparsers) -> None:
@@ -26,7 +26,8 @@ def register(subparsers) -> None:
     )
     p.add_argument("text", help="e.g. 'the sofa', 'the chair next to the table'")
     p.add_argument("--map", metavar="DIR", required=True, help="a saved map directory (snapshot and objects.db)")
-    p.add_argument("--standoff", type=finite, default=0.6, help="metres from the object (default 0.6)")
+    # Checked in run against objects.approach.MAX_STANDOFF_M, with the range in the message.
+    p.add_argument("--standoff", type=float, default=0.6, help="metres from the object (default 0.6)")
     # Defaults: objects.approach.RobotShape's (imported in run: building the parser stays light).
     p.add_argument("--robot-radius", type=non_negative, help="inflation, metres (default 0.25)")
     p.add_argument("--robot-height", type=positive, help="metres; higher is passed under (default 1.2)")
