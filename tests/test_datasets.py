@@ -60,6 +60,31 @@ def test_real_replica_office0(replica_office0: Path) -> None:
     assert len(seq.load_gaussians()) == 204_266
 
 
+def test_a_plain_folder_that_fails_halfway_is_removed_when_it_was_created(scene: SyntheticScene, tmp_path: Path):
+    class Unreadable:  # the scene, whose third keyframe cannot be read (as an image that is no image)
+        intrinsics = scene.intrinsics
+
+        def __iter__(self):
+            for kf in scene:
+                if kf.index == 2:
+                    raise SequenceError("rgb/000002.png: not an image")
+                yield kf
+
+        def labels(self):
+            return scene.labels()
+
+        def load_gaussians(self):
+            return None
+
+    with pytest.raises(SequenceError, match="not an image"):
+        write_plain(Unreadable(), tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()  # a folder the caller made is kept, with what was written
+    with pytest.raises(SequenceError, match="not an image"):
+        write_plain(Unreadable(), tmp_path / "mine")
+    assert sorted(p.name for p in (tmp_path / "mine" / "masks").iterdir()) == ["000000.png", "000001.png"]
+
+
 def test_plain_round_trip_is_lossless(scene: SyntheticScene, tmp_path: Path) -> None:
     write_plain(scene, tmp_path / "seq")
     back = open_sequence(tmp_path / "seq")

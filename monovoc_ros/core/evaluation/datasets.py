@@ -41,6 +41,7 @@ import functools
 import json
 import os
 import re
+import shutil
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -649,11 +650,13 @@ def write_plain(
     ``gaussians`` defaults to the sequence's own map (``load_gaussians()``), if any. Masks are lossless
     RGB PNGs; RGB is PNG (lossless) or JPEG (quality 95). Poses and intrinsics are written with 17
     significant digits, so float64 values read back bit for bit. Refuses a non-empty ``out_dir`` unless
-    ``overwrite``, which then replaces the files of the layout.
+    ``overwrite``, which then replaces the files of the layout. A folder it created is removed when writing fails
+    (`monovoc segment` stopped by an unreadable image left a half-written one).
     """
     if rgb_format not in ("png", "jpg"):
         raise SequenceError(f"rgb_format must be 'png' or 'jpg', got {rgb_format!r}")
     out = Path(out_dir)
+    created = not out.exists()
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise SequenceError(f"{out}: exists and is not empty (pass overwrite=True to replace its sequence)")
@@ -664,6 +667,15 @@ def write_plain(
                         p.unlink()
         for name in ("stamps.txt", "labels.json", "gaussians.ply"):
             (out / name).unlink(missing_ok=True)
+    try:
+        _write_plain_files(sequence, out, gaussians, rgb_format)
+    except BaseException:
+        if created:  # a half-written folder would take overwrite=True to be written again
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _write_plain_files(sequence: Sequence, out: Path, gaussians: GaussianMap | None, rgb_format: str) -> None:
     (out / "masks").mkdir(parents=True, exist_ok=True)
     poses, stamps = [], []
     for kf in sequence:
