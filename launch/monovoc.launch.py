@@ -67,10 +67,10 @@ def unusable_arguments(context) -> list:
     if context.launch_configurations.get("bag", ""):
         rate = context.launch_configurations.get("bag_rate", "")
         try:
-            ok = math.isfinite(float(rate)) and float(rate) > 0
+            value = float(rate)
         except ValueError:
-            ok = False
-        if not ok:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
             return _stop(f"bag_rate:={rate} is not a positive number")
     return []
 

@@ -26,7 +26,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("text", help="e.g. 'the sofa', 'the chair next to the table'")
     p.add_argument("--map", metavar="DIR", required=True, help="a saved map directory (snapshot and objects.db)")
-    # Checked in run against objects.approach.MAX_STANDOFF_M, with the range in the message.
+    # Checked in run (objects.approach.check_standoff), with the range in the message.
     p.add_argument("--standoff", type=float, default=0.6, help="metres from the object (default 0.6)")
     # Defaults: objects.approach.RobotShape's (imported in run: building the parser stays light).
     p.add_argument("--robot-radius", type=non_negative, help="inflation, metres (default 0.25)")
@@ -49,8 +49,7 @@ def run(args: argparse.Namespace) -> int:
              "min_obstacle_height": args.min_obstacle_height}  # fmt: skip
     try:
         shape = ap.RobotShape(**{k: v for k, v in given.items() if v is not None})
-        if not 0 < args.standoff <= ap.MAX_STANDOFF_M:
-            raise ValueError(f"--standoff must be > 0 and <= {ap.MAX_STANDOFF_M:g} metres, got {args.standoff}")
+        ap.check_standoff(args.standoff, "--standoff")  # before the work, not after it
         if args.plot and not Path(args.plot).resolve().parent.is_dir():  # checked before the work, not after it
             raise ValueError(f"--plot {args.plot}: no such directory {Path(args.plot).resolve().parent}")
     except ValueError as exc:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from monovoc_ros.commands.argument_types import at_least, positive
-from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
+from monovoc_ros.commands.sources import add_source_options, check_source_options, input_errors, open_source_args
 from monovoc_ros.core.evaluation.evaluation import SegmentationEvaluator, render_point_labels, render_splat_labels
 from monovoc_ros.core.evaluation.instance_eval import renamed, score_matched
 from monovoc_ros.core.evidence.palette import UNOBSERVED_ID, labels_from_entries, pack_rgb
@@ -120,15 +120,9 @@ def _public(result: dict, names: dict[int, str]) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from monovoc_ros.bags.reader import BagError
-    from monovoc_ros.core.evaluation.datasets import SequenceError
-    from monovoc_ros.core.map.ply import PlyError
-    from monovoc_ros.core.map_store import MapStoreError
-
     try:
         return _eval(args)
-    # The operator's input, as `monovoc map` says it: a missing map, source or bag, an OUT it cannot write.
-    except (BagError, SequenceError, PlyError, MapStoreError, OSError) as exc:
+    except input_errors() as exc:
         raise SystemExit(f"monovoc eval: {exc}") from None
 
 

@@ -7,7 +7,7 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-from monovoc_ros.commands.sources import add_source_options, check_source_options, open_source_args
+from monovoc_ros.commands.sources import add_source_options, check_source_options, input_errors, open_source_args
 from monovoc_ros.core.evidence.palette import labels_from_entries
 from monovoc_ros.core.evidence.quantize import METRICS
 from monovoc_ros.core.follow.map_ahead import DEFAULT_AHEAD_S, MAX_AHEAD_S
@@ -174,17 +174,9 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from monovoc_ros.bags.reader import BagError
-    from monovoc_ros.core.evaluation.datasets import SequenceError
-    from monovoc_ros.core.map.ply import PlyError
-    from monovoc_ros.core.map_store import MapStoreError
-    from monovoc_ros.offline import NoMapError
-
     try:
         return _map(args)
-    # The operator's input: a missing or unreadable source, a bag without a map, an OUT it cannot write. Any other
-    # error is a bug: its traceback stays.
-    except (BagError, SequenceError, PlyError, MapStoreError, NoMapError, OSError) as exc:
+    except input_errors() as exc:
         raise SystemExit(f"monovoc map: {exc}") from None
 
 

@@ -44,6 +44,19 @@ def add_source_options(parser: argparse.ArgumentParser) -> None:
     add_segment_names_option(parser)
 
 
+def input_errors() -> tuple[type[Exception], ...]:
+    """What `monovoc map` and `eval` say in one line as the operator's input: a missing or unreadable source, map or
+    bag, a source or bag without a Gaussian map, an OUT it cannot write. Any other error is a bug: its traceback stays.
+    (Imported when asked: building the parser stays light.)"""
+    from monovoc_ros.bags.reader import BagError
+    from monovoc_ros.core.evaluation.datasets import SequenceError
+    from monovoc_ros.core.map.ply import PlyError
+    from monovoc_ros.core.map_store import MapStoreError
+    from monovoc_ros.offline import NoMapError
+
+    return BagError, SequenceError, PlyError, MapStoreError, NoMapError, OSError
+
+
 def check_source_options(args: argparse.Namespace) -> None:
     """Refuses options that would be ignored (a bag carries its own Gaussian map, masks and RGB)."""
     if args.bag:

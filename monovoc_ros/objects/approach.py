@@ -35,6 +35,12 @@ STANDOFF_TOLERANCE_M = 0.1  # an approach pose misses the standoff by at most th
 MAX_STANDOFF_M = 100.0
 
 
+def check_standoff(standoff: float, name: str = "standoff") -> None:
+    """Raises ValueError unless 0 < standoff <= MAX_STANDOFF_M (NaN included)."""
+    if not 0 < standoff <= MAX_STANDOFF_M:
+        raise ValueError(f"{name} must be > 0 and <= {MAX_STANDOFF_M:g} metres, got {standoff}")
+
+
 @dataclass(frozen=True)
 class RobotShape:
     robot_radius: float = 0.25  # metres: the occupied cells are inflated by this
@@ -141,8 +147,7 @@ def approach_pose(
 ) -> Approach:
     """The pose to stand at `standoff` metres from the object whose Gaussian means are `object_points`
     (M, 3), map frame; `robot_position` (3,) map frame restricts it to free space the robot can reach."""
-    if not 0 < standoff <= MAX_STANDOFF_M:
-        raise ValueError(f"standoff must be > 0 and <= {MAX_STANDOFF_M:g} metres, got {standoff}")
+    check_standoff(standoff)
     points = np.asarray(object_points, np.float64) @ grid.rotation.T
     if len(points) == 0:
         return Approach(False, "the object has no Gaussians")
