@@ -28,7 +28,12 @@ from msg_adapters.pose import (
     transform_stamped_to_matrix,
 )
 from msg_adapters.segments import segment_array, segment_array_to_labels
-from msg_adapters.semantic_cloud import SemanticCloud, semantic_cloud_from_arrays, semantic_cloud_to_arrays
+from msg_adapters.semantic_cloud import (
+    SemanticCloud,
+    semantic_cloud_from_arrays,
+    semantic_cloud_to_arrays,
+    serialized_semantic_cloud,
+)
 from msg_adapters.semantic_objects import semantic_object, semantic_object_to_dict
 from msg_adapters.stamps import header_stamp_ns, make_header, ns_to_time, time_to_ns
 
@@ -68,6 +73,7 @@ __all__ = [
     "segment_array",
     "segment_array_to_labels",
     "semantic_cloud_from_arrays",
+    "serialized_semantic_cloud",
     "semantic_cloud_to_arrays",
     "semantic_object",
     "semantic_object_to_dict",

@@ -148,6 +148,40 @@ def _listed(names: list[str]) -> str:
 
 def make_cloud(columns: Iterable[tuple[str, np.ndarray]], *, frame_id: str, stamp: Any = 0, is_dense: bool = True):
     """An unordered (height 1) little-endian ``sensor_msgs.msg.PointCloud2`` with packed fields in the given order."""
+    msg, columns, dtype = _cloud_without_points(columns, frame_id, stamp, is_dense)
+    # The points are written straight into the message's bytes: filling a NumPy array, copying its bytes into an
+    # array.array, then rclpy's setter copying that again, held the interpreter for two copies of ~24 MB at 1M.
+    data = byte_array(msg.row_step)
+    _fill(np.frombuffer(data, dtype=dtype), columns)
+    msg.data = data
+    return msg
+
+
+def serialized_cloud(
+    columns: Iterable[tuple[str, np.ndarray]], *, frame_id: str, stamp: Any = 0, is_dense: bool = True
+) -> np.ndarray:
+    """The CDR bytes (with their encapsulation header) that rclpy's `serialize_message` makes of `make_cloud`'s
+    message, as a (B,) uint8 array with the points written in place: for `SerializedPublisher`, which hands them
+    to rcl without the interpreter (a message object costs three more copies of its points, all holding it).
+    Only the small rest of the message is serialized by rclpy: it ends with the points' length (uint32), the
+    points and `is_dense` (one byte), with no padding after them (XCDR1, as rmw_fastrtps writes)."""
+    from rclpy.serialization import serialize_message
+
+    msg, columns, dtype = _cloud_without_points(columns, frame_id, stamp, is_dense)
+    head = serialize_message(msg)  # its points empty: ... row_step, uint32 0, is_dense
+    start = len(head) - 1
+    out = np.empty(start + msg.row_step + 1, np.uint8)
+    out[: start - 4] = np.frombuffer(head, np.uint8, start - 4)
+    out[start - 4 : start] = np.frombuffer(np.uint32(msg.row_step).astype("<u4").tobytes(), np.uint8)
+    _fill(out[start : start + msg.row_step].view(dtype), columns)
+    out[-1] = head[-1]
+    return out
+
+
+def _cloud_without_points(
+    columns: Iterable[tuple[str, np.ndarray]], frame_id: str, stamp: Any, is_dense: bool
+) -> tuple[Any, list[tuple[str, np.ndarray]], np.dtype]:
+    """`make_cloud`'s message without its points, the checked columns and the packed dtype of a point."""
     from sensor_msgs.msg import PointCloud2, PointField
 
     columns = [(name, np.asarray(values)) for name, values in columns]
@@ -159,17 +193,12 @@ def make_cloud(columns: Iterable[tuple[str, np.ndarray]], *, frame_id: str, stam
         if values.dtype.newbyteorder("=") not in _NUMPY_TO_DATATYPE:
             raise AdapterError(f"PointCloud2: column {name!r} has unsupported dtype {values.dtype}")
         layout.append((name, values.dtype.newbyteorder("<")))
-    # The points are written straight into the message's bytes: filling a NumPy array, copying its bytes into an
-    # array.array, then rclpy's setter copying that again, held the interpreter for two copies of ~24 MB at 1M.
-    data = byte_array(n * np.dtype(layout).itemsize)
-    points = np.frombuffer(data, dtype=np.dtype(layout))
-    for name, values in columns:
-        points[name] = values
+    dtype = np.dtype(layout)
     fields = [
         PointField(
             name=name,
-            offset=points.dtype.fields[name][1],
-            datatype=_NUMPY_TO_DATATYPE[points.dtype.fields[name][0].newbyteorder("=")],
+            offset=dtype.fields[name][1],
+            datatype=_NUMPY_TO_DATATYPE[dtype.fields[name][0].newbyteorder("=")],
             count=1,
         )
         for name, _ in columns
@@ -177,8 +206,13 @@ def make_cloud(columns: Iterable[tuple[str, np.ndarray]], *, frame_id: str, stam
     # check_fields: the setter keeps an array.array('B') as it is (unchecked, it copies whatever it is given).
     msg = PointCloud2(header=make_header(frame_id, stamp), height=1, width=n, fields=fields, check_fields=True)
     msg.is_bigendian = False
-    msg.point_step = points.dtype.itemsize
+    msg.point_step = dtype.itemsize
     msg.row_step = msg.point_step * n
     msg.is_dense = bool(is_dense)
-    msg.data = data
-    return msg
+    return msg, columns, dtype
+
+
+def _fill(points: np.ndarray, columns: list[tuple[str, np.ndarray]]) -> None:
+    """Writes each column into its field of `points` (N,) of the packed dtype."""
+    for name, values in columns:
+        points[name] = values

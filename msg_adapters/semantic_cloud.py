@@ -23,7 +23,7 @@ from monovoc_ros.contract import MAP_FRAME
 from monovoc_ros.core.evidence.palette import unpack_rgb
 from msg_adapters.colors import rgb_to_packed
 from msg_adapters.errors import AdapterError
-from msg_adapters.point_cloud import FLOAT32, FLOATS, INTEGERS, UINT32, make_cloud, read_fields
+from msg_adapters.point_cloud import FLOAT32, FLOATS, INTEGERS, UINT32, make_cloud, read_fields, serialized_cloud
 
 FIELDS = ("x", "y", "z", "rgb", "object_id", "confidence")
 
@@ -48,6 +48,26 @@ def semantic_cloud_from_arrays(
 
     ``rgb``: (N, 3) uint8, (N, 3) float in [0, 1], or (N,) packed 0x00RRGGBB integers.
     """
+    return make_cloud(_columns(points, rgb, object_ids, confidence), frame_id=frame_id, stamp=stamp)
+
+
+def serialized_semantic_cloud(
+    points: np.ndarray,
+    rgb: np.ndarray,
+    object_ids: np.ndarray,
+    confidence: np.ndarray,
+    *,
+    frame_id: str = MAP_FRAME,
+    stamp: Any = 0,
+) -> np.ndarray:
+    """The CDR bytes of `semantic_cloud_from_arrays`'s message, (B,) uint8 (`point_cloud.serialized_cloud`)."""
+    return serialized_cloud(_columns(points, rgb, object_ids, confidence), frame_id=frame_id, stamp=stamp)
+
+
+def _columns(
+    points: np.ndarray, rgb: np.ndarray, object_ids: np.ndarray, confidence: np.ndarray
+) -> list[tuple[str, np.ndarray]]:
+    """The semantic schema's checked columns, in order."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise AdapterError(f"SemanticCloud: points must be (N, 3), got shape {points.shape}")
@@ -63,7 +83,7 @@ def semantic_cloud_from_arrays(
     if object_ids.dtype.kind not in "ui" or (n and (object_ids.min() < 0 or object_ids.max() > 2**32 - 1)):
         raise AdapterError(f"SemanticCloud: object_ids must be integers fitting uint32, got {object_ids.dtype}")
     points = points.astype(np.float32, copy=False)
-    columns = [
+    return [
         ("x", points[:, 0]),
         ("y", points[:, 1]),
         ("z", points[:, 2]),
@@ -71,7 +91,6 @@ def semantic_cloud_from_arrays(
         ("object_id", object_ids.astype(np.uint32)),
         ("confidence", confidence),
     ]
-    return make_cloud(columns, frame_id=frame_id, stamp=stamp)
 
 
 def semantic_cloud_to_arrays(msg: Any) -> SemanticCloud:

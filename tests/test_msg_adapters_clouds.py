@@ -25,6 +25,7 @@ from msg_adapters import (
     semantic_cloud_to_arrays,
     semantic_object,
     semantic_object_to_dict,
+    serialized_semantic_cloud,
     time_to_ns,
 )
 from msg_adapters.gaussian_cloud import COLOR_FIELDS, REQUIRED_FIELDS
@@ -450,3 +451,26 @@ def test_semantic_object_messages() -> None:
 
 def test_required_field_names_match_the_schema() -> None:
     assert list(REQUIRED_FIELDS) == SCHEMA[:11] and list(COLOR_FIELDS) == SCHEMA[11:14]
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 1000])
+@pytest.mark.parametrize("frame_id", ["", "m", "map", "odom_", "a/longer/frame_id"])
+def test_serialized_semantic_cloud_is_rclpy_s_serialization_of_the_message(n: int, frame_id: str) -> None:
+    rng = np.random.default_rng(n)
+    arrays = (
+        rng.normal(size=(n, 3)).astype(np.float32),
+        rng.integers(0, 256, (n, 3), dtype=np.uint8),
+        rng.integers(0, 2**32, n, dtype=np.uint32),
+        rng.uniform(0, 1, n).astype(np.float32),
+    )
+    stamp = 1_700_000_000_123_456_789
+    data = serialized_semantic_cloud(*arrays, frame_id=frame_id, stamp=stamp)
+    reference = semantic_cloud_from_arrays(*arrays, frame_id=frame_id, stamp=stamp)
+    assert data.dtype == np.uint8 and data.ndim == 1
+    # Same length and the same message; the bytes differ only where rclpy leaves its alignment padding unset.
+    assert data.size == len(serialize_message(reference))
+    assert deserialize_message(data.tobytes(), PointCloud2) == reference
+    with pytest.raises(AdapterError, match="NaN"):
+        serialized_semantic_cloud(
+            np.full((2, 3), np.nan), np.zeros((2, 3), np.uint8), np.ones(2, np.uint32), np.ones(2)
+        )

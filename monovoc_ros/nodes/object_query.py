@@ -58,6 +58,7 @@ from monovoc_ros.nodes.object_query_params import PARAMETERS
 from monovoc_ros.nodes.outputs import semantic_objects
 from monovoc_ros.nodes.param_spec import declare
 from monovoc_ros.nodes.qos import SERVICE_QOS
+from monovoc_ros.nodes.serialized_publisher import SerializedPublisher
 from monovoc_ros.nodes.services import guarded
 from monovoc_ros.objects import questions, spatial
 from monovoc_ros.objects.database import (
@@ -203,6 +204,7 @@ class ObjectQueryComponent:
             PointCloud2, "query/highlight", latched_qos(), event_callbacks=self._highlight_output.events()
         )
         self._highlight_output.publisher = self.highlight
+        self._highlight_bytes = SerializedPublisher(self.highlight)  # sent without holding the interpreter
         self.markers = host.create_publisher(
             MarkerArray, "query/markers", latched_qos(), event_callbacks=output_events()
         )
@@ -580,8 +582,8 @@ class ObjectQueryComponent:
             order = np.argsort(ids)
             score_of = np.array([s for _, s in matches], np.float32)[order]
             scores = score_of[np.searchsorted(ids[order], picked)] if picked.size else np.zeros(0, np.float32)
-            self.highlight.publish(
-                ma.semantic_cloud_from_arrays(
+            self._highlight_bytes.publish(
+                ma.serialized_semantic_cloud(
                     gaussians.means[pick],
                     picked,
                     picked,

@@ -16,7 +16,8 @@ it is the largest message (24 bytes a Gaussian: 24 MB at 1M), and building and s
 ~16 ms at 1M and ~110 ms at 2M Gaussians with nobody to receive it. When a subscriber appears (the publisher's
 matched event, on the executor's thread) and a cloud was left out, `on_cloud_subscriber` asks the worker for a
 publication (nodes/subscribed_output.py), so a viewer that starts late still gets the current cloud, as the
-transient-local QoS promises.
+transient-local QoS promises. The cloud is sent as CDR bytes without holding the interpreter
+(nodes/serialized_publisher.py): a publish preempted on saturated cores no longer stalls the query service.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from monovoc_ros.core.mapping import SemanticMapper, SemanticResult
 from monovoc_ros.core.object_geometry import ObjectSummary
 from monovoc_ros.core.segments.object_labels import ObjectLabel, display, label_fields, resolve
 from monovoc_ros.nodes.qos import latched_qos, output_events
+from monovoc_ros.nodes.serialized_publisher import SerializedPublisher
 from monovoc_ros.nodes.subscribed_output import SubscribedOutput
 
 # fn() -> object id -> label, consulted after labels_file and segment labels (called on the worker thread).
@@ -66,6 +68,7 @@ class SemanticOutputs:
             PointCloud2, "semantic_cloud", latched_qos(), event_callbacks=self._cloud_output.events()
         )
         self._cloud_output.publisher = self.cloud
+        self._cloud_bytes = SerializedPublisher(self.cloud)
         self.markers = node.create_publisher(
             MarkerArray, "objects/markers", latched_qos(), event_callbacks=output_events()
         )
@@ -101,7 +104,7 @@ class SemanticOutputs:
                 np.zeros(0, np.uint32),
                 np.zeros(0, np.float32),
             )
-            self.cloud.publish(ma.semantic_cloud_from_arrays(*empty, **header))
+            self._cloud_bytes.publish(ma.serialized_semantic_cloud(*empty, **header))
             self._last = ([], np.zeros(0, np.int64), header, {})
             return self._publish_objects(*self._last)
         header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)
@@ -110,7 +113,7 @@ class SemanticOutputs:
             ids = result.object_ids[known]
             # An object's id is its packed palette color: the cloud's packed rgb (result.object_rgb, unpacked).
             means, confidence = mapper.gaussians.means[known], result.confidence[known]
-            self.cloud.publish(ma.semantic_cloud_from_arrays(means, ids, ids, confidence, **header))
+            self._cloud_bytes.publish(ma.serialized_semantic_cloud(means, ids, ids, confidence, **header))
         geometry = result.objects(mapper.gaussians)
         index = result.palette.index_of(geometry.ids)
         observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
