@@ -41,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except OSError as exc:  # a path it cannot read or write (a file where a folder goes, no permission): one line
-        print(f"monovoc {args.command}: {exc}", file=sys.stderr)
+        command = " ".join(c for c in (args.command, getattr(args, "bag_command", None)) if c)  # bag's sub-commands
+        print(f"monovoc {command}: {exc}", file=sys.stderr)
         return 1
 
 

@@ -148,13 +148,7 @@ def _listed(names: list[str]) -> str:
 
 def make_cloud(columns: Iterable[tuple[str, np.ndarray]], *, frame_id: str, stamp: Any = 0, is_dense: bool = True):
     """An unordered (height 1) little-endian ``sensor_msgs.msg.PointCloud2`` with packed fields in the given order."""
-    msg, columns, dtype = _cloud_without_points(columns, frame_id, stamp, is_dense)
-    # The points are written straight into the message's bytes: filling a NumPy array, copying its bytes into an
-    # array.array, then rclpy's setter copying that again, held the interpreter for two copies of ~24 MB at 1M.
-    data = byte_array(msg.row_step)
-    _fill(np.frombuffer(data, dtype=dtype), columns)
-    msg.data = data
-    return msg
+    return _with_points(*_cloud_without_points(columns, frame_id, stamp, is_dense))
 
 
 def serialized_cloud(
@@ -162,20 +156,32 @@ def serialized_cloud(
 ) -> np.ndarray:
     """The CDR bytes (with their encapsulation header) that rclpy's `serialize_message` makes of `make_cloud`'s
     message, as a (B,) uint8 array with the points written in place: for `SerializedPublisher`, which hands them
-    to rcl without the interpreter (a message object costs three more copies of its points, all holding it).
-    Only the small rest of the message is serialized by rclpy: it ends with the points' length (uint32), the
-    points and `is_dense` (one byte), with no padding after them (XCDR1, as rmw_fastrtps writes)."""
+    to rcl without the interpreter (a message object costs one more copy of its points, rclpy's C message, and
+    holds the interpreter while it is made). Only the small rest of the message is serialized by rclpy: with no
+    points it ends with their length (uint32 0) and `is_dense` (one byte), no padding recorded after them (XCDR1 as
+    rmw_fastrtps writes it); a middleware that serializes otherwise gets the whole message serialized by rclpy."""
     from rclpy.serialization import serialize_message
 
     msg, columns, dtype = _cloud_without_points(columns, frame_id, stamp, is_dense)
-    head = serialize_message(msg)  # its points empty: ... row_step, uint32 0, is_dense
-    start = len(head) - 1
+    head = serialize_message(msg)
+    start = points_offset(head)
+    if start is None:
+        return np.frombuffer(serialize_message(_with_points(msg, columns, dtype)), np.uint8)
     out = np.empty(start + msg.row_step + 1, np.uint8)
     out[: start - 4] = np.frombuffer(head, np.uint8, start - 4)
-    out[start - 4 : start] = np.frombuffer(np.uint32(msg.row_step).astype("<u4").tobytes(), np.uint8)
+    out[start - 4 : start] = np.array([msg.row_step], np.uint32).view(np.uint8)  # host order, as rclpy writes
     _fill(out[start : start + msg.row_step].view(dtype), columns)
     out[-1] = head[-1]
     return out
+
+
+def points_offset(head: bytes) -> int | None:
+    """Where the points go in `head`, the CDR of a PointCloud2 without points (its last 5 bytes: a uint32 0, the
+    points' length, and is_dense), or None when `head` does not end so or records padding after it."""
+    start = len(head) - 1
+    if len(head) < 9 or head[2:4] != b"\0\0" or head[start - 4 : start] != b"\0\0\0\0" or head[-1] not in (0, 1):
+        return None
+    return start
 
 
 def _cloud_without_points(
@@ -210,6 +216,16 @@ def _cloud_without_points(
     msg.row_step = msg.point_step * n
     msg.is_dense = bool(is_dense)
     return msg, columns, dtype
+
+
+def _with_points(msg: Any, columns: list[tuple[str, np.ndarray]], dtype: np.dtype) -> Any:
+    """`msg` with its points. They are written straight into the message's bytes: filling a NumPy array, copying
+    its bytes into an array.array, then rclpy's setter copying that again, held the interpreter for two copies of
+    ~24 MB at 1M."""
+    data = byte_array(msg.row_step)
+    _fill(np.frombuffer(data, dtype=dtype), columns)
+    msg.data = data
+    return msg
 
 
 def _fill(points: np.ndarray, columns: list[tuple[str, np.ndarray]]) -> None:

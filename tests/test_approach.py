@@ -111,6 +111,11 @@ def test_offline_monovoc_approach_json_and_plot(capsys, tmp_path):
     nowhere = str(tmp_path / "no" / "p.png")
     assert cli_main(["approach", "--map", str(room_directory()), "the sofa", "--plot", nowhere]) == 1
     assert "--plot" in capsys.readouterr().err and not (tmp_path / "no").exists()
+    # A folder given as the plot: refused before the work (matplotlib would have written folder.png beside it).
+    (tmp_path / "plots").mkdir()
+    assert cli_main(["approach", "--map", str(room_directory()), "the sofa", "--plot", str(tmp_path / "plots")]) == 1
+    assert "a directory; give the image's name" in capsys.readouterr().err
+    assert not (tmp_path / "plots.png").exists() and not any((tmp_path / "plots").iterdir())
     # An image format matplotlib does not write: said in one line after the answer, which is still printed.
     odd = ["approach", "--map", str(room_directory()), "the sofa", "--json", "--plot", str(tmp_path / "g.xyz")]
     assert cli_main(odd) == 1

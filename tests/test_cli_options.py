@@ -126,7 +126,7 @@ def test_paths_a_command_cannot_write_or_read_are_one_line(tmp_path, capsys):
     (tmp_path / "bag_dir").mkdir()
     assert main(["bag", "convert", "synthetic", "-o", str(tmp_path / "bag_dir"), "--quiet"]) == 1
     err = capsys.readouterr().err
-    assert err.startswith("monovoc bag: ") and "Traceback" not in err and "Is a directory" in err
+    assert err.startswith("monovoc bag convert: ") and "Traceback" not in err and "Is a directory" in err
     with pytest.raises(SystemExit) as info:
         main(["eval", str(tmp_path / "no_map"), "--bag", str(BAG)])
     assert str(info.value).startswith("monovoc eval: ") and "no saved map" in str(info.value)

@@ -29,6 +29,7 @@ from msg_adapters import (
     time_to_ns,
 )
 from msg_adapters.gaussian_cloud import COLOR_FIELDS, REQUIRED_FIELDS
+from msg_adapters.point_cloud import points_offset
 
 SCHEMA = ["x", "y", "z", "scale_0", "scale_1", "scale_2", "rot_w", "rot_x", "rot_y", "rot_z", "opacity",
           "f_dc_0", "f_dc_1", "f_dc_2", "id"]  # fmt: skip
@@ -470,7 +471,19 @@ def test_serialized_semantic_cloud_is_rclpy_s_serialization_of_the_message(n: in
     # Same length and the same message; the bytes differ only where rclpy leaves its alignment padding unset.
     assert data.size == len(serialize_message(reference))
     assert deserialize_message(data.tobytes(), PointCloud2) == reference
+
+
+def test_serialized_semantic_cloud_checks_its_input_and_the_serialized_head() -> None:
     with pytest.raises(AdapterError, match="NaN"):
         serialized_semantic_cloud(
             np.full((2, 3), np.nan), np.zeros((2, 3), np.uint8), np.ones(2, np.uint32), np.ones(2)
         )
+    empty = (np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.uint32), np.zeros(0))
+    head = serialize_message(semantic_cloud_from_arrays(*empty))
+    assert points_offset(head) == len(head) - 1
+    # Written otherwise (padding recorded in the encapsulation options, a length that is not 0, no is_dense byte
+    # last): not spliced, the whole message is serialized by rclpy instead.
+    assert points_offset(head[:2] + b"\0\3" + head[4:]) is None
+    assert points_offset(head[:-5] + b"\0\0\0\1" + head[-1:]) is None
+    assert points_offset(head + b"\0") is None
+    assert points_offset(head[:8]) is None

@@ -27,6 +27,15 @@ def test_offline_query_json_and_errors(capsys, tmp_path):
     assert "empty query" in capsys.readouterr().err
     assert cli_main(["query", "--map", str(tmp_path), "a chair"]) == 2
     assert "no object database" in capsys.readouterr().err
+    # A file that is no database: deleting it is advised for a map's own objects.db only, not for a bag.
+    (tmp_path / "run.mcap").write_bytes(b"\x89MCAP0\r\n" + bytes(4096))
+    (tmp_path / "objects.db").write_bytes(bytes(4096))
+    assert cli_main(["query", "--map", str(tmp_path / "run.mcap"), "a chair"]) == 2
+    err = capsys.readouterr().err
+    assert "run.mcap: not a readable MonoVoc object database" in err and "delete" not in err
+    assert cli_main(["query", "--map", str(tmp_path), "a chair"]) == 2
+    err = capsys.readouterr().err
+    assert "objects.db: not a readable MonoVoc object database" in err and "delete it to rebuild the objects" in err
     with pytest.raises(SystemExit) as info:  # refused while parsing (argparse's one line)
         cli_main(["query", "--map", str(room_directory()), "a chair", "--top-k", "-1"])
     assert info.value.code == 2 and "--top-k: must be >= 0" in capsys.readouterr().err

@@ -1,9 +1,11 @@
 """SerializedPublisher on real rclpy nodes: the CDR bytes sent through rcl without the interpreter arrive as the
 same message rclpy's own publish sends (its reference twin), on this machine through librcl (not the fallback),
-and a destroyed publisher is an error, not a crash."""
+and a destroyed publisher, a publish rcl refuses or bytes that are no byte array are errors, not crashes."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +13,7 @@ import pytest
 
 import msg_adapters as ma
 from monovoc_ros.nodes.qos import latched_qos
-from monovoc_ros.nodes.serialized_publisher import SerializedPublisher, loaded_rcl_publish
+from monovoc_ros.nodes.serialized_publisher import SerializedPublisher, loaded_rcl
 from monovoc_ros.ros_harness import ClientNode, MessageCollector, wait_until
 from tests.rosutil import ros_environment
 
@@ -25,7 +27,7 @@ def _cloud_arrays(n: int, seed: int) -> tuple[np.ndarray, ...]:
 def test_bytes_sent_without_the_interpreter_arrive_as_rclpy_s_message(tmp_path: Path) -> None:
     from sensor_msgs.msg import PointCloud2
 
-    assert loaded_rcl_publish() is not None  # Linux with rclpy's librcl: the path under test is the real one
+    assert loaded_rcl() is not None  # Linux with rclpy's librcl: the path under test is the real one
     env = ros_environment(tmp_path)
     with ClientNode(env) as host, ClientNode(env, name="viewer") as viewer:
         released = SerializedPublisher(host.node.create_publisher(PointCloud2, "released", latched_qos(depth=3)))
@@ -50,6 +52,7 @@ def test_bytes_sent_without_the_interpreter_arrive_as_rclpy_s_message(tmp_path: 
 
 
 def test_a_destroyed_publisher_is_an_error_not_a_crash(tmp_path: Path) -> None:
+    from rclpy.exceptions import InvalidHandle
     from sensor_msgs.msg import PointCloud2
 
     with ClientNode(ros_environment(tmp_path)) as host:
@@ -58,7 +61,42 @@ def test_a_destroyed_publisher_is_an_error_not_a_crash(tmp_path: Path) -> None:
         data = ma.serialized_semantic_cloud(*_cloud_arrays(10, 0), frame_id="map")
         for sender in senders:
             sender.publish(data)
+            with pytest.raises(ValueError, match=r"contiguous \(B,\) uint8"):
+                sender.publish(data.view(np.int8))
+            with pytest.raises(ValueError, match=r"contiguous \(B,\) uint8"):
+                sender.publish(data[::2])
         host.node.destroy_publisher(publisher)
         for sender in senders:  # both as rclpy's own publish refuses it
-            with pytest.raises(Exception, match="destruction was requested"):
+            with pytest.raises(InvalidHandle, match="destruction was requested"):
                 sender.publish(data)
+
+
+_REFUSED = """
+import ctypes, rclpy
+import msg_adapters as ma
+import numpy as np
+from rclpy import _rclpy_pybind11
+from sensor_msgs.msg import PointCloud2
+from monovoc_ros.nodes.serialized_publisher import SerializedPublisher
+rclpy.init()
+node = rclpy.create_node("refused")
+sender = SerializedPublisher(node.create_publisher(PointCloud2, "refused", 1))
+data = ma.serialized_semantic_cloud(np.zeros((1, 3)), np.zeros((1, 3), np.uint8), [1], [1.0])
+sender.publish(data)
+rclpy.shutdown()
+try:
+    sender.publish(data)
+except RuntimeError as e:
+    print("refused:", e)
+print("error set:", bool(ctypes.CDLL(_rclpy_pybind11.__file__).rcutils_error_is_set()))
+"""
+
+
+def test_a_publish_rcl_refuses_raises_its_reason_and_clears_rcl_s_error_state(tmp_path: Path) -> None:
+    """In a process of its own: its context is shut down while the publisher lives."""
+    env = ros_environment(tmp_path)
+    done = subprocess.run([sys.executable, "-c", _REFUSED], env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "refused: Failed to publish on /refused: publisher's context is invalid" in done.stdout
+    assert "error set: False" in done.stdout
+    assert "overwritten" not in done.stderr

@@ -52,6 +52,10 @@ def run(args: argparse.Namespace) -> int:
         ap.check_standoff(args.standoff, "--standoff")  # before the work, not after it
         if args.plot and not Path(args.plot).resolve().parent.is_dir():  # checked before the work, not after it
             raise ValueError(f"--plot {args.plot}: no such directory {Path(args.plot).resolve().parent}")
+        if args.plot and Path(args.plot).is_dir():  # matplotlib would write DIR.png beside it
+            raise ValueError(
+                f"--plot {args.plot}: a directory; give the image's name, e.g. {Path(args.plot) / 'approach.png'}"
+            )
     except ValueError as exc:
         print(f"monovoc approach: {exc}", file=sys.stderr)
         return 1

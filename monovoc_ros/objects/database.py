@@ -194,9 +194,9 @@ class ObjectDatabase:
         except sqlite3.DatabaseError as exc:
             if isinstance(exc, sqlite3.OperationalError) and "locked" in str(exc):
                 raise ObjectDatabaseError(f"{self.path}: busy, another process holds a write lock ({exc})") from exc
-            raise ObjectDatabaseError(
-                f"{self.path}: not a readable MonoVoc object database ({exc}); delete it to rebuild the objects"
-            ) from exc
+            # Deleting it is the remedy only for a map's own objects.db, not for another file given in its place.
+            remedy = "; delete it to rebuild the objects" if self.path.name == DB_NAME else ""
+            raise ObjectDatabaseError(f"{self.path}: not a readable MonoVoc object database ({exc}){remedy}") from exc
         finally:
             db.close()
 
