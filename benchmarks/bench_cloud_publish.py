@@ -2,18 +2,20 @@
 bytes sent through rcl without the interpreter (nodes/serialized_publisher.py); prints JSON.
 
     scripts/with_env.sh python benchmarks/bench_cloud_publish.py                    # 600k points, as a 1M map's
-    scripts/with_env.sh python benchmarks/bench_cloud_publish.py --points 1200000 --rounds 40
+    scripts/with_env.sh python benchmarks/bench_cloud_publish.py --busy 2         # both cores kept busy meanwhile
 
 One subscriber in another process (monovoc_ros.nodes.cloud_viewer, as RViz), loopback. Per way, alternating
 rounds: building the cloud from the node's arrays (`build_ms`), sending it (`send_ms`), and the longest time the
 node's interpreter watch (nodes/interpreter_watch.py, waking every 0.5 ms) found the interpreter held during the
-send (`send_hold_ms`): what a query waits for while the worker sends. Medians and maxima over the rounds.
+send (`send_hold_ms`): what a query waits for while the worker sends. Medians and maxima over the rounds. `--busy N`
+keeps N processes spinning meanwhile, as a robot run's other processes keep the cores busy.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import tempfile
 import time
@@ -27,7 +29,7 @@ sys.path.insert(0, str(REPO))
 import msg_adapters as ma  # noqa: E402
 from monovoc_ros.nodes.interpreter_watch import InterpreterWatch  # noqa: E402
 from monovoc_ros.nodes.qos import latched_qos  # noqa: E402
-from monovoc_ros.nodes.serialized_publisher import SerializedPublisher  # noqa: E402
+from monovoc_ros.nodes.serialized_publisher import SerializedPublisher, loaded_rcl  # noqa: E402
 from monovoc_ros.ros_harness import ClientNode, NodeProcess, wait_until  # noqa: E402
 
 TICK_S = 0.0005
@@ -38,12 +40,40 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, default=600_000, help="points of the cloud (a 1M map labels ~600k)")
     parser.add_argument("--rounds", type=int, default=20, help="sends per way")
+    parser.add_argument("--busy", type=int, default=0, help="processes spinning beside the run")
     args = parser.parse_args()
-    from sensor_msgs.msg import PointCloud2
-
     rng = np.random.default_rng(0)
     ids = rng.integers(0, 1 << 24, args.points, dtype=np.uint32)
     arrays = (rng.normal(size=(args.points, 3)).astype(np.float32), ids, ids, rng.uniform(0, 1, args.points))
+    spinning = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
+    try:
+        times = _rounds(args, arrays)
+    finally:
+        for p in spinning:
+            p.kill()
+            p.wait()
+    report = {
+        "points": args.points,
+        "cloud_mb": round(args.points * 24 / 1e6, 1),
+        "rounds": args.rounds,
+        "busy_processes": args.busy,
+        "releases_interpreter": loaded_rcl() is not None,
+        **{
+            way: {
+                f"{k}_{stat}": round(float(fn(v)), 2)
+                for k, v in t.items()
+                for stat, fn in (("median", np.median), ("max", np.max))
+            }
+            for way, t in times.items()
+        },
+    }
+    print(json.dumps(report, indent=1))
+
+
+def _rounds(args: argparse.Namespace, arrays: tuple[np.ndarray, ...]) -> dict[str, dict[str, list[float]]]:
+    """Per way, the build, send and hold times (ms) of each round."""
+    from sensor_msgs.msg import PointCloud2
+
     times: dict[str, dict[str, list[float]]] = {w: {"build_ms": [], "send_ms": [], "send_hold_ms": []} for w in
                                                 ("rclpy_message", "bytes_without_interpreter")}  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp, ClientNode(name="bench_cloud_publisher") as host:
@@ -78,21 +108,7 @@ def main() -> None:
                 watch.stop()
                 files["stop"].touch()
             wait_until(lambda: not viewer.running(), 60.0, "the viewer to end", process=None)
-    report = {
-        "points": args.points,
-        "cloud_mb": round(args.points * 24 / 1e6, 1),
-        "rounds": args.rounds,
-        "releases_interpreter": sender.releases_interpreter,
-        **{
-            way: {
-                f"{k}_{stat}": round(float(fn(v)), 2)
-                for k, v in t.items()
-                for stat, fn in (("median", np.median), ("max", np.max))
-            }
-            for way, t in times.items()
-        },  # fmt: skip
-    }
-    print(json.dumps(report, indent=1))
+    return times
 
 
 if __name__ == "__main__":
