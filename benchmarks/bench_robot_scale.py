@@ -88,7 +88,7 @@ from monovoc_ros.ros_harness import (  # noqa: E402
 )
 from monovoc_ros.synthetic import churn  # noqa: E402
 
-ACTIVITIES = ("keyframes", "map_updates", "reintegration", "labels", "publish", "snapshots", "calls")
+ACTIVITIES = ("keyframes", "map_updates", "reintegration", "labels", "objects", "publish", "snapshots", "calls")
 TILE_COLORS = 4096  # object colors per tile: tile t's copy of color j is 1 + t * TILE_COLORS + j
 
 
@@ -181,7 +181,6 @@ def cpu_use(before: dict[str, dict[int, float]], after: dict[str, dict[int, floa
 def worker_shares(values: dict[str, str], wall_s: float) -> dict:
     shares = {a: round(float(values[f"worker_s_{a}"]) / wall_s, 3) for a in ACTIVITIES}
     shares["total"] = round(sum(shares.values()), 3)
-    shares["objects_beside_the_worker"] = round(float(values.get("objects_s", 0)) / wall_s, 3)  # geometry, messages
     shares["map_decoding_beside_the_worker"] = round(float(values["map_decode_s"]) / wall_s, 3)
     shares["map_update_plans_beside_the_worker"] = round(float(values["map_prepare_s"]) / wall_s, 3)
     # Of the worker's map updates: waiting for the motion or the plan prepared beside it.
@@ -311,18 +310,12 @@ def run(
             "worker_share": worker_shares(values, wall),
             # Every process of the run on the machine's cores, from the first message to the last keyframe integrated.
             "cpu": cpu_use(cpu_before, cpu_after, wall, int(done["keyframes_processed"])),
-            # What one publication took the worker (the labels; the cloud and the listeners), and the objects thread
-            # beside it (the object geometry, the objects and markers messages); publications whose objects were
-            # replaced by the next one's before they started.
+            # What one publication took the worker: the labels, the object geometry, the messages.
             "publications": int(values["publishes"]),
             "publication_ms_mean": {
-                **{
-                    a: round(1e3 * float(values[f"worker_s_{a}"]) / max(1, int(values["publishes"])), 1)
-                    for a in ("labels", "publish")
-                },
-                "objects_beside": round(1e3 * float(values.get("objects_s", 0)) / max(1, int(values["publishes"])), 1),
+                a: round(1e3 * float(values[f"worker_s_{a}"]) / max(1, int(values["publishes"])), 1)
+                for a in ("labels", "objects", "publish")
             },
-            "objects_coalesced": int(values.get("objects_coalesced", 0)),
             # The longest time any thread of the node held the interpreter (nodes/interpreter_watch.py), and when; with
             # --hold-trace-ms, the file of the holders' stacks.
             **{

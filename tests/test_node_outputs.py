@@ -30,9 +30,9 @@ def test_a_publication_builds_messages_only_for_changed_objects(tmp_path: Path) 
         mapper.integrate(kf)
     with ClientNode(ros_environment(tmp_path)) as client:
         outputs = SemanticOutputs(client.node, frame_id="map", labels={}, up=(0.0, 0.0, 1.0))
-        n = outputs.publish(mapper, mapper.result()).result(30)
+        n = outputs.publish(mapper, mapper.result())
         assert n > 3 and outputs.marker_cache.built == n and outputs.object_cache.built == n
-        outputs.publish(mapper, mapper.result()).result(30)  # nothing changed: nothing built
+        outputs.publish(mapper, mapper.result())  # nothing changed: nothing built
         assert outputs.marker_cache.built == n and outputs.object_cache.built == n
 
         before = _geometry(mapper)
@@ -40,7 +40,7 @@ def test_a_publication_builds_messages_only_for_changed_objects(tmp_path: Path) 
         after = _geometry(mapper)
         moved = sum(1 for oid, values in after.items() if before.get(oid) != values)
         assert 0 < moved < len(after)  # the keyframe changed some objects, not all
-        outputs.publish(mapper, mapper.result()).result(30)
+        outputs.publish(mapper, mapper.result())
         assert outputs.marker_cache.built == n + moved
         # A SemanticObject also carries the object's observation count: rebuilt for every object seen again.
         assert n + moved <= outputs.object_cache.built <= n + len(after)
@@ -73,7 +73,7 @@ def test_the_cloud_waits_for_a_subscriber_which_then_asks_for_it(tmp_path: Path)
         objects = MessageCollector()
         viewer.node.create_subscription(SemanticObjectArray, "objects", objects, latched_qos())
         wait_until(lambda: outputs.objects.get_subscription_count() == 1, 20.0, "the objects' subscriber")
-        n = outputs.publish(mapper, mapper.result()).result(30)
+        n = outputs.publish(mapper, mapper.result())
         assert n > 3 and outputs.clouds_skipped == 1  # nobody subscribes to the cloud: left out
         assert len(objects.wait_for(1, 10.0)[-1].objects) == n  # the objects still go out
         assert not asked.is_set()
@@ -86,49 +86,3 @@ def test_the_cloud_waits_for_a_subscriber_which_then_asks_for_it(tmp_path: Path)
         observed = int((mapper.result().object_ids != UNOBSERVED_ID).sum())
         assert clouds.wait_for(1, 10.0)[-1].width == observed > 0
         assert outputs.clouds_skipped == 1
-
-
-def test_objects_are_published_beside_the_caller_and_the_newest_replaces_one_not_started(tmp_path: Path) -> None:
-    from monovoc_interfaces.msg import SemanticObjectArray
-
-    scene = small_scene()
-    keyframes = assemble(scene_messages())
-    mapper = SemanticMapper(scene.gaussians)
-    for kf in keyframes[:3]:
-        mapper.integrate(kf)
-    env = ros_environment(tmp_path)
-    release, entered = threading.Event(), threading.Event()
-
-    def held_labels() -> dict:  # called on the objects thread by every objects publication
-        entered.set()
-        release.wait(30)
-        return {}
-
-    with ClientNode(env) as host, ClientNode(env, name="viewer") as viewer:
-        outputs = SemanticOutputs(host.node, frame_id="map", labels={}, up=(0.0, 0.0, 1.0))
-        outputs.set_label_provider(held_labels)
-        objects = MessageCollector()
-        viewer.node.create_subscription(SemanticObjectArray, "objects", objects, latched_qos(depth=10))
-        wait_until(lambda: outputs.objects.get_subscription_count() == 1, 20.0, "the objects' subscriber")
-        first = outputs.publish(mapper, mapper.result())
-        assert entered.wait(30) and not first.done()  # the caller went on while its objects are being made
-        mapper.integrate(keyframes[3])
-        second = outputs.publish(mapper, mapper.result())
-        assert outputs.republish_objects() is second  # a publication not started yet stands for the republication
-        mapper.integrate(keyframes[4])
-        third = outputs.publish(mapper, mapper.result())
-        assert second.cancelled() and outputs.objects_coalesced == 1  # replaced before it started
-        release.set()
-        expected = len(mapper.result().objects(mapper.gaussians).objects)
-        assert first.result(30) > 0 and third.result(30) == expected
-        # The newest arrives (the writer keeps the last one: the first may be replaced in its history before it went).
-        wait_until(lambda: objects.messages and len(objects.messages[-1].objects) == expected, 10.0, "the newest")
-        assert len(objects.messages) <= 2
-        assert outputs.objects_errors == 0 and outputs.objects_s > 0
-
-        # A publication that fails is counted and its Future holds the error; the objects thread goes on.
-        host.node.destroy_publisher(outputs.markers)
-        failed = outputs.publish(mapper, mapper.result())
-        assert "destruction was requested" in str(failed.exception(30)) and outputs.objects_errors == 1
-        assert outputs.republish_objects().exception(30) is not None and outputs.objects_errors == 2
-        outputs.close()

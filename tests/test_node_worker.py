@@ -64,20 +64,13 @@ def keyframe(stamp: int, shift: int = 0) -> Keyframe:
     return Keyframe(stamp, stamp, np.eye(4), CAM, mask)
 
 
-def _objects_sent(n: int) -> Future:
-    """What a sink returns: a Future of the number of objects it published."""
-    objects = Future()
-    objects.set_result(n)
-    return objects
-
-
 class Sink:
     def __init__(self):
         self.published = []
 
     def publish(self, mapper, result):
         self.published.append((None if mapper is None else mapper.n_keyframes, result))
-        return _objects_sent(0)
+        return 0
 
 
 def make_worker(tmp_path: Path | None = None, **settings) -> tuple[MapWorker, Sink, RecordingLog]:
@@ -827,7 +820,7 @@ class GeometrySink(Sink):
 
     def publish(self, mapper, result):
         super().publish(mapper, result)
-        return _objects_sent(0 if result is None else len(result.objects(mapper.gaussians).objects))
+        return 0 if result is None else len(result.objects(mapper.gaussians).objects)
 
 
 def test_a_reintegration_steps_once_per_three_waiting_keyframes_and_finishes_when_none_wait():
@@ -1014,7 +1007,7 @@ class MapSink:
     def publish(self, mapper, result):
         if mapper is not None:
             self.published.append((mapper.gaussians, mapper.n_keyframes))
-        return _objects_sent(0)
+        return 0
 
 
 @pytest.mark.parametrize("ahead", [False, True])
@@ -1112,7 +1105,7 @@ def test_worker_time_is_accounted_by_activity(tmp_path):
         worker.stop(final_snapshot=False)
     stats = worker.stats.snapshot()
     assert stats["keyframes_processed"] == 6
-    for activity in ("keyframes", "map_updates", "labels", "publish", "snapshots", "calls"):
+    for activity in ("keyframes", "map_updates", "labels", "objects", "publish", "snapshots", "calls"):
         assert stats[f"worker_s_{activity}"] > 0, activity
     # The activities are disjoint slices of the worker's time: together less than it ran.
     assert sum(v for k, v in stats.items() if k.startswith("worker_s_")) < 10.0

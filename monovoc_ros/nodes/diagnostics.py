@@ -50,7 +50,8 @@ class MapperStats(SessionStats):
     worker_s_reintegration: float = 0.0  # re-integration steps after a map update that bent the map
     reintegration_steps: int = 0  # logged keyframes integrated again (one per step)
     worker_s_labels: float = 0.0  # the semantic result (labels of every Gaussian) for a publication
-    worker_s_publish: float = 0.0  # the cloud and the result listeners (objects and markers: `objects_s`, beside)
+    worker_s_objects: float = 0.0  # the object geometry of a publication (after a map update: waiting for its seed)
+    worker_s_publish: float = 0.0  # the cloud, objects and markers messages and the result listeners
     worker_s_snapshots: float = 0.0  # periodic snapshots into map_directory
     worker_s_calls: float = 0.0  # services and other calls run on the worker (save, load, queries of it)
     map_decode_s: float = 0.0

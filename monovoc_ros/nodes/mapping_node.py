@@ -160,14 +160,7 @@ class MappingNode(Node):
                                         self._report_failure)  # fmt: skip
         self._publish_for_subscriber = CoalescedCall(self.worker, self.worker.publish_now, "publish_cloud",
                                                      self._report_failure)  # fmt: skip
-        self.add_diagnostics_source(
-            lambda: {
-                "clouds_skipped": self.outputs.clouds_skipped,
-                "objects_s": round(self.outputs.objects_s, 3),  # the objects thread (outputs.py), beside the worker
-                "objects_coalesced": self.outputs.objects_coalesced,
-                "objects_errors": self.outputs.objects_errors,
-            }
-        )
+        self.add_diagnostics_source(lambda: {"clouds_skipped": self.outputs.clouds_skipped})
         try:
             check_stop(stop, "loading the map")
             self._queue_deferred()
@@ -301,12 +294,10 @@ class MappingNode(Node):
         if self._map_reader is not None:  # no map arrives while the worker drains
             self._map_reader.stop()
         self.worker.stop(within_s=end - TEARDOWN_RESERVE_S - time.monotonic())
-        self.outputs.close()  # the objects publication in progress, before the publishers go
         self._interpreter_watch.stop()
 
     def destroy_node(self) -> None:
         self._interpreter_watch.stop()
-        self.outputs.close()  # closed already unless start-up was cut short
         if self._map_reader is not None:  # stopped already unless start-up was cut short
             self._map_reader.stop()
         super().destroy_node()

@@ -18,20 +18,11 @@ matched event, on the executor's thread) and a cloud was left out, `on_cloud_sub
 publication (nodes/subscribed_output.py), so a viewer that starts late still gets the current cloud, as the
 transient-local QoS promises. The cloud is sent as CDR bytes without holding the interpreter
 (nodes/serialized_publisher.py): a publish preempted on saturated cores no longer stalls the query service.
-
-The objects and markers are made on a thread of their own (`monovoc-objects`), in order: the object geometry of a
-publication (main clusters, percentile boxes) and its messages took the worker 100-230 ms at 1-2M Gaussians after
-a second of keyframes, time the next keyframe waited for. A publication whose objects have not started when the
-next one comes is replaced by it (counted as `objects_coalesced`): only the newest objects are worth sending.
-`publish` and `republish_objects` return a Future of the number of objects sent.
 """
 
 from __future__ import annotations
 
-import threading
-import time
 from collections.abc import Callable, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -85,15 +76,8 @@ class SemanticOutputs:
             SemanticObjectArray, "objects", latched_qos(), event_callbacks=output_events()
         )
         self._label_provider: LabelProvider | None = None
-        # (summaries, observations, header, segment labels) of the last publication, for republish_objects; only
-        # the objects thread reads and writes it.
+        # (summaries, observations, header, segment labels) of the last publication, for republish_objects.
         self._last: tuple[list[ObjectSummary], np.ndarray, dict, Mapping[int, str]] | None = None
-        self._objects_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monovoc-objects")
-        self._queued: Future | None = None  # the newest objects publication submitted
-        self._queue_lock = threading.Lock()
-        self.objects_coalesced = 0  # objects publications replaced by a newer one before they started
-        self.objects_errors = 0  # objects publications that raised (logged)
-        self.objects_s = 0.0  # seconds of the objects thread: geometry and messages
         # The messages of objects unchanged since the last publication are sent again, not rebuilt.
         self.marker_cache: ma.MessageCache = ma.MessageCache()
         self.object_cache: ma.MessageCache = ma.MessageCache()
@@ -102,14 +86,14 @@ class SemanticOutputs:
         """Labels of a component (see the module docstring); set before the worker starts."""
         self._label_provider = fn
 
-    def republish_objects(self) -> Future:
-        """The objects and markers of the last publication again, with the labels known now; a Future of the number
-        of objects."""
-        return self._submit(lambda: 0 if self._last is None else self._publish_objects(*self._last), replaces=False)
+    def republish_objects(self) -> int:
+        """The objects and markers of the last publication again, with the labels known now (worker
+        thread); returns the number of objects."""
+        return 0 if self._last is None else self._publish_objects(*self._last)
 
-    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> Future:
-        """Publishes the cloud (on the caller's thread, the worker), then the objects and markers on the objects
-        thread; returns a Future of the number of objects. The cloud goes first: the object geometry is not on the
+    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
+        """Publishes the cloud, then the objects and markers; returns the number of objects. The cloud goes
+        first: the object geometry (main clusters, percentile boxes: ~58 ms at 140k Gaussians) is not on the
         path from a keyframe to the cloud that includes it."""
         now = self._node.get_clock().now().nanoseconds
         if mapper is None or result is None:
@@ -121,7 +105,8 @@ class SemanticOutputs:
                 np.zeros(0, np.float32),
             )
             self._cloud_bytes.publish(ma.serialized_semantic_cloud(*empty, **header))
-            return self._submit(lambda: self._publish_objects_of(None, None, header, {}))
+            self._last = ([], np.zeros(0, np.int64), header, {})
+            return self._publish_objects(*self._last)
         header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)
         if self._cloud_output.wanted():
             known = np.flatnonzero(result.object_ids != UNOBSERVED_ID)
@@ -129,51 +114,10 @@ class SemanticOutputs:
             # An object's id is its packed palette color: the cloud's packed rgb (result.object_rgb, unpacked).
             means, confidence = mapper.gaussians.means[known], result.confidence[known]
             self._cloud_bytes.publish(ma.serialized_semantic_cloud(means, ids, ids, confidence, **header))
-        # Maps and results are immutable snapshots; the segment labels are read now, on the worker.
-        gaussians, segments = mapper.gaussians, mapper.object_labels()
-        return self._submit(lambda: self._publish_objects_of(gaussians, result, header, segments))
-
-    def close(self) -> None:
-        """Drops the objects publication not yet started and waits for the one in progress (before the node's
-        publishers are destroyed)."""
-        self._objects_thread.shutdown(wait=True, cancel_futures=True)
-
-    def _submit(self, fn: Callable[[], int], replaces: bool = True) -> Future:
-        """`fn` on the objects thread. `replaces`: a publication not yet started is dropped for this one (a new
-        publication); else (a republication) one not yet started is kept and stands for it: its labels are read
-        when it runs."""
-
-        def timed() -> int:
-            start = time.perf_counter()
-            try:
-                return fn()
-            except Exception as exc:  # a failure of one publication must not stop the next
-                self.objects_errors += 1
-                self._node.get_logger().error(f"objects publication failed: {type(exc).__name__}: {exc}")
-                raise
-            finally:
-                self.objects_s += time.perf_counter() - start
-
-        with self._queue_lock:
-            queued = self._queued
-            if queued is not None and not replaces and not (queued.running() or queued.done()):
-                return queued
-            if queued is not None and queued.cancel():
-                self.objects_coalesced += 1
-            self._queued = self._objects_thread.submit(timed)
-            return self._queued
-
-    def _publish_objects_of(
-        self, gaussians: Any, result: SemanticResult | None, header: dict, segments: Mapping[int, str]
-    ) -> int:
-        """The objects and markers of `result` in `gaussians` (None: no map); objects thread."""
-        if result is None:
-            self._last = ([], np.zeros(0, np.int64), header, segments)
-        else:
-            geometry = result.objects(gaussians)
-            index = result.palette.index_of(geometry.ids)
-            observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
-            self._last = (list(geometry.objects), observations, header, segments)
+        geometry = result.objects(mapper.gaussians)
+        index = result.palette.index_of(geometry.ids)
+        observations = np.where(index >= 0, result.palette.mask_counts[np.maximum(index, 0)], 0)
+        self._last = (list(geometry.objects), observations, header, mapper.object_labels())
         return self._publish_objects(*self._last)
 
     @property

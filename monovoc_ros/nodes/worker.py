@@ -115,9 +115,8 @@ _ACTIVITY = {"keyframe": "worker_s_keyframes", "map": "worker_s_map_updates", "c
 class OutputSink(Protocol):
     """Where results go (the node's publishers); called on the worker thread."""
 
-    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> Future:
-        """Publishes the semantic map (None: no map, publish an empty one); returns a Future of the number of
-        objects (the objects may be published beside the worker)."""
+    def publish(self, mapper: SemanticMapper | None, result: SemanticResult | None) -> int:
+        """Publishes the semantic map (None: no map, publish an empty one); returns the number of objects."""
         ...
 
 
@@ -591,9 +590,8 @@ class MapWorker:
         self._changed(unsaved=self.session.mapper is not None)
 
     def publish_now(self) -> tuple[SemanticResult | None, int]:
-        """Recomputes and publishes the result now; returns it and the number of objects, once they are published."""
-        result, objects = self._publish()
-        return result, 0 if objects is None else objects.result()
+        """Recomputes and publishes the result now; returns it and the number of objects."""
+        return self._publish()
 
     def objects_now(self) -> int:
         mapper = self.session.mapper
@@ -766,19 +764,18 @@ class MapWorker:
             return
         self._publish()
 
-    def _publish(self) -> tuple[SemanticResult | None, Future | None]:
-        """Publishes the result now; returns it and the sink's Future of the number of objects (None: no sink)."""
+    def _publish(self) -> tuple[SemanticResult | None, int]:
         start = time.perf_counter()
         self._output_dirty = False
         self._last_publish = time.monotonic()
         mapper = self.session.mapper
         result = mapper.result() if mapper is not None else None
         labelled = time.perf_counter()
-        # Outputs first: the sink starts the object geometry (cached on the result) before a listener's thread,
-        # possibly of lower priority, asks the result for it and holds its lock.
-        objects = self.sink.publish(mapper, result) if self.sink is not None else None
-        if objects is not None:
-            objects.add_done_callback(self._objects_published)
+        computed = result is None or result.objects_seconds is not None
+        # Outputs first: the worker computes (and caches on the result) the object geometry before a
+        # listener's thread, possibly of lower priority, asks the result for it and holds its lock.
+        objects = self.sink.publish(mapper, result) if self.sink is not None else 0
+        geometry_s = 0.0 if computed else (result.objects_seconds or 0.0)
         if mapper is not None and result is not None:
             for fn in self._result_listeners:
                 try:
@@ -789,15 +786,14 @@ class MapWorker:
         end = time.perf_counter()
         self._publish_s = end - start
         self._published_s += end - start
-        self.stats.update(observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
-        self.stats.add(publishes=1, worker_s_labels=labelled - start, worker_s_publish=end - labelled)
+        self.stats.update(objects=objects, observed_gaussians=observed, publish_ms_last=1e3 * (end - start))
+        self.stats.add(
+            publishes=1,
+            worker_s_labels=labelled - start,
+            worker_s_objects=geometry_s,
+            worker_s_publish=end - labelled - geometry_s,
+        )
         return result, objects
-
-    def _objects_published(self, objects: Future) -> None:
-        """The number of objects once the sink published them (a publication replaced or failed: the sink
-        counted and logged it)."""
-        if not objects.cancelled() and objects.exception() is None:
-            self.stats.update(objects=objects.result())
 
     def _save_enabled(self) -> bool:
         return bool(self.settings.map_directory) and self.settings.save_period_s > 0
