@@ -51,17 +51,10 @@ def semantic_cloud_from_arrays(
     return make_cloud(_columns(points, rgb, object_ids, confidence), frame_id=frame_id, stamp=stamp)
 
 
-def serialized_semantic_cloud(
-    points: np.ndarray,
-    rgb: np.ndarray,
-    object_ids: np.ndarray,
-    confidence: np.ndarray,
-    *,
-    frame_id: str = MAP_FRAME,
-    stamp: Any = 0,
-) -> np.ndarray:
-    """The CDR bytes of `semantic_cloud_from_arrays`'s message, (B,) uint8 (`point_cloud.serialized_cloud`)."""
-    return serialized_cloud(_columns(points, rgb, object_ids, confidence), frame_id=frame_id, stamp=stamp)
+def serialized_semantic_cloud(*arrays: np.ndarray, frame_id: str = MAP_FRAME, stamp: Any = 0) -> np.ndarray:
+    """The CDR bytes of `semantic_cloud_from_arrays`'s message of the same `arrays` (points, rgb, object_ids,
+    confidence), (B,) uint8 (`point_cloud.serialized_cloud`)."""
+    return serialized_cloud(_columns(*arrays), frame_id=frame_id, stamp=stamp)
 
 
 def _columns(
