@@ -98,6 +98,10 @@ def test_offline_monovoc_approach_json_and_plot(capsys, tmp_path):
     answer = json.loads(capsys.readouterr().out)
     assert answer["success"] and answer["object"]["label"] == "sofa" and answer["pose"]["frame_id"] == "map"
     assert len(answer["pose"]["position"]) == 3 and isinstance(answer["pose"]["yaw"], float)
+    # The room's up is estimated (close to +z, not exactly): the yaw is the map's, the one its orientation has.
+    x, y, z, w = answer["pose"]["orientation"]
+    turn = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)) - answer["pose"]["yaw"]
+    assert abs(np.angle(np.exp(1j * turn))) < 1e-3
     assert plot.stat().st_size > 10_000 and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert cli_main(["approach", "--map", str(room_directory()), "the ceiling"]) == 1
     assert "overhead" in capsys.readouterr().err
@@ -121,6 +125,17 @@ def test_offline_monovoc_approach_json_and_plot(capsys, tmp_path):
     assert cli_main(odd) == 1
     out = capsys.readouterr()
     assert json.loads(out.out)["success"] and out.err.startswith("monovoc approach: --plot")
+
+
+def test_the_upright_frame_of_a_map_whose_up_is_near_z_is_the_map_s_own():
+    from monovoc_ros.objects.upright import upright_rotation
+
+    for up in ((1e-5, 2e-6, 1.0), (2e-6, 1e-5, 1.0), (0.0, 0.0, 1.0)):
+        np.testing.assert_allclose(upright_rotation(np.array(up)), np.eye(3), atol=1e-4)
+    for up in ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.3, -0.2, 0.9), (0.0, 0.0, -1.0)):
+        rotation = upright_rotation(np.array(up))
+        np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rotation) == pytest.approx(1.0) and rotation[2] @ up == pytest.approx(np.linalg.norm(up))
 
 
 def test_the_gaussian_map_type_builds_a_grid():

@@ -105,6 +105,7 @@ def test_replay_fast_delivers_every_message_and_remaps(bag: Path, tmp_path: Path
         with replay_process(bag, env, *args) as p:
             summary = finish(p)
         assert summary["messages"]["/cam/image"] == counts[TOPICS["image"]] and not summary["unacked"]
+        assert "deprecated" not in p.output()  # the command's arguments are not taken for rcl remap rules
         for role in TYPES:
             received[role].wait_for(counts[TOPICS[role]], timeout=10.0)
         time.sleep(0.2)  # nothing more may arrive (no duplicates)

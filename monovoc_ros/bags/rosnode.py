@@ -40,7 +40,9 @@ def ros_node(name: str, node: Any = None, *, writer_heartbeat_ms: int | None = N
     try:
         # The participant (and with it the profile) comes with the context's first node, not with init.
         with writer_heartbeat(writer_heartbeat_ms):
-            rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+            # args=[]: the command's own arguments are not ROS arguments (rcl took replay's `--remap A:=B` for
+            # deprecated global remap rules, with a warning each).
+            rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
             own = rclpy.create_node(name, context=context, start_parameter_services=False)
         yield own
     finally:

@@ -98,13 +98,16 @@ class SemanticOutputs:
         now = self._node.get_clock().now().nanoseconds
         if mapper is None or result is None:
             header = dict(frame_id=self.frame_id, stamp=now)
-            empty = (
-                np.zeros((0, 3), np.float32),
-                np.zeros((0, 3), np.uint8),
-                np.zeros(0, np.uint32),
-                np.zeros(0, np.float32),
-            )
-            self._cloud_bytes.publish(ma.serialized_semantic_cloud(*empty, **header))
+            # Only for a subscriber, as any cloud: an empty one sent at start stayed the latched sample that a viewer
+            # starting minutes later got first (`ros2 topic echo --once` printed an empty cloud).
+            if self._cloud_output.wanted():
+                empty = (
+                    np.zeros((0, 3), np.float32),
+                    np.zeros((0, 3), np.uint8),
+                    np.zeros(0, np.uint32),
+                    np.zeros(0, np.float32),
+                )
+                self._cloud_bytes.publish(ma.serialized_semantic_cloud(*empty, **header))
             self._last = ([], np.zeros(0, np.int64), header, {})
             return self._publish_objects(*self._last)
         header = dict(frame_id=self.frame_id, stamp=int(mapper.state.stamps_ns.max()) if mapper.n_keyframes else now)

@@ -71,11 +71,13 @@ def estimate_up(gaussians: GaussianMap, hint: np.ndarray, max_samples: int = 50_
 
 def upright_rotation(up: np.ndarray) -> np.ndarray:
     """(3, 3) rotation whose rows are two horizontal directions and ``up``: ``points @ R.T`` has height
-    last. The first horizontal direction is the world axis least aligned with up, made horizontal."""
+    last. The first horizontal direction is the first world axis other than the one most aligned with up, made
+    horizontal: for a map whose up is near +z the frame is the map's own (x, y), so a yaw in it is the map's yaw.
+    (The axis least aligned with up picked y for an estimated up of (1e-5, 2e-6, 1): a frame turned 90 degrees.)"""
     up = np.asarray(up, np.float64)
     up = up / np.linalg.norm(up)
     e = np.zeros(3)
-    e[int(np.argmin(np.abs(up)))] = 1.0
+    e[1 if int(np.argmax(np.abs(up))) == 0 else 0] = 1.0
     h1 = e - (e @ up) * up
     h1 /= np.linalg.norm(h1)
     h2 = np.cross(up, h1)
